@@ -1,0 +1,1 @@
+"""Geometry shared by the offline pipelines: transforms, mirroring, crops, signed distance."""
