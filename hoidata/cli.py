@@ -57,7 +57,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("make-toy", help="write the procedural MANO hand and YCB-layout objects")
     p.add_argument("--out", required=True, help="output folder (gets mano/ and models/)")
-    p.add_argument("--cache-dir", default=None, help="cache for simplified meshes (default ~/.cache/hoidata)")
+    p.add_argument("--cache-dir", default=None, help="cache for simplified meshes (default $HOIDATA_CACHE/objects or ~/.cache/hoidata/objects)")
     p.set_defaults(func=cmd_make_toy)
 
     p = sub.add_parser("check-mano", help="load and check MANO_RIGHT.pkl / MANO_LEFT.pkl")
@@ -67,7 +67,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("check-objects", help="load, repair and simplify the objects of a YCB models folder")
     p.add_argument("models_dir", help="folder with <name>/textured_simple.obj per object")
     p.add_argument("--vertices", type=int, default=1000, help="vertex count of the evaluation meshes")
-    p.add_argument("--cache-dir", default=None, help="cache for simplified meshes (default ~/.cache/hoidata)")
+    p.add_argument("--cache-dir", default=None, help="cache for simplified meshes (default $HOIDATA_CACHE/objects or ~/.cache/hoidata/objects)")
     p.set_defaults(func=cmd_check_objects)
     return parser
 

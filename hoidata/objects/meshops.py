@@ -24,8 +24,11 @@ from hoidata.errors import DataError
 
 # Vertices closer than 10 nm are the same point; OBJ seam duplicates are bit-identical anyway.
 MERGE_DECIMALS = 8
-# Holes with at most this many boundary edges are closed with a fan; bigger ones are reported.
+# A hole is "small" and gets closed with a fan when its boundary has at most MAX_HOLE_EDGES edges
+# and a perimeter of at most MAX_HOLE_PERIMETER times the bounding-box diagonal (about a 1 cm hole
+# in a 15 cm object); anything bigger is a real opening and is reported, not papered over.
 MAX_HOLE_EDGES = 64
+MAX_HOLE_PERIMETER = 0.2
 
 
 @dataclass
@@ -136,16 +139,12 @@ def drop_bad_faces(faces: np.ndarray) -> np.ndarray:
     inverse = inverse.ravel()
     keep = np.zeros(len(faces), dtype=bool)
     keep[first] = True
-    for group in np.flatnonzero(counts == 2):
-        f0, f1 = np.flatnonzero(inverse == group)
-        if _same_orientation(faces[f0], faces[f1]) is False:
-            keep[f0] = keep[f1] = False
+    order = np.argsort(inverse, kind="stable")
+    pairs = order[counts[inverse[order]] == 2].reshape(-1, 2)  # the two copies of each doubled triple
+    f0, f1 = faces[pairs[:, 0]], faces[pairs[:, 1]]
+    same = np.any([(np.roll(f0, k, axis=1) == f1).all(axis=1) for k in range(3)], axis=0)
+    keep[pairs[~same].ravel()] = False
     return faces[keep]
-
-
-def _same_orientation(f0: np.ndarray, f1: np.ndarray) -> bool:
-    """Whether two faces over the same vertex triple list it in the same cyclic order."""
-    return any(np.array_equal(np.roll(f0, k), f1) for k in range(3))
 
 
 def drop_unreferenced(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -173,7 +172,8 @@ def fix_winding(faces: np.ndarray) -> np.ndarray:
     if not same.any():
         return faces
     # weight 1: consistent neighbours, 2: one must flip; the virtual root n links with weight 1.
-    pair_key, first = np.unique(np.stack([np.minimum(fa, fb), np.maximum(fa, fb)], 1), axis=0, return_index=True)
+    ordered = np.stack([np.minimum(fa, fb), np.maximum(fa, fb)], 1)
+    pair_key, first = np.unique(ordered, axis=0, return_index=True)
     weight = np.where(same[first], 2.0, 1.0)
     seeds = np.unique(_face_components(n, pair_key), return_index=True)[1]
     rows = np.concatenate([pair_key[:, 0], np.full(len(seeds), n)])
@@ -212,8 +212,10 @@ def orient_outward(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return out
 
 
-def fill_small_holes(vertices: np.ndarray, faces: np.ndarray, max_edges: int = MAX_HOLE_EDGES):
-    """Close boundary loops of at most ``max_edges`` edges with a fan around the loop centroid.
+def fill_small_holes(vertices: np.ndarray, faces: np.ndarray, max_edges: int = MAX_HOLE_EDGES,
+                     max_perimeter: float = MAX_HOLE_PERIMETER):
+    """Close boundary loops of at most ``max_edges`` edges and a perimeter of at most
+    ``max_perimeter`` times the bounding-box diagonal with a fan around the loop centroid.
 
     Loops through a vertex with several boundary edges are ambiguous and left open. New faces are
     wound against the boundary so they agree with the faces they close. Returns (vertices, faces).
@@ -226,6 +228,7 @@ def fill_small_holes(vertices: np.ndarray, faces: np.ndarray, max_edges: int = M
         if v in nxt:  # two boundary edges end here: a pinch vertex, loops through it are ambiguous
             ambiguous.add(v)
         nxt[v] = u  # the filling face runs the boundary edge backwards
+    limit = max_perimeter * np.linalg.norm(vertices.max(0) - vertices.min(0))
     new_vertices, new_faces, seen = [], [], set()
     for start in sorted(nxt):
         loop, cur = [start], nxt[start]
@@ -234,6 +237,8 @@ def fill_small_holes(vertices: np.ndarray, faces: np.ndarray, max_edges: int = M
             cur = nxt[cur]
         seen.update(loop)
         if cur != start or len(loop) > max_edges or ambiguous.intersection(loop) or len(loop) < 3:
+            continue
+        if np.linalg.norm(vertices[loop] - vertices[np.roll(loop, -1)], axis=1).sum() > limit:
             continue
         if len(loop) == 3:
             new_faces.append(loop)
@@ -279,17 +284,21 @@ def decimate(vertices: np.ndarray, faces: np.ndarray, max_vertices: int, aim: in
     """Quadric decimation (fast_simplification) to at most ``max_vertices``, aiming at ``aim``.
 
     fast_simplification targets a face count; a closed genus-0 mesh has F = 2V - 4, so we ask for
-    2 * aim faces and lower the request by the overshoot until the vertex count fits.
+    2 * aim faces and lower the request by the overshoot until the vertex count fits. Open
+    boundaries are kept in place (they would otherwise shrink by millimetres) unless the boundary
+    alone has too many vertices to reach the target.
     """
-    target = 2 * aim
-    for _ in range(10):
-        target = max(4, min(target, len(faces) - 1))
-        v, f = fast_simplification.simplify(vertices, faces, target_count=target)
-        f = drop_bad_faces(np.asarray(f, dtype=np.int64))
-        v, f = drop_unreferenced(np.asarray(v, dtype=np.float64), f)
-        if len(v) <= max_vertices:
-            return v, f
-        target -= 2 * (len(v) - aim)
+    for preserve_border in (True, False):
+        target = 2 * aim
+        for _ in range(10):
+            target = max(4, min(target, len(faces) - 1))
+            v, f = fast_simplification.simplify(vertices, faces, target_count=target,
+                                                preserve_border=preserve_border)
+            f = drop_bad_faces(np.asarray(f, dtype=np.int64))
+            v, f = drop_unreferenced(np.asarray(v, dtype=np.float64), f)
+            if len(v) <= max_vertices:
+                return v, f
+            target -= 2 * (len(v) - aim)
     raise RuntimeError(f"decimation did not reach {max_vertices} vertices (got {len(v)})")
 
 
@@ -375,7 +384,8 @@ def surface_error(simplified: trimesh.Trimesh, original: trimesh.Trimesh,
     """
     dists = []
     for k, (src, dst) in enumerate([(simplified, original), (original, simplified)]):
-        pts = np.vstack([sample_surface(src.vertices, src.faces, n_samples, seed + k), src.vertices])
+        used = np.asarray(src.vertices)[np.unique(src.faces)]  # stray unreferenced vertices are not surface
+        pts = np.vstack([sample_surface(src.vertices, src.faces, n_samples, seed + k), used])
         dists.append(_distance_to_mesh(pts, dst))
     d = np.concatenate(dists)
     return {"max": float(d.max()), "mean": float(d.mean())}

@@ -94,13 +94,14 @@ def load_object_mesh(path: str | os.PathLike) -> trimesh.Trimesh:
 
     Loaded with ``process=False`` and ``maintain_order=True`` so the file's vertex order and UV
     seams survive (vertex ids then match the OBJ). Units are whatever the file holds (YCB: metres).
-    Raises DataError for a missing or unreadable file, no faces, or several separate geometries.
+    Raises DataError for a missing or unreadable file, no faces, or several separate geometries
+    (OBJ ``o``/``g`` groups or materials are split, not merged, so a multi-part file is caught).
     """
     path = Path(path)
     if not path.is_file():
         raise DataError(path, None, "mesh file not found")
     try:
-        loaded = trimesh.load(path, process=False, maintain_order=True)
+        loaded = trimesh.load(path, process=False, maintain_order=True, split_objects=True, split_groups=True)
     except Exception as exc:  # trimesh raises many exception types on malformed files
         raise DataError(path, None, f"cannot read mesh ({type(exc).__name__}: {exc})") from exc
     if isinstance(loaded, trimesh.Scene):
