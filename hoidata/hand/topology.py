@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from hoidata.geometry.surface import signed_volumes
+
 NUM_PARTS = 16  # one part per MANO joint, in MANO's native joint order
 
 
@@ -91,8 +93,7 @@ def close_vertices(vertices, loop: np.ndarray):
 
 def signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
     """Signed volume of a closed triangle mesh (positive when faces wind counter-clockwise outward)."""
-    a, b, c = (vertices[faces[:, i]] for i in range(3))
-    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
+    return float(signed_volumes(vertices, faces).sum())
 
 
 def vertex_part_labels(weights: np.ndarray) -> np.ndarray:

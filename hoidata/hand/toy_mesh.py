@@ -20,6 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hoidata.geometry.surface import split_longest_edges
+
 PALM_COLS, PALM_THICK = 12, 2  # lattice cells across the knuckles and through the palm
 FINGERS = ("index", "middle", "ring", "pinky", "thumb")
 # Top-face column ranges of the four finger holes (column 0 is the pinky side, 12 the thumb side).
@@ -174,30 +176,6 @@ def _hole_loops(quads: list) -> list[list[int]]:
     return loops
 
 
-def _split_longest_edges(pos: list, tris: list, n_splits: int, frozen: set) -> None:
-    """Insert `n_splits` vertices at midpoints of the longest edges not touching `frozen` twice (in place).
-
-    Splitting an interior edge shared by two triangles keeps the surface, its orientation and its
-    topology, and adds one vertex and two faces.
-    """
-    for _ in range(n_splits):
-        owners: dict = {}
-        for fi, t in enumerate(tris):
-            for i in range(3):
-                owners.setdefault(tuple(sorted((t[i], t[(i + 1) % 3]))), []).append(fi)
-        edges = [e for e, fs in owners.items() if len(fs) == 2 and not (e[0] in frozen and e[1] in frozen)]
-        length = lambda e: float(np.linalg.norm(pos[e[0]] - pos[e[1]]))  # noqa: E731
-        a, b = max(edges, key=lambda e: (round(length(e), 12), e))
-        m = len(pos)
-        pos.append(0.5 * (pos[a] + pos[b]))
-        for fi in owners[(a, b)]:
-            t = list(tris[fi])
-            i = next(k for k in range(3) if {t[k], t[(k + 1) % 3]} == {a, b})
-            p, q, r = t[i], t[(i + 1) % 3], t[(i + 2) % 3]
-            tris[fi] = (p, m, r)
-            tris.append((m, q, r))
-
-
 def _tube(pos: list, tris: list, loop: list, axis: np.ndarray, side: np.ndarray, spec: FingerSpec,
           depth: float) -> FingerGeometry:
     """Append a finger tube (rings + tip) glued to the 8-vertex palm hole `loop` (in place)."""
@@ -278,8 +256,9 @@ def build_hand_mesh(spec: HandSpec = HandSpec(), n_vertices: int = 778) -> HandM
     n_splits = n_vertices - (len(pos) + 16 + finger_count)
     if n_splits < 0:
         raise ValueError(f"hand spec has {-n_splits} vertices too many for {n_vertices}")
-    _split_longest_edges(pos, tris, n_splits, {i for lp in loops for i in lp})
-    palm_end = len(pos)
+    split_v, split_f = split_longest_edges(np.array(pos), np.array(tris, dtype=np.int64), n_splits,
+                                           frozen={i for lp in loops for i in lp})
+    pos, tris = list(split_v), [tuple(f) for f in split_f.tolist()]
     wrist_center = np.array([pos[i] for i in wrist]).mean(0)
     ring = []
     for i in wrist:
@@ -302,5 +281,4 @@ def build_hand_mesh(spec: HandSpec = HandSpec(), n_vertices: int = 778) -> HandM
         geo = _tube(pos, tris, holes[name], axis, side, fspec, depth)
         geo.name = name
         fingers[name] = geo
-    del palm_end
     return HandMesh(np.array(pos), np.array(tris, dtype=np.int64), palm_ids, wrist_center, fingers)

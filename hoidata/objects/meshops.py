@@ -21,6 +21,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import breadth_first_order, connected_components
 
 from hoidata.errors import DataError
+from hoidata.geometry.surface import signed_volumes, split_longest_edges
 
 # Vertices closer than 10 nm are the same point; OBJ seam duplicates are bit-identical anyway.
 MERGE_DECIMALS = 8
@@ -60,12 +61,6 @@ def _edge_groups(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     _, inverse, counts = np.unique(und, axis=0, return_inverse=True, return_counts=True)
     inverse = inverse.ravel()
     return inverse, counts[inverse]
-
-
-def signed_volumes(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(F,) signed volume (m^3) of the tetrahedron each face spans with the origin."""
-    a, b, c = (vertices[faces[:, k]] for k in range(3))
-    return np.einsum("ij,ij->i", a, np.cross(b, c)) / 6.0
 
 
 def _vertex_components(n_vertices: int, faces: np.ndarray) -> np.ndarray:
@@ -300,39 +295,6 @@ def decimate(vertices: np.ndarray, faces: np.ndarray, max_vertices: int, aim: in
                 return v, f
             target -= 2 * (len(v) - aim)
     raise RuntimeError(f"decimation did not reach {max_vertices} vertices (got {len(v)})")
-
-
-def split_longest_edges(vertices: np.ndarray, faces: np.ndarray, n_splits: int):
-    """Add exactly ``n_splits`` vertices by splitting the longest edge at its midpoint, repeatedly.
-
-    A midpoint split replaces each face on the edge by two coplanar halves, so the surface (and
-    watertightness) is unchanged; only the vertex count grows, by one per split. Deterministic:
-    ties go to the lowest face/corner index.
-    """
-    n_v, n_f = len(vertices), len(faces)
-    V = np.vstack([vertices, np.zeros((n_splits, 3))])
-    F = np.vstack([faces, np.zeros((2 * n_splits, 3), dtype=np.int64)])
-    L = np.zeros((len(F), 3))
-    L[:n_f] = _edge_lengths(V, F[:n_f])
-    for _ in range(n_splits):
-        fi, k = divmod(int(np.argmax(L[:n_f])), 3)
-        a, b = F[fi, k], F[fi, (k + 1) % 3]
-        V[n_v] = 0.5 * (V[a] + V[b])
-        on_edge = np.flatnonzero((F[:n_f] == a).any(1) & (F[:n_f] == b).any(1))
-        for g in on_edge:
-            j = next(j for j in range(3) if {F[g, j], F[g, (j + 1) % 3]} == {a, b})
-            x, y, z = F[g, j], F[g, (j + 1) % 3], F[g, (j + 2) % 3]
-            F[g], F[n_f] = (x, n_v, z), (n_v, y, z)
-            L[[g, n_f]] = _edge_lengths(V, F[[g, n_f]])
-            n_f += 1
-        n_v += 1
-    return V[:n_v], F[:n_f]
-
-
-def _edge_lengths(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(F, 3) length of the edge from corner k to corner k+1."""
-    p = vertices[faces]
-    return np.linalg.norm(p[:, [1, 2, 0]] - p, axis=2)
 
 
 def simplify_mesh(mesh: trimesh.Trimesh, n_vertices: int = 1000) -> trimesh.Trimesh:
