@@ -202,3 +202,17 @@ def test_bad_forward_inputs_raise_clear_errors(mano_right):
         mano_right(torch.zeros(2, 48), torch.zeros(3, 10))
     with pytest.raises(ValueError, match="tips must be"):
         load_mano(mano_right.path, tips="fingers")
+
+
+def test_change_frame_moves_the_posed_hand_rigidly(mano_right):
+    from hoidata.hand import change_frame
+
+    pose, betas, transl = random_inputs(3, seed=11)
+    rot = Rotation.random(random_state=12).as_matrix()
+    shift = np.array([0.1, -0.2, 0.5])
+    wrist = mano_right.rest_joints(betas)[:, 0].numpy()
+    new_pose, new_transl = change_frame(pose.numpy(), transl.numpy(), wrist, rot, shift)
+    before = mano_right(pose, betas, transl).vertices.numpy()
+    after = mano_right(torch.as_tensor(new_pose), betas, torch.as_tensor(new_transl)).vertices.numpy()
+    np.testing.assert_allclose(after, before @ rot.T + shift, atol=1e-10)
+    assert np.array_equal(new_pose[:, 3:], pose.numpy()[:, 3:])

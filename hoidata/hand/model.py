@@ -214,6 +214,12 @@ class MANO(nn.Module):
             raise ValueError(f"MANO {name}: expected a tensor of shape {want}, got {got}")
         return x
 
+    def rest_joints(self, betas: torch.Tensor) -> torch.Tensor:
+        """Rest-pose MANO joints (B, 16, 3) for betas (B, 10): the pivots of the joint rotations."""
+        betas = self._check(betas, NUM_BETAS, "betas").to(self.v_template)
+        v_shaped = self.v_template[None] + lbs_math.blend_shapes(betas, self.shapedirs)
+        return lbs_math.vertices_to_joints(self.j_regressor, v_shaped)
+
     def close(self, vertices: torch.Tensor) -> torch.Tensor:
         """Vertices (B, 778, 3) -> closed-mesh vertices (B, 779, 3), to use with ``closed_faces``."""
         return topology.close_vertices(vertices, torch.as_tensor(self.wrist_loop, device=vertices.device))

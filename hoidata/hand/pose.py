@@ -73,3 +73,30 @@ def flat_to_mean_relative(pose, hands_mean):
 def mean_relative_to_flat(pose, hands_mean):
     """MANO mean-relative pose (..., 48) -> flat-hand-mean pose (..., 48)."""
     return _cat(pose[..., :3], pose[..., 3:] + _like(pose, hands_mean))
+
+
+def change_frame(pose, transl, rest_wrist, rotation, translation):
+    """Express a MANO pose in another frame x' = rotation @ x + translation (numpy, float64).
+
+    MANO rotates about the rest wrist joint J0 and adds ``transl`` afterwards, so a rigid change of
+    frame changes the global rotation *and* the translation: with R_g' = R R_g,
+    transl' = R (J0 + transl) + t - J0. J0 depends on the shape: pass the rest wrist of these betas
+    (``MANO.rest_joints(betas)[:, 0]``).
+
+    Args:
+        pose: (..., 48) axis-angle, joint 0 global; only the first 3 values change.
+        transl: (..., 3) MANO translation, metres.
+        rest_wrist: (..., 3) rest-pose wrist joint J0 for the betas in use.
+        rotation: (3, 3) proper rotation; translation: (3,) metres.
+
+    Returns:
+        (pose', transl') with the same shapes.
+    """
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    pose = np.array(pose, dtype=np.float64)
+    glob = Rotation.from_rotvec(pose[..., :3].reshape(-1, 3)).as_matrix()
+    pose[..., :3] = Rotation.from_matrix(rotation @ glob).as_rotvec().reshape(pose[..., :3].shape)
+    new_transl = (np.asarray(rest_wrist) + transl) @ np.asarray(rotation).T + translation - rest_wrist
+    return pose, new_transl

@@ -1,0 +1,124 @@
+"""Turning one DexYCB sequence into Frames: label checks, PCA -> axis-angle, the proximity filter."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from hoidata.datasets.dexycb import (
+    IMAGE_SIZE,
+    SERIALS,
+    SUBJECTS,
+    color_path,
+    hand_box_valid,
+    label_path,
+    object_name,
+    read_betas,
+    read_intrinsics,
+    read_labels,
+)
+from hoidata.datasets.frame import Frame, Skip
+from hoidata.errors import DataError
+from hoidata.hand.pose import pca_to_axis_angle
+
+
+def invalid_reason(labels: dict, grasp: int) -> str | None:
+    """Why a frame's annotation cannot be used, or None if it can (the toolkit's invalid markers)."""
+    if np.all(labels["joint_3d"] == -1):
+        return "hand annotation missing (joint_3d is -1)"
+    if not np.any(labels["pose_m"]):
+        return "MANO pose missing (pose_m is all zeros)"
+    if not np.any(labels["pose_y"][grasp]):
+        return "grasped object pose missing (pose_y is all zeros)"
+    if not np.isfinite(labels["joint_3d"]).all() or not np.isfinite(labels["pose_m"]).all():
+        return "non-finite values in joint_3d or pose_m"
+    if not hand_box_valid(labels["joint_2d"][0]):
+        return "hand box (1.5x the 2D joints) does not meet the image"
+    return None
+
+
+def sequence_frames(reader, s: int, seq_index: int, seq_dir: Path, meta: dict) -> Iterator[Frame]:
+    """Frames of one sequence for `reader` (a DexYCBReader), cameras in SERIALS order, then frames."""
+    subject, setting = SUBJECTS[s], reader.setting
+    side = str(meta["mano_sides"][0])
+    if side not in setting.sides:
+        reader.skipped.append(Skip(f"{subject}_{seq_dir.name}", f"{side} hand: setting {setting.name} keeps {setting.sides}",
+                                   str(seq_dir / "meta.yml")))
+        return
+    try:
+        betas = read_betas(reader.root, str(meta["mano_calib"][0]))
+        name = object_name(meta["ycb_ids"][int(meta["ycb_grasp_ind"])], seq_dir / "meta.yml")
+    except DataError as e:
+        reader._fail(e, f"{subject}_{seq_dir.name}")
+        return
+    grasp = int(meta["ycb_grasp_ind"])
+    for c in reader._serials:
+        serial = SERIALS[c]
+        if serial not in [str(x) for x in meta["serials"]]:
+            continue
+        K = read_intrinsics(reader.root, serial)
+        kept = []
+        for f in range(0, int(meta["num_frames"]), setting.frame_stride):
+            fid = f"{subject}_{seq_dir.name}_{serial}_{f:06d}"
+            try:
+                labels = read_labels(label_path(seq_dir, serial, f), len(meta["ycb_ids"]))
+            except DataError as e:
+                reader._fail(e, fid)
+                continue
+            reason = invalid_reason(labels, grasp)
+            if reason:
+                reader.skipped.append(Skip(fid, reason, str(label_path(seq_dir, serial, f))))
+                continue
+            kept.append((f, fid, labels))
+        yield from _frames_for_camera(reader, kept, dict(subject=subject, seq_dir=seq_dir, seq_index=seq_index,
+                                                         serial=serial, K=K, side=side, betas=betas,
+                                                         grasp=grasp, name=name, class_id=int(meta["ycb_ids"][grasp])))
+
+
+def _frames_for_camera(reader, kept: list, ctx: dict) -> Iterator[Frame]:
+    if not kept:
+        return
+    mano = reader.mano(ctx["side"])
+    pose_m = np.stack([lab["pose_m"][0] for _, _, lab in kept]).astype(np.float64)
+    full = pca_to_axis_angle(pose_m[:, :48], mano.hands_components.double().numpy(), mano.hands_mean.double().numpy())
+    transl = pose_m[:, 48:51]
+    distances = _hand_object_distances(reader, mano, full, ctx, transl, kept)
+    limit = reader.setting.proximity_mm
+    for k, (f, fid, lab) in enumerate(kept):
+        lpath = label_path(ctx["seq_dir"], ctx["serial"], f)
+        if distances is not None and distances[k] * 1000.0 > limit:
+            reader.skipped.append(Skip(fid, f"hand-object distance {distances[k] * 1000:.1f} mm > {limit} mm", str(lpath)))
+            continue
+        pose = np.eye(4)
+        pose[:3] = lab["pose_y"][ctx["grasp"]]
+        joints = lab["joint_3d"][0].astype(np.float64)
+        yield Frame(
+            dataset="dexycb", split=reader.split, frame_id=fid, image_path=color_path(ctx["seq_dir"], ctx["serial"], f),
+            image_size=IMAGE_SIZE, K=ctx["K"], side=ctx["side"], root_3d=joints[0], object_name=ctx["name"],
+            object_id=ctx["class_id"], object_pose=pose, mano_pose=full[k], mano_betas=ctx["betas"],
+            mano_transl=transl[k], joints_3d=joints, joints_2d=lab["joint_2d"][0].astype(np.float64),
+            tip_convention="manopth", mirror=reader.setting.mirror_left and ctx["side"] == "left",
+            segmentation_path=lpath,
+            source={"labels": str(lpath), "subject": ctx["subject"], "sequence": ctx["seq_dir"].name,
+                    "sequence_index": ctx["seq_index"], "serial": ctx["serial"], "frame": f},
+        )
+
+
+def _hand_object_distances(reader, mano, full, ctx, transl, kept) -> np.ndarray | None:
+    """Min distance (m) from the grasped object's model vertices to the hand's vertices, per frame."""
+    if reader.setting.proximity_mm is None or reader.split not in reader.setting.proximity_splits:
+        return None
+    import torch
+
+    betas = np.broadcast_to(ctx["betas"], (len(kept), 10))
+    with torch.no_grad():
+        verts = mano(torch.as_tensor(full), torch.as_tensor(betas), torch.as_tensor(transl)).vertices.numpy()
+    obj = reader.object_vertices(ctx["name"])
+    out = np.empty(len(kept))
+    for k, (_, _, lab) in enumerate(kept):
+        rt = lab["pose_y"][ctx["grasp"]].astype(np.float64)
+        out[k] = cKDTree(verts[k]).query(obj @ rt[:, :3].T + rt[:, 3])[0].min()
+    return out
