@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 from pathlib import Path
 
 from hoidata import __version__
@@ -16,19 +15,20 @@ from hoidata.errors import DataError
 
 
 def cmd_make_toy(args: argparse.Namespace) -> int:
-    """Write the procedural MANO hand and the procedural YCB-layout objects, then check them."""
-    from hoidata.hand.toy import write_toy_mano
-    from hoidata.objects import write_toy_objects
+    """Write the procedural hand, objects and toy datasets in the real layouts, then check them."""
+    from hoidata.datasets.toy import make_toy, split_rows
     from hoidata.summary import format_rows, mano_rows, object_rows
 
     out = Path(args.out)
-    start = time.perf_counter()
-    mano_paths = write_toy_mano(out / "mano")
-    object_paths = write_toy_objects(out / "models")
-    print(f"wrote {len(mano_paths)} MANO files to {out / 'mano'} and {len(object_paths)} objects to "
-          f"{out / 'models'} in {time.perf_counter() - start:.1f} s\n")
-    print(format_rows(mano_rows(out / "mano")) + "\n")
-    print(format_rows(object_rows(out / "models", cache_dir=args.cache_dir)))
+    layouts = ("dexycb", "ho3d") if args.layout == "all" else (args.layout,)
+    for layout in layouts:
+        root = out / layout if args.layout == "all" else out
+        made = make_toy(root, layout, sequences=args.sequences, frames=args.frames, seed=args.seed)
+        print(f"\n{layout}: wrote {made} ")
+        print(format_rows(split_rows(root, layout)))
+    first = out / layouts[0] if args.layout == "all" else out
+    print("\n" + format_rows(mano_rows(first / "mano")) + "\n")
+    print(format_rows(object_rows(first / "models", cache_dir=args.cache_dir)))
     return 0
 
 
@@ -55,8 +55,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"hoidata {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    p = sub.add_parser("make-toy", help="write the procedural MANO hand and YCB-layout objects")
-    p.add_argument("--out", required=True, help="output folder (gets mano/ and models/)")
+    p = sub.add_parser("make-toy", help="write toy DexYCB / HO-3D datasets with procedural MANO files and objects")
+    p.add_argument("--out", required=True, help="output folder; with --layout all it gets dexycb/ and ho3d/")
+    p.add_argument("--layout", choices=("dexycb", "ho3d", "all"), default="all", help="dataset layout (default: all)")
+    p.add_argument("--sequences", type=int, default=None, help="sequences per subject (DexYCB) / training sequences (HO-3D)")
+    p.add_argument("--frames", type=int, default=None, help="frames per sequence and camera")
+    p.add_argument("--seed", type=int, default=0, help="random seed; the same seed gives the same files")
     p.add_argument("--cache-dir", default=None, help="cache for simplified meshes (default $HOIDATA_CACHE/objects or ~/.cache/hoidata/objects)")
     p.set_defaults(func=cmd_make_toy)
 

@@ -7,7 +7,7 @@ Everything the toolkit reads is there with its real names, keys, dtypes and unit
 extrinsics camera -> world, MANO betas per subject and side) and ``models/``.
 
 The default size covers every split of setups s0, s1 and s2 and both hands (left-hand sequences in
-train and val); s3 val/test need ``sequences >= 40`` because the toolkit picks them by sequence index.
+train); s3 val/test need ``sequences >= 40`` because the toolkit picks them by sequence index.
 """
 
 from __future__ import annotations
@@ -39,9 +39,9 @@ class ToyDexYCBSize:
     frames: int = 10
 
 
-def sequence_side(subject_pos: int, seq: int) -> str:
-    """Left hands in sequences 1 and 3 (train) and in the first subject's sequence 4 (val)."""
-    return "left" if seq in (1, 3) or (subject_pos == 0 and seq == 4) else "right"
+def sequence_side(seq: int) -> str:
+    """Left hands in sequences 1 and 3 (train); the rest, val and test included, are right hands."""
+    return "left" if seq in (1, 3) else "right"
 
 
 def _write_yaml(path: Path, data: dict) -> None:
@@ -78,7 +78,7 @@ def write_sequence(root, renderer, manos, objects, subject_pos, s, seq, size, ca
     """Render and write one sequence folder; returns the number of images written."""
     Ks, cams, betas = calib
     rng = np.random.default_rng([seed, s, seq])
-    side = sequence_side(subject_pos, seq)
+    side = sequence_side(seq)
     names = sorted(objects)
     grasped, other = objects[names[(subject_pos + seq) % len(names)]], objects[names[(subject_pos + seq + 2) % len(names)]]
     calib_name, b = betas[(s, side)]
@@ -92,13 +92,14 @@ def write_sequence(root, renderer, manos, objects, subject_pos, s, seq, size, ca
         "serials": serials, "num_frames": size.frames, "ycb_ids": [grasped.class_id, other.class_id],
         "ycb_grasp_ind": 0, "mano_sides": [side], "mano_calib": [calib_name], "extrinsics": "20200702_151821"})
     _write_pose_npz(seq_dir, mano, sequence, other_pose)
-    skin = tuple(rng.uniform([0.55, 0.38, 0.3], [0.95, 0.75, 0.62]))
+    skin = toy_scenes.random_look(rng, 8, 8).skin  # one skin tone per sequence, seen by every camera
     invalid = INVALID_FRAME if seq % 3 == 2 and size.frames > INVALID_FRAME else None
     for serial in serials:
         (seq_dir / serial).mkdir(parents=True, exist_ok=True)
+        look = toy_scenes.random_look(rng, renderer.width, renderer.height, skin)
         for f in range(size.frames):
             view = toy_scenes.render_view(renderer, mano, sequence, f, Ks[serial], cams[serial],
-                                          [(other, other_pose)], rng, HAND_LABEL, skin)
+                                          [(other, other_pose)], look, HAND_LABEL)
             _write_frame(seq_dir / serial, f, view, mano, Ks[serial], other_pose, cams[serial], f == invalid)
     return len(serials) * size.frames
 
@@ -137,20 +138,50 @@ def _write_pose_npz(seq_dir: Path, mano, seq, other_pose) -> None:
     np.savez_compressed(seq_dir / "pose.npz", pose_y=pose_y, pose_m=pose_m)
 
 
-def write_toy_dexycb(root: str | Path, mano_dir: Path, models_dir: Path, size: ToyDexYCBSize = ToyDexYCBSize(),
-                     seed: int = 0, progress: bool = True) -> dict:
-    """Write the toy DexYCB tree under `root` (MANO files and models must exist). Returns counts."""
+_WORKER: dict = {}
+
+
+def _init_worker(mano_dir: Path, models_dir: Path) -> None:
+    """Per-process state: MANO layers, objects and one offscreen renderer (GL contexts do not fork)."""
     from hoidata.hand import load_mano
     from hoidata.render import Renderer
 
+    torch.set_num_threads(1)
+    _WORKER["manos"] = {side: load_mano(mano_dir, side=side, dtype=torch.float64) for side in ("right", "left")}
+    _WORKER["objects"] = toy_scenes.load_toy_objects(models_dir)
+    _WORKER["renderer"] = Renderer(640, 480)
+
+
+def _run_job(job) -> int:
+    root, pos, s, q, size, calib, seed = job
+    return write_sequence(root, _WORKER["renderer"], _WORKER["manos"], _WORKER["objects"], pos, s, q, size, calib, seed)
+
+
+def write_toy_dexycb(root: str | Path, mano_dir: Path, models_dir: Path, size: ToyDexYCBSize = ToyDexYCBSize(),
+                     seed: int = 0, workers: int = 2, progress: bool = True) -> dict:
+    """Write the toy DexYCB tree under `root` (MANO files and models must exist). Returns counts.
+
+    Sequences are independent (each seeds its own generator), so the files are the same whatever the
+    number of worker processes.
+    """
+    import multiprocessing as mp
+
     root = Path(root)
-    rng = np.random.default_rng(seed)
-    calib = write_calibration(root, size, rng)
-    manos = {side: load_mano(mano_dir, side=side, dtype=torch.float64) for side in ("right", "left")}
-    objects = toy_scenes.load_toy_objects(models_dir)
-    jobs = [(pos, s, q) for pos, s in enumerate(size.subjects) for q in range(size.sequences)]
+    calib = write_calibration(root, size, np.random.default_rng(seed))
+    jobs = [(root, pos, s, q, size, calib, seed) for pos, s in enumerate(size.subjects) for q in range(size.sequences)]
+    bar = tqdm(total=len(jobs), desc="toy dexycb sequences", disable=not progress)
     images = 0
-    with Renderer(640, 480) as renderer:
-        for pos, s, q in tqdm(jobs, desc="toy dexycb sequences", disable=not progress):
-            images += write_sequence(root, renderer, manos, objects, pos, s, q, size, calib, seed)
+    if workers <= 1:
+        _init_worker(mano_dir, models_dir)
+        for job in jobs:
+            images += _run_job(job)
+            bar.update()
+        _WORKER.pop("renderer").close()
+    else:
+        ctx = mp.get_context("spawn")
+        with ctx.Pool(workers, initializer=_init_worker, initargs=(mano_dir, models_dir)) as pool:
+            for n in pool.imap_unordered(_run_job, jobs):
+                images += n
+                bar.update()
+    bar.close()
     return {"subjects": len(size.subjects), "sequences": len(jobs), "images": images}

@@ -101,10 +101,10 @@ def write_ho3d_sequence(root: Path, split: str, name: str, obj, renderer, mano, 
     seq = toy_scenes.make_sequence(mano, obj, betas, frames, rng, approach_frames=0)
     cam = toy_scenes.ring_cameras(1, rng, radius=(0.45, 0.6))[0]
     K = toy_scenes.intrinsics(rng)
-    skin = tuple(rng.uniform([0.55, 0.38, 0.3], [0.95, 0.75, 0.62]))
+    look = toy_scenes.random_look(rng, renderer.width, renderer.height)
     entries = []
     for f in range(frames):
-        view = toy_scenes.render_view(renderer, mano, seq, f, K, cam, [], rng, HAND_LABEL, skin)
+        view = toy_scenes.render_view(renderer, mano, seq, f, K, cam, [], look, HAND_LABEL)
         meta = _gl_meta(view, mano, seq, K)
         if split == "evaluation":
             meta = _eval_meta(meta, view, K)

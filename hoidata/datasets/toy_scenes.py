@@ -135,10 +135,25 @@ class View:
     object_pose: np.ndarray  # (4, 4) model -> camera
 
 
+@dataclass
+class Look:
+    """What stays fixed for one camera over a sequence, as in a real capture: background and lights."""
+
+    background: np.ndarray  # (H, W, 3) uint8
+    lighting: object  # hoidata.render.Lighting
+    skin: tuple  # sRGB
+
+
+def random_look(rng: np.random.Generator, width: int, height: int, skin=None) -> Look:
+    from hoidata.render import procedural_background, random_lighting, skin_tone
+
+    return Look(procedural_background(rng, width, height), random_lighting(rng), skin or skin_tone(rng))
+
+
 def render_view(renderer, mano, seq: Sequence, frame: int, K: np.ndarray, cam_to_world: np.ndarray,
-                extra_objects: list, rng: np.random.Generator, hand_label: int, skin) -> View:
+                extra_objects: list, look: Look, hand_label: int) -> View:
     """Render frame `frame` of `seq` from one camera; extra_objects: [(ToyObject, model->world 4x4)]."""
-    from hoidata.render import RenderMesh, procedural_background, random_lighting
+    from hoidata.render import RenderMesh
 
     rot, trans = world_to_camera(cam_to_world)
     wrist = mano.rest_joints(torch.as_tensor(seq.betas)[None].to(mano.v_template))[0, 0].double().numpy()
@@ -149,11 +164,10 @@ def render_view(renderer, mano, seq: Sequence, frame: int, K: np.ndarray, cam_to
     w2c = _rigid(rot, trans)
     obj_pose = w2c @ seq.object_poses[frame]
     meshes = [RenderMesh(vertices=mano.close(out.vertices)[0].double().numpy(), faces=mano.closed_faces,
-                         color=skin, label=hand_label),
+                         color=look.skin, label=hand_label),
               RenderMesh.from_trimesh(seq.object.mesh, transform=obj_pose, label=seq.object.class_id)]
     for obj, pose_w in extra_objects:
         meshes.append(RenderMesh.from_trimesh(obj.mesh, transform=w2c @ pose_w, label=obj.class_id))
-    size = renderer.width, renderer.height
-    result = renderer.render(K, meshes, background=procedural_background(rng, *size), lighting=random_lighting(rng))
+    result = renderer.render(K, meshes, background=look.background, lighting=look.lighting)
     return View(result.rgb, result.depth, result.labels, pose, transl, verts, out.joints[0].double().numpy(),
                 out.mano_joints[0].double().numpy(), obj_pose)

@@ -1,0 +1,68 @@
+"""``hoidata make-toy``: the procedural hand, objects and toy datasets in the real layouts, in one call."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+from pathlib import Path
+
+LAYOUTS = ("dexycb", "ho3d")
+
+
+def write_assets(out: Path) -> tuple[Path, Path]:
+    """Procedural MANO files in ``out/mano`` and YCB-layout objects in ``out/models``."""
+    from hoidata.hand.toy import write_toy_mano
+    from hoidata.objects import write_toy_objects
+
+    write_toy_mano(out / "mano")
+    write_toy_objects(out / "models")
+    return out / "mano", out / "models"
+
+
+def make_toy(out: str | Path, layout: str, sequences: int | None = None, frames: int | None = None,
+             seed: int = 0, progress: bool = True) -> dict:
+    """Write a toy dataset in `layout` ('dexycb' or 'ho3d') under `out`, with ``out/mano`` and ``out/models``.
+
+    `sequences` (per subject for DexYCB, training sequences for HO-3D) and `frames` (per sequence and
+    camera) scale it; None keeps the default size. Returns what was written and how long it took.
+    """
+    from hoidata.datasets.toy_dexycb import ToyDexYCBSize, write_toy_dexycb
+    from hoidata.datasets.toy_ho3d import ToyHO3DSize, write_toy_ho3d
+
+    if layout not in LAYOUTS:
+        raise ValueError(f"unknown toy layout {layout!r}; expected one of {LAYOUTS}")
+    out = Path(out)
+    start = time.perf_counter()
+    mano_dir, models_dir = write_assets(out)
+    if layout == "dexycb":
+        size = ToyDexYCBSize()
+        size = replace(size, sequences=sequences or size.sequences, frames=frames or size.frames)
+        counts = write_toy_dexycb(out, mano_dir, models_dir, size, seed=seed, progress=progress)
+    else:
+        size = ToyHO3DSize()
+        size = replace(size, train_sequences=sequences or size.train_sequences, frames=frames or size.frames)
+        counts = write_toy_ho3d(out, mano_dir, models_dir, size, seed=seed, progress=progress)
+    return {"layout": layout, "root": str(out), **counts, "seconds": round(time.perf_counter() - start, 1)}
+
+
+def split_rows(root: str | Path, layout: str) -> list[dict]:
+    """Frames and skips per split and setting, read back through the real readers."""
+    root = Path(root)
+    rows = []
+    if layout == "dexycb":
+        from hoidata.datasets.dexycb import SETTINGS, DexYCBReader
+
+        for name, setting in SETTINGS.items():
+            for split in ("train", "val", "test"):
+                reader = DexYCBReader(root, root / "mano", split, setting)
+                frames = list(reader.frames())
+                rows.append({"setting": name, "split": split, "frames": len(frames),
+                             "left_mirrored": sum(f.mirror for f in frames), "skipped": len(reader.skipped)})
+    else:
+        from hoidata.datasets.ho3d import HO3DReader
+
+        for split in ("train", "evaluation"):
+            reader = HO3DReader(root, root / "mano", split)
+            rows.append({"setting": "ho3d", "split": split, "frames": len(list(reader.frames())),
+                         "skipped": len(reader.skipped)})
+    return rows

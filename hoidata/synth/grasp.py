@@ -1,0 +1,276 @@
+"""Grasp synthesis: place a MANO hand against an object and close the fingers until contact.
+
+Everything is in the object's model frame, metres: a :class:`Grasp` holds MANO parameters whose
+forward pass gives the hand directly in object coordinates. The recipe, per attempt:
+
+1. an approach direction (random over the sphere, or given) and a random roll about it;
+2. the open hand is rotated so the palm normal points along the approach, aimed at the object's
+   volume centroid, and slid in (fcl distance, conservative advancement) until it is
+   ``palm_gap`` from the surface;
+3. each finger is closed independently along a scaled copy of its slice of MANO's ``hands_mean``
+   (a curled, relaxed grasp, so scale 0 is the flat hand and 2.5 a tight fist): a coarse ladder of
+   scales, then a fine one, stops each finger at its first touch, backing off a step whenever that
+   touch would already be a penetration;
+4. the result is checked with :func:`hoidata.synth.contact.penetration_depth` and the contact
+   counts; an attempt that fails is retried with a new direction and roll.
+
+Nothing depends on the hand's rest axes: the palm frame comes from the MANO joints.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from scipy.spatial.transform import Rotation
+
+from hoidata.synth.closing import (CONTACT_JOINTS, FINGERS, OPEN_SCALES, close_fingers, finger_basis,
+                                   finger_min_distance, finger_samples, hand_forward)
+from hoidata.synth.contact import CONTACT_DISTANCE, HandObjectCollision, penetration_depth
+
+WRIST, INDEX_MCP, MIDDLE_MCP, RING_MCP, PINKY_MCP = 0, 1, 4, 10, 7  # MANO-order joint ids
+PALM_GAP = 0.004  # the open hand stops this far from the surface (m)
+FINGER_CONTACT = 0.002  # a finger with a surface point this close (or inside) is "in contact" (m)
+
+
+@dataclass
+class Grasp:
+    """A hand pose on an object, in the object's model frame.
+
+    ``mano(pose[None], betas[None], transl[None]).vertices`` is the hand in object coordinates (m).
+
+    Attributes:
+        pose: (48,) float64 flat-hand-mean axis-angle (global rotation, then 15 joints, MANO order).
+        betas: (10,) float64 shape coefficients.
+        transl: (3,) float64 metres, added after posing.
+        penetration: deepest hand-object interpenetration, metres (see ``penetration_depth``).
+        n_contacts: hand vertices within 5 mm of the object surface (or inside it).
+        fingers_in_contact: names among ``FINGERS`` with a vertex within 2 mm of the surface.
+        side: 'right' or 'left'.
+        finger_scales: (5,) closing scale of ``hands_mean`` per finger, thumb..pinky.
+        approach: (3,) unit approach direction (the palm normal), object frame.
+    """
+
+    pose: np.ndarray
+    betas: np.ndarray
+    transl: np.ndarray
+    penetration: float
+    n_contacts: int
+    fingers_in_contact: list[str]
+    side: str
+    finger_scales: np.ndarray = field(default_factory=lambda: np.zeros(5))
+    approach: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+
+# ---------------------------------------------------------------- pure math
+
+def palm_frame(mano_joints: np.ndarray, side: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Palm centre, palm normal and finger direction from MANO-order joints.
+
+    Args:
+        mano_joints: (16, 3) MANO-order joints, metres, any frame.
+        side: 'right' or 'left'; mirroring flips the handedness of the cross product.
+
+    Returns:
+        centre (3,): mean of the wrist and the four MCP joints (inside the palm, metres);
+        normal (3,): unit vector out of the palm's inner (grasping) side;
+        forward (3,): unit wrist -> middle-MCP direction, orthogonal to ``normal``.
+    """
+    j = np.asarray(mano_joints, dtype=np.float64)
+    centre = j[[WRIST, INDEX_MCP, MIDDLE_MCP, RING_MCP, PINKY_MCP]].mean(0)
+    across = j[INDEX_MCP] - j[PINKY_MCP]
+    forward = j[MIDDLE_MCP] - j[WRIST]
+    normal = np.cross(across, forward) * (1.0 if side == "right" else -1.0)
+    normal /= np.linalg.norm(normal)
+    forward = forward - (forward @ normal) * normal
+    return centre, normal, forward / np.linalg.norm(forward)
+
+
+def hand_rotation(normal: np.ndarray, forward: np.ndarray, approach: np.ndarray, roll: float) -> np.ndarray:
+    """Rotation (3, 3) taking the rest palm frame (``normal``, ``forward``, unit, orthogonal) to one
+    whose normal is ``approach`` (unit) and whose forward is rolled by ``roll`` radians about it
+    (roll 0: the forward direction closest to a fixed reference axis)."""
+    approach = np.asarray(approach, dtype=np.float64)
+    ref = np.eye(3)[np.argmin(np.abs(approach))]  # the axis least parallel to the approach
+    u = np.cross(approach, ref)
+    u /= np.linalg.norm(u)
+    v = np.cross(approach, u)
+    target_forward = np.cos(roll) * u + np.sin(roll) * v
+    target = np.stack([approach, target_forward, np.cross(approach, target_forward)], 1)
+    rest = np.stack([normal, forward, np.cross(normal, forward)], 1)
+    return target @ rest.T
+
+def volume_centroid(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Centroid (3,) of the solid bounded by a closed mesh (vertices (V, 3), faces (F, 3)), via
+    signed tetrahedra against the origin; falls back to the vertex mean for a degenerate mesh."""
+    tri = np.asarray(vertices, dtype=np.float64)[np.asarray(faces)]
+    volumes = np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])) / 6.0
+    total = volumes.sum()
+    if abs(total) < 1e-12:
+        return np.asarray(vertices, dtype=np.float64).mean(0)
+    return (volumes[:, None] * tri.sum(1) / 4.0).sum(0) / total
+
+
+def sample_direction(rng: np.random.Generator) -> np.ndarray:
+    """A unit vector (3,) uniform over the sphere (normalised isotropic Gaussian)."""
+    while True:
+        d = rng.normal(size=3)
+        n = np.linalg.norm(d)
+        if n > 1e-9:
+            return d / n
+
+# ---------------------------------------------------------------- the steps
+
+def slide_to_gap(collision: HandObjectCollision, hand, start: np.ndarray, direction: np.ndarray, gap: float,
+                 travel: float, tol: float = 3e-4, max_iter: int = 64) -> float | None:
+    """Conservative advancement of a rigid hand along ``direction`` until it is ``gap`` from the object.
+
+    Moving by ``delta`` shrinks a distance by at most ``delta``, so stepping by (distance - gap)
+    never passes through the surface.
+
+    Args:
+        collision: the object's fcl wrapper.
+        hand: fcl object of the hand mesh (see ``HandObjectCollision.hand_object``).
+        start: (3,) translation of the hand mesh at which it is clear of the object, metres.
+        direction: (3,) unit direction of travel.
+        gap, travel: target clearance and the longest slide, metres.
+
+    Returns:
+        The distance slid (m), or None if the hand passes the object or starts in collision.
+    """
+    s = 0.0
+    for _ in range(max_iter):
+        d = collision.translated_distance(hand, start + s * direction)
+        if d <= 0.0:
+            return None
+        if d <= gap + tol:
+            return s
+        s += d - gap
+        if s > travel:
+            return None
+    return None  # a glancing approach that keeps creeping along the surface: try another one
+
+def evaluate_grasp(mano, pose: np.ndarray, betas: np.ndarray, transl: np.ndarray, collision: HandObjectCollision,
+                   contact_samples: list | None = None) -> tuple[float, int, list[str]]:
+    """Penetration (m), contact count and fingers in contact of MANO parameters pose (48,),
+    betas (10,), transl (3,) against the object of ``collision``.
+
+    The count is of hand vertices within 5 mm of the surface (or inside); a finger is in contact
+    when a point of its contact parts (``contact_samples``, default
+    ``finger_samples(mano, joints=CONTACT_JOINTS)``) lies within 2 mm.
+    """
+    if contact_samples is None:
+        contact_samples = finger_samples(mano, joints=CONTACT_JOINTS)
+    ref = mano.v_template
+    as_t = lambda a: torch.as_tensor(np.asarray(a)[None], dtype=ref.dtype)
+    with torch.no_grad():
+        vertices = mano(as_t(pose), as_t(betas), as_t(transl)).vertices
+        closed = mano.close(vertices)[0].cpu().numpy().astype(np.float64)
+    depth = penetration_depth(closed, collision.obj_vertices, collision.obj_faces, mano.closed_faces)
+    n_contacts = int((collision.signed_distances(closed[: vertices.shape[1]]) <= CONTACT_DISTANCE).sum())
+    mins = finger_min_distance(closed[None, : vertices.shape[1]], contact_samples, list(range(len(FINGERS))),
+                               collision, band=None)[0]
+    return depth, n_contacts, [name for name, d in zip(FINGERS, mins) if d <= FINGER_CONTACT]
+
+
+def _attempt(mano, collision, aim, radius, betas, direction, roll, palm_gap, rest, basis, samples,
+             contact_samples) -> Grasp | str:
+    """One placement + closing: a Grasp, or a short reason why the placement failed."""
+    _, normal0, forward0 = rest
+    rotvec = Rotation.from_matrix(hand_rotation(normal0, forward0, direction, roll)).as_rotvec()
+    vertices, joints = hand_forward(mano, rotvec, np.asarray(OPEN_SCALES), betas, np.zeros(3), basis)
+    centre = palm_frame(joints[0], mano.side)[0]
+    with torch.no_grad():
+        local = mano.close(torch.as_tensor(vertices)).numpy()[0] - centre  # the open hand about its palm centre
+    far = radius + float(np.linalg.norm(local, axis=1).max()) + 2 * palm_gap  # clear of the object from here
+    hand = collision.hand_object(local, mano.closed_faces)
+    slid = slide_to_gap(collision, hand, aim - far * direction, direction, palm_gap, travel=2 * far)
+    if slid is None:
+        return "the open hand found no clear stop along the approach"
+    transl = aim + (slid - far) * direction - centre
+    scales = close_fingers(mano, rotvec, betas, transl, collision, samples=samples)
+    pose = np.concatenate([rotvec, scales @ basis])
+    depth, n_contacts, fingers = evaluate_grasp(mano, pose, betas, transl, collision, contact_samples)
+    return Grasp(pose, betas.copy(), transl, depth, n_contacts, fingers, mano.side, scales, direction.copy())
+
+
+def _problem(grasp: Grasp | str, max_penetration: float, min_fingers: int, min_contacts: int) -> str:
+    """Why an attempt is not a valid grasp ('' when it is)."""
+    if isinstance(grasp, str):
+        return grasp
+    if grasp.penetration > max_penetration:
+        return f"penetration above {max_penetration * 1000:.1f} mm"
+    if len(grasp.fingers_in_contact) < min_fingers:
+        return f"fewer than {min_fingers} fingers in contact"
+    if grasp.n_contacts < min_contacts:
+        return f"fewer than {min_contacts} hand vertices within 5 mm"
+    return ""
+
+
+def _score(grasp: Grasp) -> tuple:
+    # Opposition first (a thumb on the object makes it a grasp rather than a touch), then coverage.
+    return ("thumb" in grasp.fingers_in_contact, len(grasp.fingers_in_contact), grasp.n_contacts)
+
+
+def synthesize_grasp(mano, obj_vertices, obj_faces, rng: np.random.Generator, betas=None, approach=None,
+                     max_penetration: float = 0.002, min_fingers: int = 3, min_contacts: int = 20,
+                     max_tries: int = 24, thumb_tries: int = 8, palm_gap: float = PALM_GAP, name: str = "object",
+                     collision: HandObjectCollision | None = None) -> Grasp:
+    """A physically checked grasp of a MANO hand on one object, in the object's frame.
+
+    Args:
+        mano: ``hoidata.hand.MANO`` layer, either side (float64 recommended).
+        obj_vertices: (V, 3) object vertices, metres, model frame.
+        obj_faces: (F, 3) triangles; the mesh must be watertight and wound outward
+            (``hoidata.objects.repair_mesh``).
+        rng: ``np.random.Generator``; all randomness comes from it, so a seed fixes the grasp.
+        betas: (10,) hand shape, default zeros.
+        approach: optional (3,) direction the palm faces and moves along (object frame); default
+            random over the sphere. Retries then only change the roll about it.
+        max_penetration: accepted interpenetration, metres (see ``penetration_depth``).
+        min_fingers: fingers that must touch (within 2 mm); min_contacts: hand vertices that must
+            lie within 5 mm of the surface.
+        max_tries: attempts (new direction and roll each) before giving up.
+        thumb_tries: a valid grasp with the thumb on the object is returned at once; after this
+            many attempts the best valid one so far (most fingers, then contacts) is taken instead.
+        palm_gap: clearance of the open hand when it stops, metres.
+        name: object name for error messages.
+        collision: a prebuilt ``HandObjectCollision`` of this object, to reuse its BVH.
+
+    Returns:
+        A :class:`Grasp` that passes every check.
+
+    Raises:
+        RuntimeError: no attempt passed; the message names the object, its size and the reasons.
+    """
+    vertices = np.asarray(obj_vertices, dtype=np.float64)
+    collision = collision if collision is not None else HandObjectCollision(vertices, obj_faces)
+    betas = np.zeros(10) if betas is None else np.asarray(betas, dtype=np.float64).reshape(10)
+    aim = volume_centroid(vertices, collision.obj_faces)
+    radius = float(np.linalg.norm(vertices - aim, axis=1).max())
+    basis = finger_basis(mano.hands_mean.cpu().numpy())
+    rest = palm_frame(hand_forward(mano, np.zeros(3), np.zeros(5), betas, np.zeros(3), basis)[1][0], mano.side)
+    samples, contact_samples = finger_samples(mano), finger_samples(mano, joints=CONTACT_JOINTS)
+    best, reasons = None, []
+    for attempt in range(max_tries):
+        if approach is None:
+            direction = sample_direction(rng)
+        else:
+            direction = np.asarray(approach, dtype=np.float64) / np.linalg.norm(approach)
+        roll = rng.uniform(0.0, 2.0 * np.pi)
+        grasp = _attempt(mano, collision, aim, radius, betas, direction, roll, palm_gap, rest, basis, samples,
+                         contact_samples)
+        reason = _problem(grasp, max_penetration, min_fingers, min_contacts)
+        if not reason:
+            if "thumb" in grasp.fingers_in_contact:
+                return grasp
+            best = grasp if best is None or _score(grasp) > _score(best) else best
+            reason = "no thumb contact"
+        if best is not None and attempt + 1 >= thumb_tries:
+            return best
+        reasons.append(reason)
+    size = " x ".join(f"{e * 100:.1f}" for e in vertices.max(0) - vertices.min(0))
+    summary = "; ".join(f"{r} ({reasons.count(r)}x)" for r in dict.fromkeys(reasons))
+    raise RuntimeError(f"no valid {mano.side}-hand grasp of {name} ({size} cm, {len(collision.obj_faces)} faces) "
+                       f"in {max_tries} tries: {summary}")
