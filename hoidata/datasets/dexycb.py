@@ -11,6 +11,7 @@ toolkit computes it; the real dataset has 100 per subject.
 
 from __future__ import annotations
 
+import zipfile
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -140,7 +141,7 @@ def read_labels(path: Path, num_objects: int) -> dict[str, np.ndarray]:
     try:
         with np.load(path, allow_pickle=False) as npz:
             labels = {k: npz[k] for k in npz.files}
-    except (OSError, ValueError, EOFError) as e:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
         raise DataError(path, None, f"cannot read npz (corrupt?): {e}") from e
     expected = dict(LABEL_SHAPES, pose_y=(num_objects, 3, 4))
     for key, shape in expected.items():

@@ -113,7 +113,7 @@ def _hand_object_distances(reader, mano, full, ctx, transl, kept) -> np.ndarray 
         return None
     import torch
 
-    betas = np.broadcast_to(ctx["betas"], (len(kept), 10))
+    betas = np.tile(ctx["betas"], (len(kept), 1))
     with torch.no_grad():
         verts = mano(torch.as_tensor(full), torch.as_tensor(betas), torch.as_tensor(transl)).vertices.numpy()
     obj = reader.object_vertices(ctx["name"])

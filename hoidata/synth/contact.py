@@ -36,9 +36,11 @@ def signed_distance(points, vertices, faces, band: float | None = None, robust: 
         band: if given (m), only distances within [-band, band] are computed; the others come
             back as NaN, sign unknown. The tree search prunes everything farther, which makes
             near-surface queries several times faster.
-        robust: take the sign from the generalised winding number instead of the pseudonormal.
-            The pseudonormal is exact and fast for a clean watertight mesh, but a posed hand can
-            fold into itself at a strongly bent joint, and there it calls outside points inside.
+        robust: take the sign from the generalised winding number (libigl's fast, hierarchical
+            approximation, reliable except within a hair of the surface, where the depth is ~0
+            anyway) instead of the pseudonormal. The pseudonormal is exact and faster for a clean
+            watertight mesh, but a posed hand can fold into itself at a strongly bent joint, and
+            there it calls outside points inside.
 
     Returns:
         (N,) float64 metres: positive outside, negative inside.
@@ -47,9 +49,28 @@ def signed_distance(points, vertices, faces, band: float | None = None, robust: 
     if len(points) == 0:
         return np.zeros(0)
     kind = igl.SignedDistanceType
-    sign = kind.SIGNED_DISTANCE_TYPE_WINDING_NUMBER if robust else kind.SIGNED_DISTANCE_TYPE_PSEUDONORMAL
+    sign = kind.SIGNED_DISTANCE_TYPE_FAST_WINDING_NUMBER if robust else kind.SIGNED_DISTANCE_TYPE_PSEUDONORMAL
     bounds = {} if band is None else {"lower_bound": -float(band), "upper_bound": float(band)}
     return igl.signed_distance(points, _points(vertices), _faces(faces), sign, **bounds)[0]
+
+
+def object_in_hand_depth(obj_vertices, hand_vertices, hand_faces) -> float:
+    """How deep (m, >= 0) the deepest object vertex lies inside a closed hand mesh.
+
+    Catches thin object parts (a mug rim, a handle) that pass between the hand's vertices. The
+    sign comes from the winding number, which stays right where a posed hand folds into itself
+    at a strongly bent joint (the pseudonormal calls points near such folds inside).
+
+    Args:
+        obj_vertices: (V, 3) object vertices, metres.
+        hand_vertices: (N, 3) closed hand vertices (MANO: ``mano.close(vertices)``, (779, 3)).
+        hand_faces: (H, 3) closed, outward-wound hand triangles (MANO: ``mano.closed_faces``).
+    """
+    obj_vertices, hand_vertices = _points(obj_vertices), _points(hand_vertices)
+    # Only object vertices inside the hand's bounding box can be inside the hand.
+    near = np.all((obj_vertices >= hand_vertices.min(0)) & (obj_vertices <= hand_vertices.max(0)), axis=1)
+    inside = signed_distance(obj_vertices[near], hand_vertices, hand_faces, robust=True)
+    return max(0.0, -float(inside.min(initial=np.inf)))
 
 
 def penetration_depth(hand_vertices, obj_vertices, obj_faces, hand_faces=None) -> float:
@@ -58,9 +79,8 @@ def penetration_depth(hand_vertices, obj_vertices, obj_faces, hand_faces=None) -
     Two one-sided checks, and the larger wins:
 
     - hand vertices inside the (watertight) object: how deep the deepest one lies;
-    - if ``hand_faces`` is given, object vertices inside the closed hand mesh: this catches thin
-      object parts (a mug rim, a handle) that pass between the hand's vertices. The sign comes
-      from the winding number, which stays right where the posed hand folds into itself.
+    - if ``hand_faces`` is given, object vertices inside the closed hand mesh
+      (:func:`object_in_hand_depth`), so that thin object parts through the hand are caught.
 
     Args:
         hand_vertices: (N, 3) hand vertices, metres, in the object's frame. With ``hand_faces``
@@ -73,13 +93,10 @@ def penetration_depth(hand_vertices, obj_vertices, obj_faces, hand_faces=None) -
     Returns:
         Penetration depth in metres, >= 0.
     """
-    hand_vertices, obj_vertices = _points(hand_vertices), _points(obj_vertices)
+    hand_vertices = _points(hand_vertices)
     depth = max(0.0, -float(signed_distance(hand_vertices, obj_vertices, obj_faces).min(initial=np.inf)))
     if hand_faces is not None:
-        # Only object vertices inside the hand's bounding box can be inside the hand.
-        near = np.all((obj_vertices >= hand_vertices.min(0)) & (obj_vertices <= hand_vertices.max(0)), axis=1)
-        inside_hand = signed_distance(obj_vertices[near], hand_vertices, hand_faces, robust=True)
-        depth = max(depth, -float(inside_hand.min(initial=np.inf)))
+        depth = max(depth, object_in_hand_depth(obj_vertices, hand_vertices, hand_faces))
     return depth
 
 

@@ -27,7 +27,7 @@ from scipy.spatial.transform import Rotation
 
 from hoidata.synth.closing import (CONTACT_JOINTS, FINGERS, OPEN_SCALES, close_fingers, finger_basis,
                                    finger_min_distance, finger_samples, hand_forward)
-from hoidata.synth.contact import CONTACT_DISTANCE, HandObjectCollision, penetration_depth
+from hoidata.synth.contact import CONTACT_DISTANCE, HandObjectCollision, object_in_hand_depth
 
 WRIST, INDEX_MCP, MIDDLE_MCP, RING_MCP, PINKY_MCP = 0, 1, 4, 10, 7  # MANO-order joint ids
 PALM_GAP = 0.004  # the open hand stops this far from the surface (m)
@@ -151,6 +151,7 @@ def slide_to_gap(collision: HandObjectCollision, hand, start: np.ndarray, direct
             return None
     return None  # a glancing approach that keeps creeping along the surface: try another one
 
+
 def evaluate_grasp(mano, pose: np.ndarray, betas: np.ndarray, transl: np.ndarray, collision: HandObjectCollision,
                    contact_samples: list | None = None) -> tuple[float, int, list[str]]:
     """Penetration (m), contact count and fingers in contact of MANO parameters pose (48,),
@@ -167,10 +168,12 @@ def evaluate_grasp(mano, pose: np.ndarray, betas: np.ndarray, transl: np.ndarray
     with torch.no_grad():
         vertices = mano(as_t(pose), as_t(betas), as_t(transl)).vertices
         closed = mano.close(vertices)[0].cpu().numpy().astype(np.float64)
-    depth = penetration_depth(closed, collision.obj_vertices, collision.obj_faces, mano.closed_faces)
-    n_contacts = int((collision.signed_distances(closed[: vertices.shape[1]]) <= CONTACT_DISTANCE).sum())
+    # The same two checks as penetration_depth, sharing the hand's distances with the contact count.
+    sd = collision.signed_distances(closed[: vertices.shape[1]])
+    depth = max(0.0, -float(sd.min()), object_in_hand_depth(collision.obj_vertices, closed, mano.closed_faces))
+    n_contacts = int((sd <= CONTACT_DISTANCE).sum())
     mins = finger_min_distance(closed[None, : vertices.shape[1]], contact_samples, list(range(len(FINGERS))),
-                               collision, band=None)[0]
+                               collision, band=CONTACT_DISTANCE)[0]
     return depth, n_contacts, [name for name, d in zip(FINGERS, mins) if d <= FINGER_CONTACT]
 
 
