@@ -11,8 +11,12 @@ from hoidata.cli import main
 
 
 def test_make_toy_writes_and_checks_everything(tmp_path, capsys):
-    assert main(["make-toy", "--out", str(tmp_path / "toy"), "--cache-dir", str(tmp_path / "cache")]) == 0
+    argv = ["make-toy", "--out", str(tmp_path / "toy"), "--layout", "ho3d", "--sequences", "1", "--frames", "2",
+            "--cache-dir", str(tmp_path / "cache")]
+    assert main(argv) == 0
     out = capsys.readouterr().out
+    assert re.search(r"ho3d\s+train\s+2\s+0", out) and re.search(r"ho3d\s+evaluation\s+2\s+0", out)
+    assert (tmp_path / "toy/train.txt").read_text().splitlines() == ["BB10/0000", "BB10/0001"]
     assert (tmp_path / "toy/mano/MANO_RIGHT.pkl").is_file() and (tmp_path / "toy/mano/MANO_LEFT.pkl").is_file()
     objects = sorted(p.name for p in (tmp_path / "toy/models").iterdir())
     assert {"002_master_chef_can", "003_cracker_box", "006_mustard_bottle", "011_banana", "025_mug"} <= set(objects)

@@ -224,6 +224,13 @@ class HandObjectCollision:
             return np.full(len(points), np.nan)
         return signed_distance(points, self.obj_vertices, self.obj_faces[near], band)
 
+    def nearest_surface(self, points) -> tuple[np.ndarray, np.ndarray]:
+        """Closest surface points (N, 3) m to points (N, 3), and the outward pseudonormals (N, 3)
+        there (the face normal inside a face, the angle-weighted mean at edges and corners)."""
+        sign = igl.SignedDistanceType.SIGNED_DISTANCE_TYPE_PSEUDONORMAL
+        _, _, closest, normals = igl.signed_distance(_points(points), self.obj_vertices, self.obj_faces, sign)
+        return closest, normals
+
     def contact_vertices(self, hand_vertices, within: float = CONTACT_DISTANCE) -> np.ndarray:
         """Indices (K,) int64 of the hand vertices (N, 3) within ``within`` metres of the object's
         surface, vertices inside the object included (their signed distance is negative)."""

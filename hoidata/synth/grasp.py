@@ -32,6 +32,7 @@ from hoidata.synth.contact import CONTACT_DISTANCE, HandObjectCollision, object_
 WRIST, INDEX_MCP, MIDDLE_MCP, RING_MCP, PINKY_MCP = 0, 1, 4, 10, 7  # MANO-order joint ids
 PALM_GAP = 0.004  # the open hand stops this far from the surface (m)
 FINGER_CONTACT = 0.002  # a finger with a surface point this close (or inside) is "in contact" (m)
+WRAP_SCALE = 0.3  # a finger closed at least this far (scale of hands_mean) is curled, not flat
 
 
 @dataclass
@@ -87,19 +88,26 @@ def palm_frame(mano_joints: np.ndarray, side: str) -> tuple[np.ndarray, np.ndarr
     return centre, normal, forward / np.linalg.norm(forward)
 
 
-def hand_rotation(normal: np.ndarray, forward: np.ndarray, approach: np.ndarray, roll: float) -> np.ndarray:
-    """Rotation (3, 3) taking the rest palm frame (``normal``, ``forward``, unit, orthogonal) to one
-    whose normal is ``approach`` (unit) and whose forward is rolled by ``roll`` radians about it
-    (roll 0: the forward direction closest to a fixed reference axis)."""
+def roll_direction(approach: np.ndarray, roll: float) -> np.ndarray:
+    """Unit vector (3,) perpendicular to the unit ``approach`` (3,), at angle ``roll`` (radians)
+    from a reference built on the world axis least parallel to the approach."""
     approach = np.asarray(approach, dtype=np.float64)
-    ref = np.eye(3)[np.argmin(np.abs(approach))]  # the axis least parallel to the approach
-    u = np.cross(approach, ref)
+    u = np.cross(approach, np.eye(3)[np.argmin(np.abs(approach))])
     u /= np.linalg.norm(u)
-    v = np.cross(approach, u)
-    target_forward = np.cos(roll) * u + np.sin(roll) * v
+    return np.cos(roll) * u + np.sin(roll) * np.cross(approach, u)
+
+
+def hand_rotation(normal: np.ndarray, forward: np.ndarray, approach: np.ndarray, target_forward: np.ndarray) -> np.ndarray:
+    """Rotation (3, 3) taking the rest palm frame (``normal``, ``forward``: unit, orthogonal, (3,))
+    to the frame whose normal is the unit ``approach`` and whose forward is ``target_forward``
+    made perpendicular to it (it must not be parallel to the approach)."""
+    approach = np.asarray(approach, dtype=np.float64)
+    target_forward = target_forward - (target_forward @ approach) * approach
+    target_forward = target_forward / np.linalg.norm(target_forward)
     target = np.stack([approach, target_forward, np.cross(approach, target_forward)], 1)
     rest = np.stack([normal, forward, np.cross(normal, forward)], 1)
     return target @ rest.T
+
 
 def volume_centroid(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Centroid (3,) of the solid bounded by a closed mesh (vertices (V, 3), faces (F, 3)), via
@@ -177,21 +185,49 @@ def evaluate_grasp(mano, pose: np.ndarray, betas: np.ndarray, transl: np.ndarray
     return depth, n_contacts, [name for name, d in zip(FINGERS, mins) if d <= FINGER_CONTACT]
 
 
-def _attempt(mano, collision, aim, radius, betas, direction, roll, palm_gap, rest, basis, samples,
-             contact_samples) -> Grasp | str:
-    """One placement + closing: a Grasp, or a short reason why the placement failed."""
+def place_hand(mano, collision: HandObjectCollision, aim: np.ndarray, direction: np.ndarray,
+               target_forward: np.ndarray, betas: np.ndarray, rest, basis: np.ndarray,
+               palm_gap: float) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Turn the open hand so its palm faces along ``direction`` (unit, (3,)) with its fingers
+    towards ``target_forward`` (3,), and slide it along the line through ``aim`` (3,) until it is
+    ``palm_gap`` metres from the object.
+
+    Returns the global axis-angle (3,), transl (3,) m and palm centre (3,) m, or None when the
+    hand finds no clear stop on that line.
+    """
     _, normal0, forward0 = rest
-    rotvec = Rotation.from_matrix(hand_rotation(normal0, forward0, direction, roll)).as_rotvec()
+    rotvec = Rotation.from_matrix(hand_rotation(normal0, forward0, direction, target_forward)).as_rotvec()
     vertices, joints = hand_forward(mano, rotvec, np.asarray(OPEN_SCALES), betas, np.zeros(3), basis)
     centre = palm_frame(joints[0], mano.side)[0]
     with torch.no_grad():
         local = mano.close(torch.as_tensor(vertices)).numpy()[0] - centre  # the open hand about its palm centre
+    radius = float(np.linalg.norm(collision.obj_vertices - aim, axis=1).max())
     far = radius + float(np.linalg.norm(local, axis=1).max()) + 2 * palm_gap  # clear of the object from here
     hand = collision.hand_object(local, mano.closed_faces)
     slid = slide_to_gap(collision, hand, aim - far * direction, direction, palm_gap, travel=2 * far)
     if slid is None:
+        return None
+    palm_centre = aim + (slid - far) * direction
+    return rotvec, palm_centre - centre, palm_centre
+
+
+def _attempt(mano, collision, aim, betas, direction, roll, palm_gap, rest, basis, samples, contact_samples,
+             square_up: bool) -> Grasp | str:
+    """One placement + closing: a Grasp, or a short reason why the placement failed."""
+    forward = roll_direction(direction, roll)
+    placed = place_hand(mano, collision, aim, direction, forward, betas, rest, basis, palm_gap)
+    if placed is None:
         return "the open hand found no clear stop along the approach"
-    transl = aim + (slid - far) * direction - centre
+    if square_up:
+        # Face the surface under the palm squarely: an oblique approach to a flat face otherwise
+        # stops on the heel of the hand or the fingertips, with the palm hovering centimetres away.
+        closest, normal = collision.nearest_surface(placed[2][None])
+        squared = -normal[0] / np.linalg.norm(normal[0])
+        if squared @ direction < np.cos(np.radians(2.0)) and abs(squared @ forward) < 0.99:
+            again = place_hand(mano, collision, closest[0], squared, forward, betas, rest, basis, palm_gap)
+            if again is not None:
+                placed, direction = again, squared
+    rotvec, transl, _ = placed
     scales = close_fingers(mano, rotvec, betas, transl, collision, samples=samples)
     pose = np.concatenate([rotvec, scales @ basis])
     depth, n_contacts, fingers = evaluate_grasp(mano, pose, betas, transl, collision, contact_samples)
@@ -211,15 +247,23 @@ def _problem(grasp: Grasp | str, max_penetration: float, min_fingers: int, min_c
     return ""
 
 
+def _wraps(grasp: Grasp) -> bool:
+    """A grasp proper rather than a touch: the thumb on the object, opposing at least two other
+    fingers that touch it curled (scale >= WRAP_SCALE) instead of lying flat along a face."""
+    curled = [name for name, scale in zip(FINGERS[1:], grasp.finger_scales[1:])
+              if name in grasp.fingers_in_contact and scale >= WRAP_SCALE]
+    return "thumb" in grasp.fingers_in_contact and len(curled) >= 2
+
+
 def _score(grasp: Grasp) -> tuple:
-    # Opposition first (a thumb on the object makes it a grasp rather than a touch), then coverage.
+    # Opposition first, then how many fingers touch, then how much of the hand does.
     return ("thumb" in grasp.fingers_in_contact, len(grasp.fingers_in_contact), grasp.n_contacts)
 
 
 def synthesize_grasp(mano, obj_vertices, obj_faces, rng: np.random.Generator, betas=None, approach=None,
                      max_penetration: float = 0.002, min_fingers: int = 3, min_contacts: int = 20,
-                     max_tries: int = 24, thumb_tries: int = 8, palm_gap: float = PALM_GAP, name: str = "object",
-                     collision: HandObjectCollision | None = None) -> Grasp:
+                     max_tries: int = 24, wrap_tries: int = 8, palm_gap: float = PALM_GAP, square_up: bool = True,
+                     name: str = "object", collision: HandObjectCollision | None = None) -> Grasp:
     """A physically checked grasp of a MANO hand on one object, in the object's frame.
 
     Args:
@@ -229,15 +273,20 @@ def synthesize_grasp(mano, obj_vertices, obj_faces, rng: np.random.Generator, be
             (``hoidata.objects.repair_mesh``).
         rng: ``np.random.Generator``; all randomness comes from it, so a seed fixes the grasp.
         betas: (10,) hand shape, default zeros.
-        approach: optional (3,) direction the palm faces and moves along (object frame); default
-            random over the sphere. Retries then only change the roll about it.
+        approach: optional (3,) direction the palm faces and moves along (object frame), aimed at
+            the object's volume centroid; default random over the sphere. Retries then only
+            change the roll about it.
         max_penetration: accepted interpenetration, metres (see ``penetration_depth``).
         min_fingers: fingers that must touch (within 2 mm); min_contacts: hand vertices that must
             lie within 5 mm of the surface.
         max_tries: attempts (new direction and roll each) before giving up.
-        thumb_tries: a valid grasp with the thumb on the object is returned at once; after this
-            many attempts the best valid one so far (most fingers, then contacts) is taken instead.
+        wrap_tries: a valid grasp that wraps the object (the thumb and at least two curled
+            fingers on it) is returned at once; after this many attempts the best valid one so
+            far (thumb contact, then most fingers, then contacts) is taken instead.
         palm_gap: clearance of the open hand when it stops, metres.
+        square_up: once the hand has stopped, turn it to face the surface nearest the palm
+            centre squarely (against its normal) and slide it in again; ``Grasp.approach`` is
+            then that direction.
         name: object name for error messages.
         collision: a prebuilt ``HandObjectCollision`` of this object, to reuse its BVH.
 
@@ -251,7 +300,6 @@ def synthesize_grasp(mano, obj_vertices, obj_faces, rng: np.random.Generator, be
     collision = collision if collision is not None else HandObjectCollision(vertices, obj_faces)
     betas = np.zeros(10) if betas is None else np.asarray(betas, dtype=np.float64).reshape(10)
     aim = volume_centroid(vertices, collision.obj_faces)
-    radius = float(np.linalg.norm(vertices - aim, axis=1).max())
     basis = finger_basis(mano.hands_mean.cpu().numpy())
     rest = palm_frame(hand_forward(mano, np.zeros(3), np.zeros(5), betas, np.zeros(3), basis)[1][0], mano.side)
     samples, contact_samples = finger_samples(mano), finger_samples(mano, joints=CONTACT_JOINTS)
@@ -262,15 +310,15 @@ def synthesize_grasp(mano, obj_vertices, obj_faces, rng: np.random.Generator, be
         else:
             direction = np.asarray(approach, dtype=np.float64) / np.linalg.norm(approach)
         roll = rng.uniform(0.0, 2.0 * np.pi)
-        grasp = _attempt(mano, collision, aim, radius, betas, direction, roll, palm_gap, rest, basis, samples,
-                         contact_samples)
+        grasp = _attempt(mano, collision, aim, betas, direction, roll, palm_gap, rest, basis, samples,
+                         contact_samples, square_up)
         reason = _problem(grasp, max_penetration, min_fingers, min_contacts)
         if not reason:
-            if "thumb" in grasp.fingers_in_contact:
+            if _wraps(grasp):
                 return grasp
             best = grasp if best is None or _score(grasp) > _score(best) else best
-            reason = "no thumb contact"
-        if best is not None and attempt + 1 >= thumb_tries:
+            reason = "valid, but the fingers do not wrap the object"
+        if best is not None and attempt + 1 >= wrap_tries:
             return best
         reasons.append(reason)
     size = " x ".join(f"{e * 100:.1f}" for e in vertices.max(0) - vertices.min(0))
