@@ -57,3 +57,21 @@ def mirror_transform(transform):
     out[..., :3, :3] = mirror_rotation(transform[..., :3, :3])
     out[..., :3, 3] = mirror_points(transform[..., :3, 3])
     return out
+
+
+def mirror_intrinsics(K, width: int):
+    """Intrinsics (3, 3) of a horizontally flipped image of `width` pixels: cx -> width - 1 - cx.
+
+    With points mirrored by :func:`mirror_points`, u' = fx (-x / z) + (W - 1 - cx) = W - 1 - u, which is
+    exactly where ``image[:, ::-1]`` puts pixel u.
+    """
+    out = K.clone() if hasattr(K, "clone") else K.copy()
+    out[..., 0, 2] = width - 1 - K[..., 0, 2]
+    return out
+
+
+def mirror_pixels(uv, width: int):
+    """Pixel coordinates (..., 2) in a horizontally flipped image of `width` pixels."""
+    out = uv.clone() if hasattr(uv, "clone") else uv.copy()
+    out[..., 0] = width - 1 - uv[..., 0]
+    return out

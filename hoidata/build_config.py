@@ -1,0 +1,94 @@
+"""Build settings: ``pipelines/<name>.toml`` -> typed dataclasses, with ``section.key=value`` overrides.
+
+The resolved config is saved in every store's index. Nothing else reads TOML: the pipeline gets
+these dataclasses and passes explicit values on.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import asdict, dataclass, field, fields, replace
+from pathlib import Path
+
+from hoidata.datasets.dexycb import DexYCBSetting
+from hoidata.errors import DataError
+from hoidata.records import RecordSettings
+
+PIPELINES_DIR = Path(__file__).resolve().parent.parent / "pipelines"
+
+
+@dataclass(frozen=True)
+class DatasetConfig:
+    name: str = "dexycb"  # reader: 'dexycb' | 'ho3d'
+    setting: str = "dexycb"  # a name for the frame selection (recorded)
+    setup: str = "s0"
+    splits: tuple[str, ...] = ("train", "test")
+    sides: tuple[str, ...] = ("right",)
+    frame_stride: int = 1
+    proximity_mm: float = -1.0  # negative: no proximity filter
+    proximity_splits: tuple[str, ...] = ("train", "val", "test")
+
+    def dexycb_setting(self) -> DexYCBSetting:
+        return DexYCBSetting(name=self.setting, setup=self.setup, sides=tuple(self.sides), frame_stride=self.frame_stride,
+                             proximity_mm=None if self.proximity_mm < 0 else self.proximity_mm,
+                             proximity_splits=tuple(self.proximity_splits), mirror_left="left" in self.sides)
+
+
+@dataclass(frozen=True)
+class StoreConfig:
+    records_per_shard: int = 256
+
+
+@dataclass(frozen=True)
+class BuildConfig:
+    dataset: DatasetConfig = field(default_factory=DatasetConfig)
+    record: RecordSettings = field(default_factory=RecordSettings)
+    store: StoreConfig = field(default_factory=StoreConfig)
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def _section(cls, values: dict, path: Path, name: str):
+    known = {f.name: f for f in fields(cls)}
+    kwargs = {}
+    for key, value in values.items():
+        if key not in known:
+            raise DataError(path, f"{name}.{key}", f"unknown setting; expected one of {sorted(known)}")
+        kwargs[key] = tuple(value) if isinstance(value, list) else value
+    return cls(**kwargs)
+
+
+def resolve_pipeline(name_or_path: str) -> Path:
+    """'dexycb' -> pipelines/dexycb.toml; a path is used as it is."""
+    path = Path(name_or_path)
+    if path.suffix != ".toml":
+        path = PIPELINES_DIR / f"{name_or_path}.toml"
+    if not path.is_file():
+        raise DataError(path, None, "pipeline config not found")
+    return path
+
+
+def load_build_config(name_or_path: str, overrides: list[str] = ()) -> BuildConfig:
+    """Read a pipeline TOML and apply ``section.key=value`` overrides (values parsed as TOML)."""
+    path = resolve_pipeline(name_or_path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise DataError(path, None, f"invalid TOML: {e}") from e
+    for item in overrides:
+        key, sep, raw = item.partition("=")
+        section, dot, name = key.partition(".")
+        if not sep or not dot:
+            raise DataError(path, item, "overrides look like section.key=value, e.g. record.n_hand=2048")
+        try:
+            data.setdefault(section, {})[name] = tomllib.loads(f"v = {raw}")["v"]
+        except tomllib.TOMLDecodeError:
+            data.setdefault(section, {})[name] = raw  # a bare string
+    unknown = set(data) - {"dataset", "record", "store", "model", "train"}
+    if unknown:
+        raise DataError(path, sorted(unknown)[0], "unknown section")
+    record = _section(RecordSettings, data.get("record", {}), path, "record")
+    return BuildConfig(_section(DatasetConfig, data.get("dataset", {}), path, "dataset"),
+                       replace(record, sigmas=tuple(record.sigmas)),
+                       _section(StoreConfig, data.get("store", {}), path, "store"))

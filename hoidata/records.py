@@ -1,0 +1,149 @@
+"""One Frame -> one training record: crop, masks, heatmap, SDF samples and labels (schema v1).
+
+Everything here is per frame and deterministic: the random generator for the SDF samples is seeded
+from the record key, so a record's bytes do not depend on which worker built it or in what order.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass, replace
+
+import numpy as np
+import torch
+
+from hoidata import schema
+from hoidata.datasets.frame import Frame, box_from_points, project
+from hoidata.geometry import crop as crop_ops
+from hoidata.geometry.mirror import mirror_axis_angle, mirror_intrinsics, mirror_pixels, mirror_points, mirror_transform
+
+
+@dataclass(frozen=True)
+class RecordSettings:
+    """Per-record settings (``[record]`` in ``pipelines/<name>.toml``)."""
+
+    crop_size: int = 512
+    context: float = crop_ops.DEFAULT_CONTEXT
+    n_hand: int = 4096
+    n_object: int = 2048
+    uniform_fraction: float = 0.1
+    cube: float = 0.64  # metres: side of the uniform-sample cube around the hand root
+    sigmas: tuple[float, float] = (0.010, 0.003)
+    part_radius: float = 0.05
+    heatmap_sigma: float = schema.HEATMAP_SIGMA
+    jpeg_quality: int = 95
+
+
+@dataclass
+class ObjectAsset:
+    """An object's geometry for SDF and masks: repaired full-resolution mesh, model frame."""
+
+    name: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    watertight: bool
+    box21: np.ndarray  # (21, 3) model frame
+
+
+def frame_seed(key: str) -> int:
+    """A 64-bit seed from the record key (stable across processes and Python versions)."""
+    return int.from_bytes(hashlib.sha256(key.encode()).digest()[:8], "little")
+
+
+def mirror_frame(frame: Frame) -> Frame:
+    """A left-hand frame as the mirrored right hand (labels only; the image is flipped when read).
+
+    The object model is mirrored along with the scene: ``object_pose`` becomes [M R M | M t], which
+    poses the x-mirrored model. Records keep ``mirrored: true`` so users can undo it.
+    """
+    width = frame.image_size[0]
+    return replace(
+        frame, side="right", mirror=True, K=mirror_intrinsics(frame.K, width),
+        root_3d=mirror_points(frame.root_3d), object_pose=mirror_transform(frame.object_pose),
+        mano_pose=mirror_axis_angle(frame.mano_pose), mano_transl=mirror_points(frame.mano_transl),
+        joints_3d=mirror_points(frame.joints_3d), joints_2d=mirror_pixels(frame.joints_2d, width),
+    )
+
+
+def summed_heatmap(joints_uv: np.ndarray, size: int, sigma: float) -> np.ndarray:
+    """(size, size) uint8: sum of Gaussians at joints (N, 2) pixels, clipped to 1, times 255."""
+    grid = np.arange(size, dtype=np.float64)
+    gx = np.exp(-((grid[None, :] - joints_uv[:, :1]) ** 2) / (2 * sigma ** 2))  # (N, size)
+    gy = np.exp(-((grid[None, :] - joints_uv[:, 1:2]) ** 2) / (2 * sigma ** 2))
+    total = np.einsum("ny,nx->yx", gy, gx)
+    return np.round(np.clip(total, 0.0, 1.0) * 255).astype(np.uint8)
+
+
+def pack_masks(labels: np.ndarray, amodal: np.ndarray) -> np.ndarray:
+    """Visible label map (hand = 1, object = 2) and amodal masks (2, H, W) -> seg.png bits (H, W) uint8."""
+    seg = np.zeros(labels.shape, np.uint8)
+    seg |= np.where(labels == 1, schema.SEG_HAND_VISIBLE, 0).astype(np.uint8)
+    seg |= np.where(labels == 2, schema.SEG_OBJECT_VISIBLE, 0).astype(np.uint8)
+    seg |= np.where(amodal[0], schema.SEG_HAND_AMODAL, 0).astype(np.uint8)
+    seg |= np.where(amodal[1], schema.SEG_OBJECT_AMODAL, 0).astype(np.uint8)
+    return seg
+
+
+def posed_meshes(frame: Frame, mano, obj: ObjectAsset) -> tuple[np.ndarray, np.ndarray]:
+    """Closed hand vertices (779, 3) and object vertices (V, 3), camera frame, metres."""
+    with torch.no_grad():
+        out = mano(torch.as_tensor(frame.mano_pose)[None], torch.as_tensor(frame.mano_betas)[None],
+                   torch.as_tensor(frame.mano_transl)[None])
+        hand = mano.close(out.vertices)[0].double().numpy()
+    pose = frame.object_pose
+    return hand, obj.vertices @ pose[:3, :3].T + pose[:3, 3]
+
+
+def build_record(frame: Frame, mano, obj: ObjectAsset, renderer, key: str, settings: RecordSettings) -> dict:
+    """Build the schema members of one frame (a right hand, or a left one with ``mirror`` set).
+
+    Returns a dict with the decoded arrays (``img``, ``seg``, ``heatmap``, ``sdf``, ``meta``) that
+    :func:`hoidata.store.encode_record` turns into bytes.
+    """
+    from hoidata.geometry.sampling import compute_sdf_samples, sample_query_points
+    from hoidata.render import RenderMesh
+
+    image = frame.load_image()
+    if frame.mirror:
+        frame, image = mirror_frame(frame), np.ascontiguousarray(image[:, ::-1])
+    hand, obj_verts = posed_meshes(frame, mano, obj)
+    pose = frame.object_pose
+    box = crop_ops.square_crop_box(frame.joints_2d, project(obj.box21 @ pose[:3, :3].T + pose[:3, 3], frame.K),
+                                   settings.context)
+    size, half = settings.crop_size, settings.crop_size // 2
+    to_crop = crop_ops.crop_affine(box, size)
+    K_crop = to_crop @ frame.K
+    K_mask = crop_ops.resize_affine(size, half) @ K_crop
+    faces = mano.closed_faces
+    meshes = [RenderMesh(vertices=hand, faces=faces, label=1), RenderMesh(vertices=obj_verts, faces=obj.faces, label=2)]
+    labels, amodal = renderer.masks(K_mask, meshes)
+    rng = np.random.default_rng(frame_seed(key))
+    root = frame.root_3d
+    points, counts = sample_query_points(hand, faces, obj_verts, obj.faces, root, rng, settings.n_hand,
+                                         settings.n_object, settings.uniform_fraction, settings.cube, settings.sigmas)
+    sdf_h, sdf_o, part = compute_sdf_samples(points, hand, faces, mano.closed_face_parts, obj_verts, obj.faces,
+                                             obj.watertight, settings.part_radius)
+    meta = record_meta(frame, key, box, K_crop, hand, obj_verts, counts)
+    return {
+        "img": crop_ops.warp_image(image, to_crop, size),
+        "seg": pack_masks(labels, amodal),
+        "heatmap": summed_heatmap(project(frame.joints_3d, K_mask), half, settings.heatmap_sigma),
+        "sdf": schema.quantize_sdf(points - root, sdf_h, sdf_o, part),
+        "meta": meta,
+    }
+
+
+def record_meta(frame: Frame, key: str, box: np.ndarray, K_crop: np.ndarray, hand: np.ndarray,
+                obj_verts: np.ndarray, counts) -> dict:
+    """The meta.json content (see ``schema.META_FIELDS``); arrays stay numpy until encoding."""
+    x1, y1, side = box
+    return {
+        "schema_version": schema.SCHEMA_VERSION, "key": key, "dataset": frame.dataset, "split": frame.split,
+        "frame_id": frame.frame_id, "side": frame.side, "mirrored": bool(frame.mirror),
+        "tip_convention": frame.tip_convention, "K": K_crop, "crop_box": np.array([x1, y1, x1 + side, y1 + side]),
+        "hand_root": frame.root_3d, "joints_3d": frame.joints_3d, "joints_2d": project(frame.joints_3d, K_crop),
+        "mano_pose": frame.mano_pose, "mano_betas": frame.mano_betas, "mano_transl": frame.mano_transl,
+        "object_name": frame.object_name, "object_id": int(frame.object_id), "object_pose": frame.object_pose,
+        "hand_box": box_from_points(project(hand, K_crop)), "object_box": box_from_points(project(obj_verts, K_crop)),
+        "sdf_counts": np.asarray(counts, dtype=np.int64), "source": frame.source,
+    }

@@ -1,0 +1,100 @@
+"""The record schema (version 1): one WebDataset sample per frame. Writer and reader both use this.
+
+No string literal of a member name appears anywhere else in the project: import the constants.
+
+Members of a record (key ``<dataset>-<split>-<frame id>``, no dots):
+
+==============  =============================================================================
+``img.jpg``     RGB crop, square, ``crop_size`` px (default 512), JPEG; pixels outside the image black
+``seg.png``     uint8 single channel at ``crop_size // 2``: bit 0 visible hand, bit 1 visible object,
+                bit 2 amodal hand, bit 3 amodal object
+``hm.png``      uint8 single channel at ``crop_size // 2``: sum of 21 joint Gaussians (sigma 1.25 px),
+                clipped to 1 and scaled to 255
+``sdf.npy``     int16 (N, 6): x, y, z relative to the hand root (camera axes), signed distance to the
+                hand, signed distance to the object, all in units of ``SDF_QUANTUM`` metres; then the
+                hand part label (0-15, MANO joint order; -1 where not applicable). Negative = inside.
+``meta.json``   labels (see :data:`META_FIELDS`), UTF-8 JSON, metres and crop pixels
+==============  =============================================================================
+
+SDF sample order inside ``sdf.npy``: the hand set (near the hand surface), then the object set, then
+the uniform set; ``meta.json`` holds the three counts under ``sdf_counts``.
+"""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+
+SCHEMA_VERSION = 1
+
+IMG = "img.jpg"
+SEG = "seg.png"
+HEATMAP = "hm.png"
+SDF = "sdf.npy"
+META = "meta.json"
+MEMBERS = (IMG, SEG, HEATMAP, SDF, META)
+
+# seg.png bit planes
+SEG_HAND_VISIBLE, SEG_OBJECT_VISIBLE, SEG_HAND_AMODAL, SEG_OBJECT_AMODAL = 1, 2, 4, 8
+
+# sdf.npy layout
+SDF_QUANTUM = 2e-5  # metres per unit: 0.02 mm, so the rounding error is at most 0.01 mm
+SDF_LIMIT = 32767 * SDF_QUANTUM  # about 0.655 m; larger magnitudes are clipped
+SDF_DTYPE = np.int16
+SDF_COLUMNS = ("x", "y", "z", "sdf_hand", "sdf_object", "part")
+NO_PART = -1
+
+HEATMAP_SIGMA = 1.25  # pixels at the mask resolution
+
+# meta.json fields: name -> (shape or None for scalars/strings, description)
+META_FIELDS = {
+    "schema_version": (None, "SCHEMA_VERSION of the writer"),
+    "key": (None, "the record key"),
+    "dataset": (None, "'dexycb' | 'ho3d' | 'toy' | 'synthetic'"),
+    "split": (None, "source split"),
+    "frame_id": (None, "the reader's frame id"),
+    "side": (None, "'right' (left hands are mirrored; see 'mirrored')"),
+    "mirrored": (None, "true if the frame was a left hand mirrored to a right hand"),
+    "tip_convention": (None, "'manopth' | 'ho3d': fingertip vertices of joints_3d"),
+    "K": ((3, 3), "intrinsics of img.jpg (crop pixels)"),
+    "crop_box": ((4,), "x1, y1, x2, y2 of the crop in the source image, pixels"),
+    "hand_root": ((3,), "wrist joint, camera frame, metres: the origin of sdf.npy's xyz"),
+    "joints_3d": ((21, 3), "camera frame, metres, DexYCB order"),
+    "joints_2d": ((21, 2), "crop pixels"),
+    "mano_pose": ((48,), "flat-hand-mean axis-angle, camera frame"),
+    "mano_betas": ((10,), "MANO shape"),
+    "mano_transl": ((3,), "MANO translation, camera frame, metres"),
+    "object_name": (None, "YCB folder name"),
+    "object_id": (None, "DexYCB class id 1..21"),
+    "object_pose": ((4, 4), "model -> camera"),
+    "hand_box": ((4,), "x1, y1, x2, y2 of the projected hand mesh, crop pixels"),
+    "object_box": ((4,), "x1, y1, x2, y2 of the projected object mesh, crop pixels"),
+    "sdf_counts": ((3,), "hand, object and uniform sample counts in sdf.npy"),
+    "source": (None, "provenance dict from the reader"),
+}
+
+_KEY_RE = re.compile(r"^[A-Za-z0-9_\-]+$")
+
+
+def record_key(dataset: str, split: str, frame_id: str) -> str:
+    """``<dataset>-<split>-<frame id>``; raises ValueError if a part would put a dot or slash in it."""
+    key = f"{dataset}-{split}-{frame_id}"
+    if not _KEY_RE.match(key):
+        raise ValueError(f"record key {key!r} may only hold letters, digits, '_' and '-'")
+    return key
+
+
+def quantize_sdf(xyz: np.ndarray, sdf_hand: np.ndarray, sdf_object: np.ndarray, part: np.ndarray) -> np.ndarray:
+    """Float samples -> the stored int16 (N, 6) array. xyz relative to the hand root, metres."""
+    cols = np.concatenate([xyz, sdf_hand[:, None], sdf_object[:, None]], axis=1)
+    q = np.round(np.clip(cols, -SDF_LIMIT, SDF_LIMIT) / SDF_QUANTUM)
+    return np.concatenate([q, part[:, None]], axis=1).astype(SDF_DTYPE)
+
+
+def dequantize_sdf(stored: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Stored (N, 6) int16 -> (xyz (N, 3), sdf_hand (N,), sdf_object (N,)) in metres, float32, and part (N,) int8."""
+    if stored.dtype != SDF_DTYPE or stored.ndim != 2 or stored.shape[1] != len(SDF_COLUMNS):
+        raise ValueError(f"sdf.npy must be {np.dtype(SDF_DTYPE).name} (N, {len(SDF_COLUMNS)}), got {stored.dtype} {stored.shape}")
+    vals = stored[:, :5].astype(np.float32) * np.float32(SDF_QUANTUM)
+    return vals[:, :3], vals[:, 3], vals[:, 4], stored[:, 5].astype(np.int8)
