@@ -50,6 +50,52 @@ def cmd_check_objects(args: argparse.Namespace) -> int:
     return 0 if rows else 1
 
 
+def _part(text: str) -> tuple[int, int]:
+    try:
+        i, n = (int(x) for x in text.split("/"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--part must look like i/N, got {text!r}") from None
+    if not 0 <= i < n:
+        raise argparse.ArgumentTypeError(f"--part i/N needs 0 <= i < N, got {text!r}")
+    return i, n
+
+
+def cmd_build_sdf(args: argparse.Namespace) -> int:
+    """Build (or resume) a training store from a dataset, as pipelines/<dataset>.toml says."""
+    from hoidata.build_config import load_build_config
+    from hoidata.pipeline import build_store, estimate_build
+
+    cfg = load_build_config(args.dataset, args.overrides)
+    root = Path(args.root)
+    mano, models = Path(args.mano or root / "mano"), Path(args.models or root / "models")
+    if args.estimate:
+        for k, v in estimate_build(cfg, root, mano, models, workers=args.workers).items():
+            print(f"{k:>30}: {v}")
+        return 0
+    s = build_store(cfg, root, mano, models, Path(args.out), workers=args.workers, part=args.part)
+    print(f"{s.store}: {s.records} records written in {s.seconds:.1f} s ({s.frames_per_second:.2f} frames/s), "
+          f"{s.shards_written} shards written, {s.shards_kept} kept from an earlier run, {len(s.skipped)} frames skipped")
+    for skip in s.skipped[:10]:
+        print(f"  skipped {skip['frame_id']}: {skip['reason']}")
+    print("index.zarr written" if s.index_written else "index not written yet: other parts still have shards to build")
+    return 0
+
+
+def cmd_verify(args: argparse.Namespace) -> int:
+    from hoidata.store import verify_store
+
+    report = verify_store(args.store)
+    print(report)
+    return 0 if report.ok else 1
+
+
+def cmd_inspect(args: argparse.Namespace) -> int:
+    from hoidata.inspect import inspect_store
+
+    print(f"wrote {inspect_store(args.store, n=args.n, out=args.out)}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="hoidata", description="Hand-object datasets -> training-ready stores.")
     parser.add_argument("--version", action="version", version=f"hoidata {__version__}")
@@ -63,6 +109,28 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="random seed; the same seed gives the same files")
     p.add_argument("--cache-dir", default=None, help="cache for simplified meshes (default $HOIDATA_CACHE/objects or ~/.cache/hoidata/objects)")
     p.set_defaults(func=cmd_make_toy)
+
+    p = sub.add_parser("build-sdf", help="build a verified training store (SDF samples, masks, crops, labels)")
+    p.add_argument("--dataset", required=True, help="pipeline name (pipelines/<name>.toml: dexycb, dexycb_full, ho3d, toy) or a .toml")
+    p.add_argument("--root", required=True, help="dataset folder (DexYCB or HO-3D layout)")
+    p.add_argument("--mano", default=None, help="folder with MANO_RIGHT.pkl / MANO_LEFT.pkl (default ROOT/mano)")
+    p.add_argument("--models", default=None, help="YCB models folder (default ROOT/models)")
+    p.add_argument("--out", required=True, help="store folder (resumes if it holds an interrupted build)")
+    p.add_argument("--workers", type=int, default=1, help="worker processes")
+    p.add_argument("--part", type=_part, default=(0, 1), help="i/N: build only shards k with k %% N == i")
+    p.add_argument("--estimate", action="store_true", help="time and disk estimate from a few frames; writes nothing")
+    p.add_argument("overrides", nargs="*", help="section.key=value overrides, e.g. record.n_hand=2048")
+    p.set_defaults(func=cmd_build_sdf)
+
+    p = sub.add_parser("verify", help="decode every record of a store and check counts and checksums")
+    p.add_argument("store")
+    p.set_defaults(func=cmd_verify)
+
+    p = sub.add_parser("inspect", help="PNG grid of records: image, masks, joints, heatmap, SDF samples")
+    p.add_argument("store")
+    p.add_argument("--n", type=int, default=16, help="records to show")
+    p.add_argument("--out", default="grid.png", help="output PNG")
+    p.set_defaults(func=cmd_inspect)
 
     p = sub.add_parser("check-mano", help="load and check MANO_RIGHT.pkl / MANO_LEFT.pkl")
     p.add_argument("mano_dir", help="folder holding MANO_RIGHT.pkl and/or MANO_LEFT.pkl")

@@ -74,14 +74,23 @@ META_FIELDS = {
     "source": (None, "provenance dict from the reader"),
 }
 
-_KEY_RE = re.compile(r"^[A-Za-z0-9_\-]+$")
+# JSON types of the scalar meta fields; shaped fields are numeric arrays
+META_TYPES = {"schema_version": int, "key": str, "dataset": str, "split": str, "frame_id": str, "side": str,
+              "mirrored": bool, "tip_convention": str, "object_name": str, "object_id": int, "source": dict}
+
+_KEY_RE = re.compile(r"[A-Za-z0-9_\-]+")  # used with fullmatch: no dots, slashes or trailing newline
+
+
+def check_key(key) -> None:
+    """Raise ValueError unless ``key`` is a record key: a non-empty string of letters, digits, '_' and '-'."""
+    if not isinstance(key, str) or not _KEY_RE.fullmatch(key):
+        raise ValueError(f"{key!r}: keys may only hold letters, digits, '_' and '-'")
 
 
 def record_key(dataset: str, split: str, frame_id: str) -> str:
     """``<dataset>-<split>-<frame id>``; raises ValueError if a part would put a dot or slash in it."""
     key = f"{dataset}-{split}-{frame_id}"
-    if not _KEY_RE.match(key):
-        raise ValueError(f"record key {key!r} may only hold letters, digits, '_' and '-'")
+    check_key(key)
     return key
 
 

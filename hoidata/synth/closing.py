@@ -31,7 +31,7 @@ OPEN_SCALES = (-0.5, 0.0, 0.0, 0.0, 0.0)
 CLOSED_SCALES = (1.5, 2.5, 2.5, 2.5, 2.5)
 TOUCH = 0.0015  # a finger stops once a point of its surface is this close to the object (m)
 STEP_PENETRATION = 0.001  # deepest penetration a single closing step may end with (m)
-LADDER_BAND = 0.005  # closing steps move a point ~3.5 mm at most, well under twice this band (m)
+LADDER_BAND = 0.005  # a closing step moves a point <= 3.6 mm (5 mm for betas = 2), under twice this (m)
 SAMPLE_SPACING = 0.01  # finger faces with longer edges are probed between their corners too (m)
 
 

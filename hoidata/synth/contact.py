@@ -3,9 +3,14 @@
 All positions are in metres in one shared frame (the object's model frame in the grasp
 synthesiser). Meshes are closed and wound outward, so a negative signed distance means "inside".
 
-- :func:`signed_distance` and :func:`penetration_depth` are exact (libigl, pseudonormal sign);
+- :func:`signed_distance` and :func:`penetration_depth` are exact distances from libigl, signed
+  by the pseudonormal for the clean object and by the winding number for the posed hand, which
+  can fold into itself at bent joints;
 - :class:`HandObjectCollision` wraps python-fcl: the object's BVH is built once, hands are
-  queried against it (collision, separation distance, rigid translations of one hand mesh).
+  queried against it (collision, separation distance, rigid translations of one hand mesh), and
+  it answers the signed-distance and contact queries of the grasp synthesiser;
+- :func:`surface_samples` covers a coarse mesh with points between its vertices, so that
+  vertex-based checks do not miss thin object parts.
 """
 
 from __future__ import annotations

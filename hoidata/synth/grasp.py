@@ -6,19 +6,21 @@ forward pass gives the hand directly in object coordinates. The recipe, per atte
 1. an approach direction (random over the sphere, or given) and a random roll about it;
 2. the open hand is rotated so the palm normal points along the approach, aimed at the object's
    volume centroid, and slid in (fcl distance, conservative advancement) until it is
-   ``palm_gap`` from the surface;
+   ``palm_gap`` from the surface; then it squares up to the surface nearest the palm and slides
+   in again, so an oblique approach to a flat face does not leave the palm hovering;
 3. each finger is closed independently along a scaled copy of its slice of MANO's ``hands_mean``
-   (a curled, relaxed grasp, so scale 0 is the flat hand and 2.5 a tight fist): a coarse ladder of
-   scales, then a fine one, stops each finger at its first touch, backing off a step whenever that
-   touch would already be a penetration;
-4. the result is checked with :func:`hoidata.synth.contact.penetration_depth` and the contact
-   counts; an attempt that fails is retried with a new direction and roll.
+   until it touches (:func:`hoidata.synth.closing.close_fingers`);
+4. the result is checked (the same two-sided penetration as
+   :func:`hoidata.synth.contact.penetration_depth`, contact counts); an attempt that fails is
+   retried with a new direction and roll, and a valid one that does not wrap the object (thumb
+   plus two curled fingers on it) is kept only if no wrapping one turns up within a few tries.
 
 Nothing depends on the hand's rest axes: the palm frame comes from the MANO joints.
 """
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -32,6 +34,7 @@ from hoidata.synth.contact import CONTACT_DISTANCE, HandObjectCollision, object_
 WRIST, INDEX_MCP, MIDDLE_MCP, RING_MCP, PINKY_MCP = 0, 1, 4, 10, 7  # MANO-order joint ids
 PALM_GAP = 0.004  # the open hand stops this far from the surface (m)
 FINGER_CONTACT = 0.002  # a finger with a surface point this close (or inside) is "in contact" (m)
+MAX_OFF_CENTRE_DEG = 45.0  # a squared-up palm still faces the object's centroid within this angle
 WRAP_SCALE = 0.3  # a finger closed at least this far (scale of hands_mean) is curled, not flat
 
 
@@ -47,7 +50,9 @@ class Grasp:
         transl: (3,) float64 metres, added after posing.
         penetration: deepest hand-object interpenetration, metres (see ``penetration_depth``).
         n_contacts: hand vertices within 5 mm of the object surface (or inside it).
-        fingers_in_contact: names among ``FINGERS`` with a vertex within 2 mm of the surface.
+        fingers_in_contact: names among ``FINGERS`` with a point of the finger within 2 mm of the
+            surface (or inside); for the thumb only its two distal segments count, the first is
+            the thenar eminence of the palm.
         side: 'right' or 'left'.
         finger_scales: (5,) closing scale of ``hands_mean`` per finger, thumb..pinky.
         approach: (3,) unit approach direction (the palm normal), object frame.
@@ -97,7 +102,8 @@ def roll_direction(approach: np.ndarray, roll: float) -> np.ndarray:
     return np.cos(roll) * u + np.sin(roll) * np.cross(approach, u)
 
 
-def hand_rotation(normal: np.ndarray, forward: np.ndarray, approach: np.ndarray, target_forward: np.ndarray) -> np.ndarray:
+def hand_rotation(normal: np.ndarray, forward: np.ndarray, approach: np.ndarray,
+                  target_forward: np.ndarray) -> np.ndarray:
     """Rotation (3, 3) taking the rest palm frame (``normal``, ``forward``: unit, orthogonal, (3,))
     to the frame whose normal is the unit ``approach`` and whose forward is ``target_forward``
     made perpendicular to it (it must not be parallel to the approach)."""
@@ -127,6 +133,7 @@ def sample_direction(rng: np.random.Generator) -> np.ndarray:
         n = np.linalg.norm(d)
         if n > 1e-9:
             return d / n
+
 
 # ---------------------------------------------------------------- the steps
 
@@ -192,8 +199,9 @@ def place_hand(mano, collision: HandObjectCollision, aim: np.ndarray, direction:
     towards ``target_forward`` (3,), and slide it along the line through ``aim`` (3,) until it is
     ``palm_gap`` metres from the object.
 
-    Returns the global axis-angle (3,), transl (3,) m and palm centre (3,) m, or None when the
-    hand finds no clear stop on that line.
+    ``rest`` is :func:`palm_frame` of the unposed hand with these ``betas``; ``basis`` is
+    ``finger_basis(mano.hands_mean)``. Returns the global axis-angle (3,), transl (3,) m and palm
+    centre (3,) m, or None when the hand finds no clear stop on that line.
     """
     _, normal0, forward0 = rest
     rotvec = Rotation.from_matrix(hand_rotation(normal0, forward0, direction, target_forward)).as_rotvec()
@@ -225,13 +233,20 @@ def _attempt(mano, collision, aim, betas, direction, roll, palm_gap, rest, basis
         squared = -normal[0] / np.linalg.norm(normal[0])
         if squared @ direction < np.cos(np.radians(2.0)) and abs(squared @ forward) < 0.99:
             again = place_hand(mano, collision, closest[0], squared, forward, betas, rest, basis, palm_gap)
-            if again is not None:
+            # Keep the palm turned towards the object as a whole: squaring up to the far end of a
+            # banana would leave the palm facing past the object.
+            if again is not None and _facing(squared, aim - again[2]) >= np.cos(np.radians(MAX_OFF_CENTRE_DEG)):
                 placed, direction = again, squared
     rotvec, transl, _ = placed
     scales = close_fingers(mano, rotvec, betas, transl, collision, samples=samples)
     pose = np.concatenate([rotvec, scales @ basis])
     depth, n_contacts, fingers = evaluate_grasp(mano, pose, betas, transl, collision, contact_samples)
     return Grasp(pose, betas.copy(), transl, depth, n_contacts, fingers, mano.side, scales, direction.copy())
+
+
+def _facing(normal: np.ndarray, to_centre: np.ndarray) -> float:
+    """Cosine between a unit palm normal (3,) and the direction (3,) to the object centre."""
+    return float(normal @ to_centre) / max(float(np.linalg.norm(to_centre)), 1e-12)
 
 
 def _problem(grasp: Grasp | str, max_penetration: float, min_fingers: int, min_contacts: int) -> str:
@@ -260,10 +275,23 @@ def _score(grasp: Grasp) -> tuple:
     return ("thumb" in grasp.fingers_in_contact, len(grasp.fingers_in_contact), grasp.n_contacts)
 
 
+@contextmanager
+def _torch_threads(n: int | None):
+    """Run the block with ``n`` torch intra-op threads (None: leave them), restoring them after."""
+    before = torch.get_num_threads()
+    if n is not None:
+        torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
 def synthesize_grasp(mano, obj_vertices, obj_faces, rng: np.random.Generator, betas=None, approach=None,
                      max_penetration: float = 0.002, min_fingers: int = 3, min_contacts: int = 20,
-                     max_tries: int = 24, wrap_tries: int = 8, palm_gap: float = PALM_GAP, square_up: bool = True,
-                     name: str = "object", collision: HandObjectCollision | None = None) -> Grasp:
+                     max_tries: int = 24, wrap_tries: int = 6, palm_gap: float = PALM_GAP, square_up: bool = True,
+                     name: str = "object", collision: HandObjectCollision | None = None,
+                     torch_threads: int | None = 1) -> Grasp:
     """A physically checked grasp of a MANO hand on one object, in the object's frame.
 
     Args:
@@ -289,6 +317,10 @@ def synthesize_grasp(mano, obj_vertices, obj_faces, rng: np.random.Generator, be
             then that direction.
         name: object name for error messages.
         collision: a prebuilt ``HandObjectCollision`` of this object, to reuse its BVH.
+        torch_threads: torch intra-op threads while synthesising (restored after; None leaves
+            them alone). MANO batches here are small (<= 16 hands), so one thread is as fast,
+            and it avoids the large slowdowns of oversubscribed cores when several generator
+            processes share a machine.
 
     Returns:
         A :class:`Grasp` that passes every check.
@@ -300,27 +332,28 @@ def synthesize_grasp(mano, obj_vertices, obj_faces, rng: np.random.Generator, be
     collision = collision if collision is not None else HandObjectCollision(vertices, obj_faces)
     betas = np.zeros(10) if betas is None else np.asarray(betas, dtype=np.float64).reshape(10)
     aim = volume_centroid(vertices, collision.obj_faces)
-    basis = finger_basis(mano.hands_mean.cpu().numpy())
-    rest = palm_frame(hand_forward(mano, np.zeros(3), np.zeros(5), betas, np.zeros(3), basis)[1][0], mano.side)
-    samples, contact_samples = finger_samples(mano), finger_samples(mano, joints=CONTACT_JOINTS)
     best, reasons = None, []
-    for attempt in range(max_tries):
-        if approach is None:
-            direction = sample_direction(rng)
-        else:
-            direction = np.asarray(approach, dtype=np.float64) / np.linalg.norm(approach)
-        roll = rng.uniform(0.0, 2.0 * np.pi)
-        grasp = _attempt(mano, collision, aim, betas, direction, roll, palm_gap, rest, basis, samples,
-                         contact_samples, square_up)
-        reason = _problem(grasp, max_penetration, min_fingers, min_contacts)
-        if not reason:
-            if _wraps(grasp):
-                return grasp
-            best = grasp if best is None or _score(grasp) > _score(best) else best
-            reason = "valid, but the fingers do not wrap the object"
-        if best is not None and attempt + 1 >= wrap_tries:
-            return best
-        reasons.append(reason)
+    with _torch_threads(torch_threads):
+        basis = finger_basis(mano.hands_mean.cpu().numpy())
+        rest = palm_frame(hand_forward(mano, np.zeros(3), np.zeros(5), betas, np.zeros(3), basis)[1][0], mano.side)
+        samples, contact_samples = finger_samples(mano), finger_samples(mano, joints=CONTACT_JOINTS)
+        for attempt in range(max_tries):
+            if approach is None:
+                direction = sample_direction(rng)
+            else:
+                direction = np.asarray(approach, dtype=np.float64) / np.linalg.norm(approach)
+            roll = rng.uniform(0.0, 2.0 * np.pi)
+            grasp = _attempt(mano, collision, aim, betas, direction, roll, palm_gap, rest, basis, samples,
+                             contact_samples, square_up)
+            reason = _problem(grasp, max_penetration, min_fingers, min_contacts)
+            if not reason:
+                if _wraps(grasp):
+                    return grasp
+                best = grasp if best is None or _score(grasp) > _score(best) else best
+                reason = "valid, but the fingers do not wrap the object"
+            if best is not None and attempt + 1 >= wrap_tries:
+                return best
+            reasons.append(reason)
     size = " x ".join(f"{e * 100:.1f}" for e in vertices.max(0) - vertices.min(0))
     summary = "; ".join(f"{r} ({reasons.count(r)}x)" for r in dict.fromkeys(reasons))
     raise RuntimeError(f"no valid {mano.side}-hand grasp of {name} ({size} cm, {len(collision.obj_faces)} faces) "

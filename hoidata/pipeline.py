@@ -1,0 +1,251 @@
+"""``hoidata build-sdf``: frames -> records -> shards, in parallel, resumable, splittable into parts.
+
+The unit of work is a shard: shard k holds the frames k*R .. (k+1)*R-1 of the reader's order (R
+records per shard), so its content depends only on the frames and the record settings. Workers, parts
+(``--part i/N`` takes the shards with k % N == i) and resumed runs therefore produce byte-identical
+shards. A finished shard has a sidecar with its checksum; a resumed build keeps intact shards.
+When every planned shard is done, the zarr index is written.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from tqdm import tqdm
+
+from hoidata import schema, store
+from hoidata.build_config import BuildConfig
+from hoidata.datasets.frame import Skip
+from hoidata.errors import DataError
+
+BUILD_FILE = "build.json"
+
+
+def read_frames(cfg: BuildConfig, root: Path, mano_dir: Path) -> tuple[list, list[Skip]]:
+    """All frames of the configured splits, in reader order, and the reader's skips."""
+    frames, skips = [], []
+    for split in cfg.dataset.splits:
+        if cfg.dataset.name == "dexycb":
+            from hoidata.datasets.dexycb import DexYCBReader
+
+            reader = DexYCBReader(root, mano_dir, split, cfg.dataset.dexycb_setting(), on_error="skip")
+        elif cfg.dataset.name == "ho3d":
+            from hoidata.datasets.ho3d import HO3DReader
+
+            reader = HO3DReader(root, mano_dir, split, on_error="skip")
+        else:
+            raise ValueError(f"unknown dataset {cfg.dataset.name!r}; expected 'dexycb' or 'ho3d'")
+        for frame in reader.frames():
+            if frame.has_hand_pose:
+                frames.append(frame)
+            else:
+                skips.append(Skip(frame.frame_id, "no MANO annotation: SDF samples need the hand mesh",
+                                  str(frame.source.get("meta", ""))))
+        skips += reader.skipped
+    return frames, skips
+
+
+@dataclass
+class BuildSummary:
+    store: Path
+    frames: int = 0
+    records: int = 0
+    skipped: list = field(default_factory=list)
+    shards_written: int = 0
+    shards_kept: int = 0
+    seconds: float = 0.0
+    index_written: bool = False
+
+    @property
+    def frames_per_second(self) -> float:
+        return self.records / self.seconds if self.seconds else 0.0
+
+
+_WORKER: dict = {}
+
+
+def _init_worker(mano_dir: Path, models_dir: Path, crop_size: int) -> None:
+    """Per-process state: the right MANO layer, object geometry cache and one mask renderer."""
+    import torch
+
+    from hoidata.hand import load_mano
+    from hoidata.render import Renderer
+
+    torch.set_num_threads(1)
+    _WORKER.update(mano=load_mano(mano_dir, side="right", dtype=torch.float64), models_dir=Path(models_dir),
+                   objects={}, renderer=Renderer(crop_size // 2, crop_size // 2))
+
+
+def object_asset(models_dir: Path, name: str):
+    """Repaired full-resolution object geometry and its 21-point box, for SDF and masks."""
+    import numpy as np
+
+    from hoidata.objects import box21, load_object_mesh, object_mesh_path, repair_mesh
+    from hoidata.records import ObjectAsset
+
+    geo, report = repair_mesh(load_object_mesh(object_mesh_path(models_dir, name)))
+    return ObjectAsset(name, np.asarray(geo.vertices), np.asarray(geo.faces), bool(report.watertight),
+                       box21(np.asarray(geo.vertices)))
+
+
+def _build_one(frame, key: str, settings):
+    from hoidata.records import build_record
+
+    objects = _WORKER["objects"]
+    if frame.object_name not in objects:
+        objects[frame.object_name] = object_asset(_WORKER["models_dir"], frame.object_name)
+    rec = build_record(frame, _WORKER["mano"], objects[frame.object_name], _WORKER["renderer"], key, settings)
+    return store.encode_record(key, rec["img"], rec["seg"], rec["heatmap"], rec["sdf"], rec["meta"])
+
+
+def _extra_name(number: int) -> str:
+    return f"shard-{number:06d}.skips.json"
+
+
+def _build_shard(job) -> tuple[int, int, list]:
+    """Build and write one shard; returns (number, records written, skips)."""
+    number, frames, keys, settings, out = job
+    records, skips = [], []
+    for frame, key in zip(frames, keys):
+        try:
+            records.append((key, _build_one(frame, key, settings)))
+        except (DataError, ValueError) as e:  # a broken frame is skipped with its reason, the build goes on
+            skips.append({"frame_id": frame.frame_id, "reason": str(e), "path": str(frame.image_path)})
+    _write_json(Path(out) / _extra_name(number), {"skipped": skips, "records": len(records)})
+    if records:
+        store.write_shard(out, number, records)
+    return number, len(records), skips
+
+
+def _write_json(path: Path, value) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(value, sort_keys=True, indent=1))
+    os.replace(tmp, path)
+
+
+def _shard_done(out: Path, number: int, complete: set[int]) -> bool:
+    """A shard is done if it is intact on disk, or if it was planned but every frame in it was skipped."""
+    if number in complete:
+        return True
+    extra = out / _extra_name(number)
+    return extra.is_file() and json.loads(extra.read_text())["records"] == 0
+
+
+def _check_build_file(out: Path, cfg: BuildConfig, keys: list[str]) -> None:
+    """Refuse to resume into a store built with other settings or frames (it would mix records)."""
+    import hashlib
+
+    spec = {"config": cfg.as_dict(), "keys_sha256": hashlib.sha256("\n".join(keys).encode()).hexdigest(),
+            "frames": len(keys), "schema_version": schema.SCHEMA_VERSION}
+    spec = json.loads(json.dumps(spec))
+    path = out / BUILD_FILE
+    if path.is_file():
+        old = json.loads(path.read_text())
+        if old != spec:
+            raise DataError(path, None, "this folder holds a store built with other settings or frames; "
+                                        "use a new --out folder (nothing was changed)")
+    else:
+        out.mkdir(parents=True, exist_ok=True)
+        _write_json(path, spec)
+
+
+def git_commit() -> str:
+    try:
+        return subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).parent, capture_output=True,
+                              text=True, timeout=5).stdout.strip() or "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def build_store(cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path, out: Path, workers: int = 1,
+                part: tuple[int, int] = (0, 1), progress: bool = True) -> BuildSummary:
+    """Build (or resume) the store in `out`; see the module docstring."""
+    import multiprocessing as mp
+
+    root, out, models_dir = Path(root), Path(out), Path(models_dir)
+    start = time.perf_counter()
+    frames, reader_skips = read_frames(cfg, root, Path(mano_dir))
+    if not frames:
+        raise DataError(root, None, f"no frames to build for splits {cfg.dataset.splits} (skipped: {len(reader_skips)})")
+    keys = [schema.record_key(f.dataset, f.split, f.frame_id) for f in frames]
+    _check_build_file(out, cfg, keys)
+    per = cfg.store.records_per_shard
+    numbers = list(range((len(frames) + per - 1) // per))
+    # count left open: frames skipped while building make a shard shorter (build.json pins the frames)
+    plan = [store.ShardInfo(n, store.shard_name(n), None) for n in numbers]
+    complete = store.completed_shards(out, plan)
+    mine = [n for n in numbers if n % part[1] == part[0] and not _shard_done(out, n, complete)]
+    jobs = [(n, frames[n * per:(n + 1) * per], keys[n * per:(n + 1) * per], cfg.record, out) for n in mine]
+    summary = BuildSummary(out, frames=len(frames), shards_kept=sum(n % part[1] == part[0] for n in complete))
+    bar = tqdm(total=sum(len(j[1]) for j in jobs), desc="build-sdf", unit="frame", disable=not progress)
+    init = (Path(mano_dir), models_dir, cfg.record.crop_size)
+    if workers <= 1:
+        _init_worker(*init)
+        results = (_build_shard(job) for job in jobs)
+        _run(results, summary, bar, start)
+        _WORKER.pop("renderer").close()
+    else:
+        with mp.get_context("spawn").Pool(workers, initializer=_init_worker, initargs=init) as pool:
+            _run(pool.imap_unordered(_build_shard, jobs), summary, bar, start)
+    bar.close()
+    summary.seconds = time.perf_counter() - start
+    if all(_shard_done(out, n, store.completed_shards(out, plan)) for n in numbers):
+        write_store_index(out, cfg, models_dir, numbers, reader_skips)
+        summary.index_written = True
+    return summary
+
+
+def _run(results, summary: BuildSummary, bar, start: float) -> None:
+    for _, written, skips in results:
+        summary.records += written
+        summary.shards_written += 1
+        summary.skipped += skips
+        bar.update(written + len(skips))
+        bar.set_postfix(fps=f"{summary.records / max(time.perf_counter() - start, 1e-9):.2f}")
+
+
+def write_store_index(out: Path, cfg: BuildConfig, models_dir: Path, numbers: list[int], reader_skips: list) -> None:
+    """Gather every shard's labels and skips and write index.zarr."""
+    from hoidata.objects import load_simplified
+
+    shards, metas, skipped = [], [], [{"frame_id": s.frame_id, "reason": s.reason, "path": s.path} for s in reader_skips]
+    for n in numbers:
+        skipped += json.loads((out / _extra_name(n)).read_text())["skipped"]
+        if (out / store.shard_name(n)).is_file():
+            shards.append(store.read_sidecar(out, n))
+            metas += [json.loads(m[schema.META]) for m in store.read_shard_members(out / store.shard_name(n))]
+    names = sorted({m["object_name"] for m in metas})
+    meshes = {}
+    for name in names:
+        simple = load_simplified(models_dir, name)
+        meshes[name] = (simple.vertices, simple.faces)
+    labels = store.index_labels(metas)
+    labels["key"] = labels.get("key", [m["key"] for m in metas])
+    store.write_index(out, shards, labels, meshes, skipped, cfg.as_dict(), {"git_commit": git_commit()})
+
+
+def estimate_build(cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path, workers: int = 1,
+                   sample: int = 6) -> dict:
+    """Time and disk of a build, from `sample` frames spread over the selection; writes nothing."""
+    frames, skips = read_frames(cfg, Path(root), Path(mano_dir))
+    if not frames:
+        raise DataError(root, None, "no frames to build")
+    picks = sorted({int(i) for i in range(0, len(frames), max(1, len(frames) // sample))})[:sample]
+    _init_worker(Path(mano_dir), Path(models_dir), cfg.record.crop_size)
+    _build_one(frames[picks[0]], "warmup", cfg.record)  # first call pays for object loading and GL set-up
+    start, size = time.perf_counter(), 0
+    for i in picks:
+        f = frames[i]
+        members = _build_one(f, schema.record_key(f.dataset, f.split, f.frame_id), cfg.record)
+        size += sum(len(v) for v in members.values())
+    per_frame = (time.perf_counter() - start) / len(picks)
+    _WORKER.pop("renderer").close()
+    return {"frames": len(frames), "skipped_by_reader": len(skips), "seconds_per_frame": round(per_frame, 3),
+            "frames_per_second_per_worker": round(1 / per_frame, 2),
+            "estimated_minutes": round(len(frames) * per_frame / max(workers, 1) / 60, 1),
+            "bytes_per_frame": size // len(picks), "estimated_gb": round(size / len(picks) * len(frames) / 1e9, 3)}

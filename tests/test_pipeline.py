@@ -1,0 +1,141 @@
+"""build-sdf end to end on a tiny toy DexYCB: determinism, resume, skips, verify, record contents."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+
+from hoidata import schema, store
+from hoidata.build_config import load_build_config
+from hoidata.cli import main
+from hoidata.datasets.toy import write_assets
+from hoidata.datasets.toy_dexycb import ToyDexYCBSize, write_toy_dexycb
+from hoidata.geometry.sdf import brute_force_signed_distance
+from hoidata.pipeline import build_store
+
+SMALL = ["dataset.splits=[\"train\"]", "record.crop_size=128", "record.n_hand=384", "record.n_object=256",
+         "store.records_per_shard=5"]
+
+
+@pytest.fixture(scope="session")
+def tiny_root(tmp_path_factory):
+    root = tmp_path_factory.mktemp("tiny_dexycb")
+    mano_dir, models_dir = write_assets(root)
+    size = ToyDexYCBSize(subjects=(0,), sequences=2, serials=(0,), frames=8)
+    write_toy_dexycb(root, mano_dir, models_dir, size, workers=1, progress=False)
+    return root
+
+
+def _build(root, out, workers=1, part=(0, 1), extra=()):
+    cfg = load_build_config("toy", SMALL + list(extra))
+    return build_store(cfg, root, root / "mano", root / "models", out, workers=workers, part=part, progress=False)
+
+
+@pytest.fixture(scope="session")
+def built(tiny_root, tmp_path_factory):
+    out = tmp_path_factory.mktemp("store") / "one"
+    summary = _build(tiny_root, out)
+    return out, summary
+
+
+def _shard_bytes(out):
+    return {p.name: p.read_bytes() for p in sorted(out.glob("shard-*.tar"))}
+
+
+def test_build_writes_a_verified_store(built):
+    out, summary = built
+    assert summary.index_written and summary.records == 16 and summary.frames == 16
+    assert len(list(out.glob("shard-*.tar"))) == 4
+    report = store.verify_store(out)
+    assert report.ok, str(report)
+    index = store.read_index(out)
+    assert len(index.keys) == 16 and index.config["record"]["crop_size"] == 128
+    assert index.provenance["hoidata_version"] and "git_commit" in index.provenance
+    assert set(index.objects) == set(index.labels["object_name"].tolist())
+    assert all(len(v) == 1000 for v, _ in index.objects.values())
+
+
+def test_two_workers_give_byte_identical_shards(built, tiny_root, tmp_path):
+    out, _ = built
+    _build(tiny_root, tmp_path / "two", workers=2)
+    assert _shard_bytes(tmp_path / "two") == _shard_bytes(out)
+
+
+def test_interrupted_build_resumes_to_the_same_store(built, tiny_root, tmp_path):
+    out, _ = built
+    resumed = tmp_path / "resumed"
+    first = _build(tiny_root, resumed, part=(0, 2))  # as if killed after some shards
+    assert not first.index_written and first.shards_written == 2
+    (resumed / "shard-000001.tar.tmp").write_bytes(b"half a shard")  # a shard being written when killed
+    kept = resumed / "shard-000002.tar"
+    kept.write_bytes(kept.read_bytes()[:1000])  # and one whose file got damaged
+    second = _build(tiny_root, resumed)
+    assert second.index_written and second.shards_kept == 1 and second.shards_written == 3
+    assert _shard_bytes(resumed) == _shard_bytes(out)
+    assert not list(resumed.glob("*.tmp"))
+
+
+def test_resume_refuses_a_store_built_with_other_settings(built, tiny_root):
+    out, _ = built
+    with pytest.raises(Exception, match="other settings"):
+        _build(tiny_root, out, extra=["record.n_hand=100"])
+
+
+def test_a_corrupt_frame_is_skipped_and_the_build_goes_on(tiny_root, tmp_path):
+    root = tmp_path / "data"
+    shutil.copytree(tiny_root, root)
+    image = sorted(root.glob("*/*/836212060125/color_000002.jpg"))[0]
+    image.write_bytes(b"not a jpeg")
+    summary = _build(root, tmp_path / "store")
+    assert summary.records == 15 and summary.index_written
+    index = store.read_index(tmp_path / "store")
+    reasons = [s["reason"] for s in index.skipped if s["frame_id"].endswith("_000002")]
+    assert any("cannot decode image" in r for r in reasons)
+
+
+def test_records_hold_exact_sdf_and_consistent_masks(built, tiny_root):
+    import torch
+
+    from hoidata.hand import load_mano
+    from hoidata.objects import load_object_mesh, object_mesh_path, repair_mesh
+
+    out, _ = built
+    mano = load_mano(tiny_root / "mano", dtype=torch.float64)
+    for rec in list(store.iter_records(out))[::5]:
+        meta = rec[schema.META]
+        xyz, sdf_h, sdf_o, _ = schema.dequantize_sdf(rec[schema.SDF])
+        points = xyz.astype(np.float64) + meta["hand_root"]
+        posed = mano(torch.as_tensor(meta["mano_pose"])[None], torch.as_tensor(meta["mano_betas"])[None],
+                     torch.as_tensor(meta["mano_transl"])[None])
+        hand = mano.close(posed.vertices)[0].numpy()
+        ref_h = brute_force_signed_distance(points[::8], hand, mano.closed_faces)[0]
+        assert np.abs(ref_h - sdf_h[::8]).max() < 5e-5  # stored distances exact to 0.05 mm
+        geo, _ = repair_mesh(load_object_mesh(object_mesh_path(tiny_root / "models", meta["object_name"])))
+        pose = np.asarray(meta["object_pose"])
+        obj = np.asarray(geo.vertices) @ pose[:3, :3].T + pose[:3, 3]
+        ref_o = brute_force_signed_distance(points[::8], obj, np.asarray(geo.faces))[0]
+        assert np.abs(ref_o - sdf_o[::8]).max() < 5e-5
+        seg = rec[schema.SEG]
+        for visible, amodal in ((schema.SEG_HAND_VISIBLE, schema.SEG_HAND_AMODAL),
+                                (schema.SEG_OBJECT_VISIBLE, schema.SEG_OBJECT_AMODAL)):
+            assert ((seg & visible) > 0).any() and not (((seg & visible) > 0) & ((seg & amodal) == 0)).any()
+        uv = (np.asarray(meta["joints_2d"]) + 0.5) / 2 - 0.5  # crop pixels -> mask pixels
+        hand_mask = cv2.dilate(((seg & schema.SEG_HAND_AMODAL) > 0).astype(np.uint8), np.ones((3, 3), np.uint8))
+        px = np.clip(np.round(uv).astype(int), 0, seg.shape[0] - 1)
+        assert hand_mask[px[:, 1], px[:, 0]].mean() >= 0.95
+        assert rec[schema.IMG].shape == (128, 128, 3) and rec[schema.HEATMAP].max() > 200
+
+
+def test_cli_verify_names_a_truncated_shard(built, tmp_path, capsys):
+    out, _ = built
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    shard = copy / "shard-000001.tar"
+    shard.write_bytes(shard.read_bytes()[:-2000])
+    assert main(["verify", str(copy)]) == 1
+    assert "shard-000001.tar" in capsys.readouterr().out
+    assert main(["verify", str(out)]) == 0
