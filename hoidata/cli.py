@@ -96,6 +96,24 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_toy_pipeline(args: argparse.Namespace) -> int:
+    """The main job on the embedded default: toy datasets -> verified store -> inspection PNG."""
+    out = Path(args.out)
+    steps = [
+        ["make-toy", "--out", str(out / "data"), "--seed", str(args.seed)],
+        ["build-sdf", "--dataset", "toy", "--root", str(out / "data" / "dexycb"), "--out", str(out / "store"),
+         "--workers", str(args.workers)],
+        ["verify", str(out / "store")],
+        ["inspect", str(out / "store"), "--out", str(out / "store_grid.png")],
+    ]
+    for argv in steps:
+        print(f"\n$ hoidata {' '.join(argv)}", flush=True)
+        status = main(argv)
+        if status:
+            return status
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="hoidata", description="Hand-object datasets -> training-ready stores.")
     parser.add_argument("--version", action="version", version=f"hoidata {__version__}")
@@ -131,6 +149,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--n", type=int, default=16, help="records to show")
     p.add_argument("--out", default="grid.png", help="output PNG")
     p.set_defaults(func=cmd_inspect)
+
+    p = sub.add_parser("toy-pipeline", help="the whole chain on the embedded toy data (the README's main job)")
+    p.add_argument("--out", default="toy_run", help="output folder (data/, store/, store_grid.png)")
+    p.add_argument("--workers", type=int, default=2, help="worker processes for the store build")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=cmd_toy_pipeline)
 
     p = sub.add_parser("check-mano", help="load and check MANO_RIGHT.pkl / MANO_LEFT.pkl")
     p.add_argument("mano_dir", help="folder holding MANO_RIGHT.pkl and/or MANO_LEFT.pkl")

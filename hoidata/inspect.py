@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 import os
+from itertools import pairwise
 from pathlib import Path
 
 import cv2
@@ -38,10 +39,12 @@ from hoidata.store import KEY, iter_records, read_shard_members, read_sidecar
 
 TILE = 256  # panel side, px
 COLUMNS = 4  # record cells per grid row
-CAPTION_HEIGHT = 20  # px below each cell's panels
+CAPTION_HEIGHT = 32  # px below each cell's panels: two lines of text
+CAPTION_SCALE = 0.38  # OpenCV font scale
 TINT_ALPHA = 0.45  # weight of the mask colour where a visible mask is tinted
 HAND_COLOUR = (40, 220, 90)  # RGB
 OBJECT_COLOUR = (255, 150, 20)
+HEATMAP_ALPHA = 0.8  # weight of white where hm.png is 255
 SDF_SATURATION = 0.02  # metres: signed distances beyond +-2 cm get the full colour
 SDF_NEAR = 0.005  # metres: only samples this close to their own surface are drawn
 INSIDE_COLOUR = np.array([40, 90, 255], np.float32)  # RGB, negative distance to the hand
@@ -127,7 +130,7 @@ def _draw_skeleton(panel: np.ndarray, joints_2d: np.ndarray, size: int) -> None:
     """Bones from the wrist along each finger, one colour per finger, and a dot per joint; in place."""
     pts = _to_tile(joints_2d, size)
     for chain, colour in zip(FINGER_CHAINS, FINGER_COLOURS):
-        for a, b in zip(chain[:-1], chain[1:]):
+        for a, b in pairwise(chain):
             cv2.line(panel, tuple(map(int, pts[a])), tuple(map(int, pts[b])), colour, 1, cv2.LINE_AA)
         for j in chain[1:]:
             cv2.circle(panel, tuple(map(int, pts[j])), 2, colour, -1, cv2.LINE_AA)
@@ -170,34 +173,46 @@ def _near_surface_samples(record: dict) -> tuple[np.ndarray, np.ndarray]:
     return points, sdf_hand[order]
 
 
+def _project(points: np.ndarray, K: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-frame points -> (int32 TILE px coordinates, mask of the points) of those in front of the camera."""
+    uvw = points @ np.asarray(K, np.float64).T
+    front = uvw[:, 2] > 1e-9  # at or behind the camera: nothing to project
+    return _to_tile(uvw[front, :2] / uvw[front, 2:], size), front
+
+
 def sdf_panel(record: dict) -> np.ndarray:
-    """The heatmap over the darkened crop, with the near-surface SDF samples projected: (TILE, TILE, 3) RGB."""
+    """The near-surface SDF samples projected onto the darkened crop, the joint heatmap blended over them
+    in white: (TILE, TILE, 3) RGB."""
     img = record[IMG]
     grey = cv2.cvtColor(cv2.resize(img, (TILE, TILE), interpolation=cv2.INTER_AREA), cv2.COLOR_RGB2GRAY)
-    hm = cv2.resize(record[HEATMAP], (TILE, TILE), interpolation=cv2.INTER_LINEAR)
-    base = np.minimum(0.25 * grey.astype(np.float32) + 0.75 * hm.astype(np.float32), 255)
-    panel = np.repeat(np.round(base).astype(np.uint8)[..., None], 3, axis=2)
+    panel = np.repeat((grey // 4)[..., None], 3, axis=2)
     points, distance = _near_surface_samples(record)
-    uvw = points @ np.asarray(record[META]["K"], np.float64).T
-    front = uvw[:, 2] > 1e-9  # at or behind the camera: nothing to project
-    px = _to_tile(uvw[front, :2] / uvw[front, 2:], img.shape[0])
-    distance = distance[front]
-    colours = sdf_colours(distance)
+    px, front = _project(points, record[META]["K"], img.shape[0])
+    colours = sdf_colours(distance[front])
     for dy, dx in ((0, 0), (0, 1), (1, 0), (1, 1)):  # 2 x 2 px dots
         x, y = px[:, 0] + dx, px[:, 1] + dy
         seen = (x >= 0) & (x < TILE) & (y >= 0) & (y < TILE)
         panel[y[seen], x[seen]] = colours[seen]
-    return panel
+    hm = cv2.resize(record[HEATMAP], (TILE, TILE), interpolation=cv2.INTER_LINEAR)
+    weight = (HEATMAP_ALPHA / 255.0) * hm.astype(np.float32)[..., None]
+    return np.round((1 - weight) * panel + weight * 255.0).astype(np.uint8)
+
+
+def _fit(text: str, width: int, scale: float) -> str:
+    """``text`` cut (ending in '~') to fit ``width`` px in the caption font."""
+    while len(text) > 1 and cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)[0][0] > width:
+        text = text[:-2] + "~"
+    return text
 
 
 def _caption(record: dict, width: int) -> np.ndarray:
-    """A (CAPTION_HEIGHT, width, 3) strip: the key and object name, cut to fit."""
+    """A (CAPTION_HEIGHT, width, 3) strip: the key on the first line, the object name on the second."""
     strip = np.zeros((CAPTION_HEIGHT, width, 3), np.uint8)
-    text = f"{record[KEY]}  {record[META]['object_name']}"
-    font, scale = cv2.FONT_HERSHEY_SIMPLEX, 0.4
-    while len(text) > 1 and cv2.getTextSize(text, font, scale, 1)[0][0] > width - 8:
-        text = text[:-2] + "~"
-    cv2.putText(strip, text, (4, CAPTION_HEIGHT - 6), font, scale, (230, 230, 230), 1, cv2.LINE_AA)
+    lines = (str(record[KEY]), str(record[META]["object_name"]))
+    for i, text in enumerate(lines):
+        baseline = (i + 1) * CAPTION_HEIGHT // 2 - 4
+        cv2.putText(strip, _fit(text, width - 8, CAPTION_SCALE), (4, baseline), cv2.FONT_HERSHEY_SIMPLEX,
+                    CAPTION_SCALE, (230, 230, 230), 1, cv2.LINE_AA)
     return strip
 
 

@@ -124,6 +124,7 @@ def build_record(frame: Frame, mano, obj: ObjectAsset, renderer, key: str, setti
     sdf_h, sdf_o, part = compute_sdf_samples(points, hand, faces, mano.closed_face_parts, obj_verts, obj.faces,
                                              obj.watertight, settings.part_radius)
     meta = record_meta(frame, key, box, K_crop, hand, obj_verts, counts)
+    meta["seg_iou"] = dataset_mask_iou(frame, labels, crop_ops.resize_affine(size, half) @ to_crop)
     return {
         "img": crop_ops.warp_image(image, to_crop, size),
         "seg": pack_masks(labels, amodal),
@@ -131,6 +132,41 @@ def build_record(frame: Frame, mano, obj: ObjectAsset, renderer, key: str, setti
         "sdf": schema.quantize_sdf(points - root, sdf_h, sdf_o, part),
         "meta": meta,
     }
+
+
+def dataset_masks(frame: Frame) -> tuple[np.ndarray, np.ndarray] | None:
+    """The dataset's own hand and object masks at image resolution (before any mirroring), if it has them."""
+    path = frame.segmentation_path
+    if path is None:
+        return None
+    if frame.dataset == "dexycb":
+        from hoidata.datasets.dexycb import read_labels
+
+        seg = read_labels(path, int(frame.source["num_objects"]))["seg"]
+        return seg == 255, seg == frame.object_id
+    if frame.dataset == "ho3d":  # rendered at 1/4 resolution: hand in red, object in blue
+        import cv2
+
+        from hoidata.datasets.frame import read_rgb
+
+        seg = cv2.resize(read_rgb(path), frame.image_size, interpolation=cv2.INTER_NEAREST)
+        return seg[..., 0] > 200, seg[..., 2] > 200
+    return None
+
+
+def dataset_mask_iou(frame: Frame, labels: np.ndarray, to_mask: np.ndarray) -> np.ndarray:
+    """IoU (2,) of our visible hand / object masks (label map 1 / 2) with the dataset's; -1 if it has none."""
+    masks = dataset_masks(frame)
+    if masks is None:
+        return np.array([-1.0, -1.0])
+    out = []
+    for theirs, label in zip(masks, (1, 2)):
+        theirs = theirs[:, ::-1] if frame.mirror else theirs
+        warped = crop_ops.warp_image(theirs.astype(np.uint8), to_mask, labels.shape[0], nearest=True) > 0
+        ours = labels == label
+        union = np.count_nonzero(ours | warped)
+        out.append(np.count_nonzero(ours & warped) / union if union else 1.0)
+    return np.array(out)
 
 
 def record_meta(frame: Frame, key: str, box: np.ndarray, K_crop: np.ndarray, hand: np.ndarray,

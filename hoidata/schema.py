@@ -71,6 +71,8 @@ META_FIELDS = {
     "hand_box": ((4,), "x1, y1, x2, y2 of the projected hand mesh, crop pixels"),
     "object_box": ((4,), "x1, y1, x2, y2 of the projected object mesh, crop pixels"),
     "sdf_counts": ((3,), "hand, object and uniform sample counts in sdf.npy"),
+    "seg_iou": ((2,), "IoU of our visible hand / object masks with the dataset's own segmentation "
+                      "(a quality statistic); -1 where the dataset has none"),
     "source": (None, "provenance dict from the reader"),
 }
 

@@ -103,7 +103,8 @@ def _frames_for_camera(reader, kept: list, ctx: dict) -> Iterator[Frame]:
             tip_convention="manopth", mirror=reader.setting.mirror_left and ctx["side"] == "left",
             segmentation_path=lpath,
             source={"labels": str(lpath), "subject": ctx["subject"], "sequence": ctx["seq_dir"].name,
-                    "sequence_index": ctx["seq_index"], "serial": ctx["serial"], "frame": f},
+                    "sequence_index": ctx["seq_index"], "serial": ctx["serial"], "frame": f,
+                    "num_objects": len(lab["pose_y"])},
         )
 
 
