@@ -25,8 +25,7 @@ import io
 import json
 import os
 import tarfile
-from collections.abc import Iterable, Iterator, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import cv2
@@ -475,144 +474,12 @@ def iter_records(source) -> Iterator[dict]:
             yield decode_record(members, str(path))
 
 
-def file_digest(path) -> tuple[int, str]:
-    """(size in bytes, sha256 hex) of a file, read in 1 MiB blocks."""
-    sha, size = hashlib.sha256(), 0
-    with open(path, "rb") as file:
-        while chunk := file.read(1 << 20):
-            sha.update(chunk)
-            size += len(chunk)
-    return size, sha.hexdigest()
-
-
-@dataclass
-class VerifyReport:
-    """What verify_store found: one line per problem, each starting with the file it is about."""
-
-    store_dir: str
-    shards: int = 0
-    records: int = 0
-    problems: list[str] = field(default_factory=list)
-
-    @property
-    def ok(self) -> bool:
-        return not self.problems
-
-    def __str__(self) -> str:
-        state = "OK" if self.ok else f"{len(self.problems)} problem(s)"
-        return "\n".join([f"{self.store_dir}: {self.records} records in {self.shards} shards: {state}",
-                          *(f"  {p}" for p in self.problems)])
-
-
-MAX_LABEL_PROBLEMS = 5  # per shard: one broken conversion would otherwise print a line per record
-
-
-def _label_mismatches(index: StoreIndex, row: int, meta: dict) -> list[str]:
-    """Names of the index columns that are meta fields too and disagree with the record's meta."""
-    bad = []
-    for name, column in index.labels.items():
-        if name not in META_FIELDS or name == "key":
-            continue
-        stored, value = column[row], meta[name]
-        if column.dtype.kind == "U":
-            same = isinstance(value, str) and str(stored) == value
-        else:
-            try:  # the index holds float32: compare to float32 precision
-                same = np.allclose(np.asarray(value, np.float64), stored.astype(np.float64), rtol=1e-6, atol=1e-6)
-            except (TypeError, ValueError):
-                same = False
-        if not same:
-            bad.append(name)
-    return bad
-
-
-def _verify_records(path: Path, info: ShardInfo, index: StoreIndex, report: VerifyReport) -> int:
-    """Decode every record of one shard against the index's keys and labels; returns the record count."""
-    rows = index.shard_rows(info.number)
-    expected, count, label_problems, order_ok = index.keys[rows], 0, 0, True
-    try:
-        for record in iter_records([path]):
-            key = record[KEY]
-            if order_ok and (count >= len(expected) or key != expected[count]):
-                there = expected[count] if count < len(expected) else "no record"
-                report.problems.append(f"{path}: record {count} is {key!r}, the index has {there!r} there")
-                order_ok = False
-            if order_ok and (bad := _label_mismatches(index, rows.start + count, record[META])):
-                if label_problems < MAX_LABEL_PROBLEMS:
-                    report.problems.append(f"{path}: {key!r}: labels differ from the index: {bad}")
-                label_problems += 1
-            count += 1
-    except DataError as exc:
-        report.problems.append(str(exc))
-    if label_problems > MAX_LABEL_PROBLEMS:
-        report.problems.append(f"{path}: ... {label_problems - MAX_LABEL_PROBLEMS} more records with differing labels")
-    return count
-
-
-def verify_store(store_dir) -> VerifyReport:
-    """Check a whole store: every shard's size, sha256 and record count against the index, every record
-    decoded and its key and labels matching the index, in order; shard files the index does not list."""
-    store_dir = Path(store_dir)
-    report = VerifyReport(str(store_dir))
-    try:
-        index = read_index(store_dir)
-    except DataError as exc:
-        report.problems.append(str(exc))
-        return report
-    for info in index.shards:
-        path = store_dir / info.name
-        report.shards += 1
-        if not path.is_file():
-            report.problems.append(f"{path}: missing")
-            continue
-        size, sha256 = file_digest(path)
-        if size != info.size:
-            report.problems.append(f"{path}: {size} bytes, the index says {info.size}")
-        if sha256 != info.sha256:
-            report.problems.append(f"{path}: sha256 {sha256} differs from the index's {info.sha256}")
-        count = _verify_records(path, info, index, report)
-        report.records += count
-        if count != info.count:
-            report.problems.append(f"{path}: {count} readable records, the index says {info.count}")
-    listed = {info.name for info in index.shards}
-    strays = [p for p in sorted(store_dir.glob("shard-*.tar")) if p.name not in listed]
-    report.problems += [f"{p}: shard file not in the index" for p in strays]
-    return report
-
-
-def read_sidecar(store_dir, number: int) -> ShardInfo:
-    """The ShardInfo written next to shard ``number`` when it was completed."""
-    path = Path(store_dir) / sidecar_name(number)
-    try:
-        value = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, ValueError) as exc:
-        raise DataError(path, None, f"unreadable sidecar ({exc})") from None
-    info = ShardInfo.from_dict(value, path)
-    if info.number != number:
-        raise DataError(path, "number", f"{info.number}, expected {number}")
-    return info
-
-
-def completed_shards(store_dir, expected: Sequence[ShardInfo]) -> set[int]:
-    """Numbers of the planned shards that are already written intact, so a resumed build skips them.
-
-    A shard counts when its sidecar matches every field the plan sets (count, keys; sha256/size if
-    given) and the file's size and sha256 match the sidecar. Leftover ``*.tmp`` files of an interrupted
-    run are removed: call this before any writer starts.
-    """
-    store_dir = Path(store_dir)
-    for leftover in store_dir.glob("shard-*.tmp"):
-        leftover.unlink(missing_ok=True)
-    done = set()
-    for plan in expected:
-        try:
-            info = read_sidecar(store_dir, plan.number)
-        except DataError:
-            continue  # no or damaged sidecar: the shard is written again
-        fields = ("name", "count", "sha256", "size", "first_key", "last_key")
-        if any(getattr(plan, f) is not None and getattr(plan, f) != getattr(info, f) for f in fields):
-            continue
-        path = store_dir / info.name
-        if path.is_file() and path.stat().st_size == info.size and file_digest(path)[1] == info.sha256:
-            done.add(plan.number)
-    return done
+# Verification and resume live in store_verify; imported last because they build on everything above.
+from hoidata.store_verify import (  # noqa: E402,F401
+    MAX_LABEL_PROBLEMS,
+    VerifyReport,
+    completed_shards,
+    file_digest,
+    read_sidecar,
+    verify_store,
+)

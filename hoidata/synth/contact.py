@@ -20,6 +20,8 @@ import igl
 import numpy as np
 import scipy.sparse
 
+from hoidata.geometry import sdf
+
 CONTACT_DISTANCE = 0.005  # a hand vertex this close to the surface (or inside) counts as a contact
 
 
@@ -41,9 +43,9 @@ def signed_distance(points, vertices, faces, band: float | None = None, robust: 
         band: if given (m), only distances within [-band, band] are computed; the others come
             back as NaN, sign unknown. The tree search prunes everything farther, which makes
             near-surface queries several times faster.
-        robust: take the sign from the generalised winding number (libigl's fast, hierarchical
-            approximation, reliable except within a hair of the surface, where the depth is ~0
-            anyway) instead of the pseudonormal. The pseudonormal is exact and faster for a clean
+        robust: take the sign from the generalised winding number
+            (:func:`hoidata.geometry.sdf.signed_distance` with ``watertight=False``) instead of the
+            pseudonormal; ``band`` is then ignored. The pseudonormal is exact and faster for a clean
             watertight mesh, but a posed hand can fold into itself at a strongly bent joint, and
             there it calls outside points inside.
 
@@ -53,10 +55,13 @@ def signed_distance(points, vertices, faces, band: float | None = None, robust: 
     points = _points(points)
     if len(points) == 0:
         return np.zeros(0)
-    kind = igl.SignedDistanceType
-    sign = kind.SIGNED_DISTANCE_TYPE_FAST_WINDING_NUMBER if robust else kind.SIGNED_DISTANCE_TYPE_PSEUDONORMAL
-    bounds = {} if band is None else {"lower_bound": -float(band), "upper_bound": float(band)}
-    return igl.signed_distance(points, _points(vertices), _faces(faces), sign, **bounds)[0]
+    if robust or band is None:
+        # libigl's winding-number sign modes scale the distance by (1 - 2|w|); the shared function
+        # takes the unsigned distance and the winding-number sign separately, so depths stay exact.
+        return sdf.signed_distance(points, _points(vertices), _faces(faces), watertight=not robust)[0]
+    sign = igl.SignedDistanceType.SIGNED_DISTANCE_TYPE_PSEUDONORMAL
+    return igl.signed_distance(points, _points(vertices), _faces(faces), sign,
+                               lower_bound=-float(band), upper_bound=float(band))[0]
 
 
 def object_in_hand_depth(obj_vertices, hand_vertices, hand_faces) -> float:
