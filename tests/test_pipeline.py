@@ -141,3 +141,18 @@ def test_cli_verify_names_a_truncated_shard(built, tmp_path, capsys):
     assert main(["verify", str(copy)]) == 1
     assert "shard-000001.tar" in capsys.readouterr().out
     assert main(["verify", str(out)]) == 0
+
+
+def test_ho3d_build_converts_and_records_quality(tmp_path):
+    from hoidata.datasets.toy_ho3d import ToyHO3DSize, write_toy_ho3d
+
+    root = tmp_path / "ho3d"
+    mano_dir, models_dir = write_assets(root)
+    write_toy_ho3d(root, mano_dir, models_dir, ToyHO3DSize(train_sequences=1, eval_sequences=1, frames=3), progress=False)
+    cfg = load_build_config("ho3d", ["record.crop_size=128", "record.n_hand=256", "record.n_object=128"])
+    summary = build_store(cfg, root, mano_dir, models_dir, tmp_path / "store", progress=False)
+    assert summary.records == 3 and summary.index_written
+    index = store.read_index(tmp_path / "store")
+    assert set(index.labels["tip_convention"].tolist()) == {"ho3d"}
+    assert (index.labels["hand_root"][:, 2] > 0).all()  # OpenGL annotations arrive in the OpenCV frame
+    assert (index.labels["seg_iou"][:, 0] > 0.5).all()  # against HO-3D's quarter-resolution JPEG masks
