@@ -31,7 +31,6 @@ class RecordSettings:
     sigmas: tuple[float, float] = (0.010, 0.003)
     part_radius: float = 0.05
     heatmap_sigma: float = schema.HEATMAP_SIGMA
-    jpeg_quality: int = 95
 
 
 @dataclass
