@@ -136,11 +136,11 @@ def _shard_done(out: Path, number: int, complete: set[int]) -> bool:
     return extra.is_file() and json.loads(extra.read_text())["records"] == 0
 
 
-def _check_build_file(out: Path, cfg: BuildConfig, keys: list[str]) -> None:
+def _check_build_file(out: Path, config: dict, keys: list[str]) -> None:
     """Refuse to resume into a store built with other settings or frames (it would mix records)."""
     import hashlib
 
-    spec = {"config": cfg.as_dict(), "keys_sha256": hashlib.sha256("\n".join(keys).encode()).hexdigest(),
+    spec = {"config": config, "keys_sha256": hashlib.sha256("\n".join(keys).encode()).hexdigest(),
             "frames": len(keys), "schema_version": schema.SCHEMA_VERSION}
     spec = json.loads(json.dumps(spec))
     path = out / BUILD_FILE
@@ -165,39 +165,57 @@ def git_commit() -> str:
 def build_store(cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path, out: Path, workers: int = 1,
                 part: tuple[int, int] = (0, 1), progress: bool = True) -> BuildSummary:
     """Build (or resume) the store in `out`; see the module docstring."""
-    import multiprocessing as mp
-
     root, out, models_dir = Path(root), Path(out), Path(models_dir)
     start = time.perf_counter()
     frames, reader_skips = read_frames(cfg, root, Path(mano_dir))
     if not frames:
         raise DataError(root, None, f"no frames to build for splits {cfg.dataset.splits} (skipped: {len(reader_skips)})")
     keys = [schema.record_key(f.dataset, f.split, f.frame_id) for f in frames]
-    _check_build_file(out, cfg, keys)
+    _check_build_file(out, cfg.as_dict(), keys)
     per = cfg.store.records_per_shard
-    numbers = list(range((len(frames) + per - 1) // per))
-    # count left open: frames skipped while building make a shard shorter (build.json pins the frames)
+
+    def make_job(n):
+        return n, frames[n * per:(n + 1) * per], keys[n * per:(n + 1) * per], cfg.record, out
+
+    init = (Path(mano_dir), models_dir, cfg.record.crop_size)
+    summary, numbers, done = run_shards(out, len(keys), per, make_job, _build_shard, _init_worker, init, workers,
+                                        part, progress, "build-sdf")
+    if done:
+        write_store_index(out, cfg.as_dict(), models_dir, numbers, reader_skips)
+        summary.index_written = True
+    summary.seconds = time.perf_counter() - start
+    return summary
+
+
+def run_shards(out: Path, n_items: int, per: int, make_job, shard_fn, init, initargs, workers: int,
+               part: tuple[int, int], progress: bool, desc: str) -> tuple[BuildSummary, list[int], bool]:
+    """Run the missing shard jobs of this part, serially or in a spawn pool; report whether all are done.
+
+    make_job(n) -> the picklable job of shard n; shard_fn(job) -> (number, records written, skips);
+    init(*initargs) sets up each worker process.
+    """
+    import multiprocessing as mp
+
+    start = time.perf_counter()
+    numbers = list(range((n_items + per - 1) // per))
+    # count left open: items skipped while building make a shard shorter (build.json pins the items)
     plan = [store.ShardInfo(n, store.shard_name(n), None) for n in numbers]
     complete = store.completed_shards(out, plan)
     mine = [n for n in numbers if n % part[1] == part[0] and not _shard_done(out, n, complete)]
-    jobs = [(n, frames[n * per:(n + 1) * per], keys[n * per:(n + 1) * per], cfg.record, out) for n in mine]
-    summary = BuildSummary(out, frames=len(frames), shards_kept=sum(n % part[1] == part[0] for n in complete))
-    bar = tqdm(total=sum(len(j[1]) for j in jobs), desc="build-sdf", unit="frame", disable=not progress)
-    init = (Path(mano_dir), models_dir, cfg.record.crop_size)
+    jobs = [make_job(n) for n in mine]
+    summary = BuildSummary(out, frames=n_items, shards_kept=sum(n % part[1] == part[0] for n in complete))
+    bar = tqdm(total=sum(min(per, n_items - n * per) for n in mine), desc=desc, unit="frame", disable=not progress)
     if workers <= 1:
-        _init_worker(*init)
-        results = (_build_shard(job) for job in jobs)
-        _run(results, summary, bar, start)
+        init(*initargs)
+        _run((shard_fn(job) for job in jobs), summary, bar, start)
         _WORKER.pop("renderer").close()
-    else:
-        with mp.get_context("spawn").Pool(workers, initializer=_init_worker, initargs=init) as pool:
-            _run(pool.imap_unordered(_build_shard, jobs), summary, bar, start)
+    elif jobs:
+        with mp.get_context("spawn").Pool(workers, initializer=init, initargs=initargs) as pool:
+            _run(pool.imap_unordered(shard_fn, jobs), summary, bar, start)
     bar.close()
     summary.seconds = time.perf_counter() - start
-    if all(_shard_done(out, n, store.completed_shards(out, plan)) for n in numbers):
-        write_store_index(out, cfg, models_dir, numbers, reader_skips)
-        summary.index_written = True
-    return summary
+    done = all(_shard_done(out, n, store.completed_shards(out, plan)) for n in numbers)
+    return summary, numbers, done
 
 
 def _run(results, summary: BuildSummary, bar, start: float) -> None:
@@ -209,8 +227,9 @@ def _run(results, summary: BuildSummary, bar, start: float) -> None:
         bar.set_postfix(fps=f"{summary.records / max(time.perf_counter() - start, 1e-9):.2f}")
 
 
-def write_store_index(out: Path, cfg: BuildConfig, models_dir: Path, numbers: list[int], reader_skips: list) -> None:
-    """Gather every shard's labels and skips and write index.zarr."""
+def write_store_index(out: Path, config: dict, models_dir: Path, numbers: list[int], reader_skips: list,
+                      provenance: dict | None = None) -> None:
+    """Gather every shard's labels and skips and write index.zarr (config and provenance are recorded)."""
     from hoidata.objects import load_simplified
 
     shards, metas, skipped = [], [], [{"frame_id": s.frame_id, "reason": s.reason, "path": s.path} for s in reader_skips]
@@ -226,7 +245,7 @@ def write_store_index(out: Path, cfg: BuildConfig, models_dir: Path, numbers: li
         meshes[name] = (simple.vertices, simple.faces)
     labels = store.index_labels(metas)
     labels["key"] = labels.get("key", [m["key"] for m in metas])
-    store.write_index(out, shards, labels, meshes, skipped, cfg.as_dict(), {"git_commit": git_commit()})
+    store.write_index(out, shards, labels, meshes, skipped, config, {"git_commit": git_commit(), **(provenance or {})})
 
 
 def estimate_build(cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path, workers: int = 1,
