@@ -81,6 +81,26 @@ def cmd_build_sdf(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_render_synthetic(args: argparse.Namespace) -> int:
+    """Render perturbed grasps of a store or dataset from new views into a training store."""
+    from hoidata.records import RecordSettings
+    from hoidata.synth.render_synthetic import render_synthetic
+
+    source = Path(args.source)
+    mano, models = Path(args.mano or source / "mano"), Path(args.models or source / "models")
+    record = RecordSettings(crop_size=args.crop_size)
+    s = render_synthetic(source, Path(args.out), args.count, mano, models, seed=args.seed,
+                         backgrounds=args.backgrounds, workers=args.workers, part=args.part, record=record,
+                         records_per_shard=args.records_per_shard)
+    print(f"{s.store}: {s.records} synthetic records in {s.seconds:.1f} s ({s.frames_per_second:.2f} renders/s), "
+          f"{len(s.skipped)} samples skipped (no perturbation passed the physical check)")
+    if s.index_written:
+        from hoidata.store import read_index
+
+        print(f"physical check: {read_index(s.store).provenance['synthetic']}")
+    return 0
+
+
 def cmd_verify(args: argparse.Namespace) -> int:
     from hoidata.store import verify_store
 
@@ -139,6 +159,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--estimate", action="store_true", help="time and disk estimate from a few frames; writes nothing")
     p.add_argument("overrides", nargs="*", help="section.key=value overrides, e.g. record.n_hand=2048")
     p.set_defaults(func=cmd_build_sdf)
+
+    p = sub.add_parser("render-synthetic", help="render perturbed grasps from new views into a training store")
+    p.add_argument("--source", required=True, help="a store, or an HO-3D / DexYCB / toy dataset folder, to take grasps from")
+    p.add_argument("--out", required=True, help="store folder (resumes an interrupted run)")
+    p.add_argument("--count", type=int, required=True, help="samples to render")
+    p.add_argument("--mano", default=None, help="MANO folder (default SOURCE/mano)")
+    p.add_argument("--models", default=None, help="YCB models folder (default SOURCE/models)")
+    p.add_argument("--backgrounds", default=None, help="folder of background images (default: procedural)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--workers", type=int, default=1)
+    p.add_argument("--part", type=_part, default=(0, 1), help="i/N: render only shards k with k %% N == i")
+    p.add_argument("--crop-size", type=int, default=512, help="record crop size, pixels")
+    p.add_argument("--records-per-shard", type=int, default=256)
+    p.set_defaults(func=cmd_render_synthetic)
 
     p = sub.add_parser("verify", help="decode every record of a store and check counts and checksums")
     p.add_argument("store")

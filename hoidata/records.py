@@ -135,6 +135,8 @@ def build_record(frame: Frame, mano, obj: ObjectAsset, renderer, key: str, setti
 
 def dataset_masks(frame: Frame) -> tuple[np.ndarray, np.ndarray] | None:
     """The dataset's own hand and object masks at image resolution (before any mirroring), if it has them."""
+    if frame.labels is not None:  # a synthetic render's own label map
+        return frame.labels == 1, frame.labels == 2
     path = frame.segmentation_path
     if path is None:
         return None

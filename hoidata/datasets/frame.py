@@ -45,6 +45,8 @@ class Frame:
     mirror: bool = False  # True: a left hand that a "full" setting asks to mirror to a right hand
     segmentation_path: Path | None = None  # the dataset's own segmentation, if any
     source: dict = field(default_factory=dict)  # provenance: raw file paths and indices
+    image: np.ndarray | None = None  # (H, W, 3) RGB already in memory (synthetic renders); else read image_path
+    labels: np.ndarray | None = None  # (H, W) in-memory label map of the render that made `image`: 1 hand, 2 object
 
     @property
     def has_hand_pose(self) -> bool:
@@ -52,6 +54,8 @@ class Frame:
 
     def load_image(self) -> np.ndarray:
         """The RGB image (H, W, 3) uint8. Raises DataError naming the file if it cannot be read."""
+        if self.image is not None:
+            return self.image
         return read_rgb(self.image_path, self.image_size)
 
 
