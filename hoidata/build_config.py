@@ -27,11 +27,13 @@ class DatasetConfig:
     frame_stride: int = 1
     proximity_mm: float = -1.0  # negative: no proximity filter
     proximity_splits: tuple[str, ...] = ("train", "val", "test")
+    complete_subjects: bool = True  # DexYCB: require 100 sequences per subject (see DexYCBSetting)
 
     def dexycb_setting(self) -> DexYCBSetting:
         return DexYCBSetting(name=self.setting, setup=self.setup, sides=tuple(self.sides), frame_stride=self.frame_stride,
                              proximity_mm=None if self.proximity_mm < 0 else self.proximity_mm,
-                             proximity_splits=tuple(self.proximity_splits), mirror_left="left" in self.sides)
+                             proximity_splits=tuple(self.proximity_splits), mirror_left="left" in self.sides,
+                             complete_subjects=self.complete_subjects)
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,6 @@ When every planned shard is done, the zarr index is written.
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import time
 from dataclasses import dataclass, field
@@ -123,9 +122,7 @@ def _build_shard(job) -> tuple[int, int, list]:
 
 
 def _write_json(path: Path, value) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(value, sort_keys=True, indent=1))
-    os.replace(tmp, path)
+    store._write_json_atomic(path, value)
 
 
 def _shard_done(out: Path, number: int, complete: set[int]) -> bool:
@@ -200,10 +197,11 @@ def run_shards(out: Path, n_items: int, per: int, make_job, shard_fn, init, init
     numbers = list(range((n_items + per - 1) // per))
     # count left open: items skipped while building make a shard shorter (build.json pins the items)
     plan = [store.ShardInfo(n, store.shard_name(n), None) for n in numbers]
-    complete = store.completed_shards(out, plan)
-    mine = [n for n in numbers if n % part[1] == part[0] and not _shard_done(out, n, complete)]
+    owned = [p for p in plan if p.number % part[1] == part[0]]
+    complete = store.completed_shards(out, owned)  # also clears this part's leftovers of a killed run
+    mine = [p.number for p in owned if not _shard_done(out, p.number, complete)]
     jobs = [make_job(n) for n in mine]
-    summary = BuildSummary(out, frames=n_items, shards_kept=sum(n % part[1] == part[0] for n in complete))
+    summary = BuildSummary(out, frames=n_items, shards_kept=len(complete))
     bar = tqdm(total=sum(min(per, n_items - n * per) for n in mine), desc=desc, unit="frame", disable=not progress)
     if workers <= 1:
         init(*initargs)
@@ -214,7 +212,8 @@ def run_shards(out: Path, n_items: int, per: int, make_job, shard_fn, init, init
             _run(pool.imap_unordered(shard_fn, jobs), summary, bar, start)
     bar.close()
     summary.seconds = time.perf_counter() - start
-    done = all(_shard_done(out, n, store.completed_shards(out, plan)) for n in numbers)
+    finished = store.completed_shards(out, plan, clean=False)  # other parts may still be writing
+    done = all(_shard_done(out, n, finished) for n in numbers)
     return summary, numbers, done
 
 
@@ -244,7 +243,6 @@ def write_store_index(out: Path, config: dict, models_dir: Path, numbers: list[i
         simple = load_simplified(models_dir, name)
         meshes[name] = (simple.vertices, simple.faces)
     labels = store.index_labels(metas)
-    labels["key"] = labels.get("key", [m["key"] for m in metas])
     store.write_index(out, shards, labels, meshes, skipped, config, {"git_commit": git_commit(), **(provenance or {})})
 
 

@@ -99,7 +99,7 @@ def build_record(frame: Frame, mano, obj: ObjectAsset, renderer, key: str, setti
     Returns a dict with the decoded arrays (``img``, ``seg``, ``heatmap``, ``sdf``, ``meta``) that
     :func:`hoidata.store.encode_record` turns into bytes.
     """
-    from hoidata.geometry.sampling import compute_sdf_samples, sample_query_points
+    from hoidata.geometry.sampling import build_sdf_record
     from hoidata.render import RenderMesh
 
     image = frame.load_image()
@@ -116,19 +116,17 @@ def build_record(frame: Frame, mano, obj: ObjectAsset, renderer, key: str, setti
     faces = mano.closed_faces
     meshes = [RenderMesh(vertices=hand, faces=faces, label=1), RenderMesh(vertices=obj_verts, faces=obj.faces, label=2)]
     labels, amodal = renderer.masks(K_mask, meshes)
-    rng = np.random.default_rng(frame_seed(key))
-    root = frame.root_3d
-    points, counts = sample_query_points(hand, faces, obj_verts, obj.faces, root, rng, settings.n_hand,
-                                         settings.n_object, settings.uniform_fraction, settings.cube, settings.sigmas)
-    sdf_h, sdf_o, part = compute_sdf_samples(points, hand, faces, mano.closed_face_parts, obj_verts, obj.faces,
-                                             obj.watertight, settings.part_radius)
+    sdf, counts = build_sdf_record(hand, faces, mano.closed_face_parts, obj_verts, obj.faces, obj.watertight,
+                                   frame.root_3d, np.random.default_rng(frame_seed(key)), settings.n_hand,
+                                   settings.n_object, settings.uniform_fraction, settings.cube, settings.sigmas,
+                                   settings.part_radius)
     meta = record_meta(frame, key, box, K_crop, hand, obj_verts, counts)
     meta["seg_iou"] = dataset_mask_iou(frame, labels, crop_ops.resize_affine(size, half) @ to_crop)
     return {
         "img": crop_ops.warp_image(image, to_crop, size),
         "seg": pack_masks(labels, amodal),
         "heatmap": summed_heatmap(project(frame.joints_3d, K_mask), half, settings.heatmap_sigma),
-        "sdf": schema.quantize_sdf(points - root, sdf_h, sdf_o, part),
+        "sdf": sdf,
         "meta": meta,
     }
 

@@ -121,12 +121,12 @@ def load_pickle(path: str | os.PathLike) -> Any:
     with open(path, "rb") as f:
         data = f.read()
     try:
-        obj = RestrictedUnpickler(io.BytesIO(data), path).load()
+        return resolve(RestrictedUnpickler(io.BytesIO(data), path).load(), path)
     except DataError:
         raise
-    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, IndexError, KeyError) as e:
+    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, IndexError, KeyError,
+            MemoryError, OverflowError, RecursionError) as e:
         raise DataError(path, None, f"not a readable pickle (truncated or corrupt?): {type(e).__name__}: {e}") from e
-    return resolve(obj, path)
 
 
 def resolve(obj: Any, path: str = "<pickle>") -> Any:

@@ -11,7 +11,7 @@ Layout::
                          (variable-length UTF-8), shard int32, joints_3d (N, 21, 3) float32, ...
       objects/<name>/vertices (V, 3) float32, objects/<name>/faces (F, 3) int32
 
-The index is written to ``index.zarr.tmp`` and renamed, so a half-written index is never taken for a
+The index is written to ``index.zarr.tmp<pid>`` and renamed, so a half-written index is never taken for a
 complete one. Every name here is re-exported by :mod:`hoidata.store`, which is where callers import them.
 This module imports nothing from :mod:`hoidata.store` (no import cycle): the shard entry
 (:class:`ShardInfo`) and :func:`to_jsonable`, which both modules use, live here.
@@ -219,7 +219,7 @@ def write_index(store_dir, shards_info: Sequence[ShardInfo | dict], labels: dict
     labels: one row per record in shard order: "key" plus every INDEX_LABELS column, any further numeric
     or text columns (index_labels builds them from meta dicts). The "shard" column is derived here.
     provenance gets "hoidata_version"; put the git commit in it. The index is written to
-    ``index.zarr.tmp`` and renamed, so a half-written index is never taken for a complete one.
+    ``index.zarr.tmp<pid>`` and renamed, so a half-written index is never taken for a complete one.
     """
     import zarr  # optional dependency (the "store" extra): only index users need it
 
@@ -233,7 +233,8 @@ def write_index(store_dir, shards_info: Sequence[ShardInfo | dict], labels: dict
              "objects": sorted(object_meshes), "skipped": [_skip_entry(s, where) for s in skipped],
              "config": to_jsonable(config, where, "config"),
              "provenance": to_jsonable({**provenance, "hoidata_version": __version__}, where, "provenance")}
-    tmp, old = where.with_name(INDEX_NAME + ".tmp"), where.with_name(INDEX_NAME + ".old")
+    # per-process names: two --part jobs finishing together must not write into one temp folder
+    tmp, old = where.with_name(f"{INDEX_NAME}.tmp{os.getpid()}"), where.with_name(f"{INDEX_NAME}.old{os.getpid()}")
     for leftover in (tmp, old):
         shutil.rmtree(leftover, ignore_errors=True)
     group = zarr.open_group(tmp, mode="w", zarr_format=3)

@@ -140,16 +140,18 @@ def read_sidecar(store_dir, number: int) -> ShardInfo:
     return info
 
 
-def completed_shards(store_dir, expected: Sequence[ShardInfo]) -> set[int]:
+def completed_shards(store_dir, expected: Sequence[ShardInfo], clean: bool = True) -> set[int]:
     """Numbers of the planned shards that are already written intact, so a resumed build skips them.
 
     A shard counts when its sidecar matches every field the plan sets (count, keys; sha256/size if
-    given) and the file's size and sha256 match the sidecar. Leftover ``*.tmp`` files of an interrupted
-    run are removed: call this before any writer starts.
+    given) and the file's size and sha256 match the sidecar. With ``clean``, leftover ``.tmp`` files
+    of the *planned* shards (an interrupted run) are removed: call it before this job's writers start,
+    with only the shards this job owns, so parallel ``--part`` jobs never delete each other's files.
     """
     store_dir = Path(store_dir)
-    for leftover in store_dir.glob("shard-*.tmp"):
-        leftover.unlink(missing_ok=True)
+    if clean:
+        for plan in expected:
+            (store_dir / (plan.name + ".tmp")).unlink(missing_ok=True)
     done = set()
     for plan in expected:
         try:

@@ -63,3 +63,13 @@ def test_truncated_and_missing_files(tmp_path):
     (tmp_path / "text.pkl").write_text("hello, I am not a pickle")
     with pytest.raises(DataError, match=r"text\.pkl"):
         load_pickle(tmp_path / "text.pkl")
+
+
+def test_bad_chumpy_contents_and_huge_arrays_give_clear_errors(tmp_path):
+    arr = np.zeros((2, 3, 4))
+    with chumpy_stand_ins() as (ch, select):
+        sel = wrap_shapedirs(arr, ch, select, n=2)
+        sel.__dict__["idxs"] = np.array([10 ** 6])
+        (tmp_path / "idx.pkl").write_bytes(pickle.dumps({"s": sel}, protocol=2))
+    with pytest.raises(DataError, match=r"idx\.pkl.*IndexError"):
+        load_pickle(tmp_path / "idx.pkl")

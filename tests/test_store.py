@@ -271,9 +271,11 @@ def test_completed_shards_checks_bytes_against_sidecars(tmp_path):
     records, shards = build_store(tmp_path, n=7, per_shard=3)
     plan = [ShardInfo(s.number, shard_name(s.number), s.count, first_key=s.first_key, last_key=s.last_key)
             for s in shards]
-    (tmp_path / "shard-000003.tar.tmp").write_bytes(b"partial")
+    (tmp_path / "shard-000002.tar.tmp").write_bytes(b"partial")  # a planned shard's leftover: removed
+    (tmp_path / "shard-000003.tar.tmp").write_bytes(b"partial")  # another --part job's shard: left alone
     assert completed_shards(tmp_path, plan) == {0, 1, 2}
-    assert not list(tmp_path.glob("*.tmp"))
+    assert [p.name for p in tmp_path.glob("*.tmp")] == ["shard-000003.tar.tmp"]
+    assert completed_shards(tmp_path, plan[2:], clean=False) == {2}
     data = bytearray((tmp_path / "shard-000001.tar").read_bytes())
     data[700] ^= 1
     (tmp_path / "shard-000001.tar").write_bytes(bytes(data))

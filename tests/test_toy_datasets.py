@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pickle
 import shutil
+from dataclasses import replace
 
 import cv2
 import igl
@@ -42,7 +43,7 @@ def ho3d_root(tmp_path_factory):
 
 
 def _read(root, split, setting="dexycb_full", **kw):
-    reader = DexYCBReader(root, root / "mano", split, SETTINGS[setting], **kw)
+    reader = DexYCBReader(root, root / "mano", split, replace(SETTINGS[setting], complete_subjects=False), **kw)
     return list(reader.frames()), reader
 
 
@@ -82,7 +83,8 @@ def test_dexycb_invalid_annotations_are_skipped_with_reasons(dex_root):
 def test_dexycb_other_setups_select_by_subject_and_camera(dex_root):
     s2 = {split: {f.source["serial"] for f in DexYCBReader(dex_root, dex_root / "mano", split,
                                                            SETTINGS["dexycb_full"].__class__(setup="s2", sides=("right", "left"),
-                                                                                             frame_stride=1, proximity_mm=None)).frames()}
+                                                                                             frame_stride=1, proximity_mm=None,
+                                                                                             complete_subjects=False)).frames()}
           for split in ("train", "test")}
     assert s2 == {"train": {"836212060125"}, "test": {"932122062010"}}
 
@@ -236,3 +238,34 @@ def test_bad_ho3d_input(ho3d_root, tmp_path):
     (root / "evaluation.txt").unlink()
     with pytest.raises(DataError, match=r"evaluation\.txt.*not found"):
         HO3DReader(root, root / "mano", "evaluation")
+
+
+def test_malformed_values_name_the_file_and_field(dex_root, ho3d_root, tmp_path):
+    import yaml
+
+    root = tmp_path / "dex"
+    shutil.copytree(dex_root, root)
+    meta_path = sorted((root / "20200709-subject-01").iterdir())[0] / "meta.yml"
+    meta = yaml.safe_load(meta_path.read_text())
+    meta["ycb_grasp_ind"] = "first"
+    meta_path.write_text(yaml.safe_dump(meta))
+    with pytest.raises(DataError, match=r"meta\.yml: 'ycb_grasp_ind': expected an integer"):
+        _read(root, "train")
+    _, reader = _read(root, "train", on_error="skip")
+    assert any("ycb_grasp_ind" in s.reason for s in reader.skipped)
+    (root / "calibration" / "intrinsics" / "932122062010_640x480.yml").unlink()
+    _, reader = _read(root, "train", on_error="skip")
+    assert any("932122062010_640x480.yml" in s.reason for s in reader.skipped)
+    hroot = tmp_path / "ho3d"
+    shutil.copytree(ho3d_root, hroot)
+    path = hroot / "train" / "BB10" / "meta" / "0000.pkl"
+    hmeta = pickle.loads(path.read_bytes())
+    hmeta["handPose"] = "garbage"
+    path.write_bytes(pickle.dumps(hmeta, protocol=2))
+    with pytest.raises(DataError, match=r"0000\.pkl: 'handPose': expected 48 numbers"):
+        list(HO3DReader(hroot, hroot / "mano", "train").frames())
+
+
+def test_partial_subjects_are_refused_by_default(dex_root):
+    with pytest.raises(DataError, match=r"20200709-subject-01: 5 sequence folders, expected 100"):
+        list(DexYCBReader(dex_root, dex_root / "mano", "train").frames())

@@ -31,6 +31,7 @@ SUBJECTS = [
 SERIALS = ["836212060125", "839512060362", "840412060917", "841412060263",
            "932122060857", "932122060861", "932122061900", "932122062010"]
 IMAGE_SIZE = (640, 480)
+SEQUENCES_PER_SUBJECT = 100
 SPLITS = ("train", "val", "test")
 
 
@@ -75,6 +76,9 @@ class DexYCBSetting:
     proximity_mm: float | None = 5.0  # keep a frame only if some object vertex is this close to the hand
     proximity_splits: tuple[str, ...] = ("train", "val", "test")
     mirror_left: bool = False
+    # The toolkit indexes sequences by position and asserts 100 per subject: with a partial download,
+    # sequences would silently change split. False accepts any count (toy data, deliberate subsets).
+    complete_subjects: bool = True
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -105,9 +109,20 @@ def _read_yaml(path: Path, required: tuple[str, ...]) -> dict:
 def read_meta(seq_dir: Path) -> dict:
     """A sequence's meta.yml, checked for the keys the reader uses."""
     keys = ("serials", "num_frames", "ycb_ids", "ycb_grasp_ind", "mano_sides", "mano_calib")
-    meta = _read_yaml(seq_dir / "meta.yml", keys)
-    if not 0 <= int(meta["ycb_grasp_ind"]) < len(meta["ycb_ids"]):
-        raise DataError(seq_dir / "meta.yml", "ycb_grasp_ind", f"{meta['ycb_grasp_ind']} is not an index into ycb_ids")
+    path = seq_dir / "meta.yml"
+    meta = _read_yaml(path, keys)
+    for key in ("serials", "ycb_ids", "mano_sides", "mano_calib"):
+        if not isinstance(meta[key], list) or not meta[key]:
+            raise DataError(path, key, f"expected a non-empty list, got {meta[key]!r}")
+    for key in ("num_frames", "ycb_grasp_ind"):
+        if not isinstance(meta[key], int) or isinstance(meta[key], bool):
+            raise DataError(path, key, f"expected an integer, got {meta[key]!r}")
+    if not all(isinstance(c, int) for c in meta["ycb_ids"]):
+        raise DataError(path, "ycb_ids", f"expected integer class ids, got {meta['ycb_ids']!r}")
+    if not 0 <= meta["ycb_grasp_ind"] < len(meta["ycb_ids"]):
+        raise DataError(path, "ycb_grasp_ind", f"{meta['ycb_grasp_ind']} is not an index into ycb_ids")
+    if meta["mano_sides"][0] not in ("right", "left"):
+        raise DataError(path, "mano_sides", f"expected 'right' or 'left', got {meta['mano_sides'][0]!r}")
     return meta
 
 
@@ -192,7 +207,13 @@ class DexYCBReader:
     def sequences(self) -> Iterator[tuple[int, int, Path]]:
         """(subject index, sequence index, folder) of every sequence in the split."""
         for s in self._subjects:
-            for i, seq_dir in enumerate(list_sequences(self.root, SUBJECTS[s])):
+            sequences = list_sequences(self.root, SUBJECTS[s])
+            if self.setting.complete_subjects and len(sequences) != SEQUENCES_PER_SUBJECT:
+                raise DataError(self.root / SUBJECTS[s], None,
+                                f"{len(sequences)} sequence folders, expected {SEQUENCES_PER_SUBJECT}: splits index "
+                                "sequences by position, so a partial download would move sequences between splits "
+                                "(set complete_subjects = false to read a subset anyway)")
+            for i, seq_dir in enumerate(sequences):
                 if self._keep_seq(i):
                     yield s, i, seq_dir
 

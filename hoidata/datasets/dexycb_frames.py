@@ -59,7 +59,11 @@ def sequence_frames(reader, s: int, seq_index: int, seq_dir: Path, meta: dict) -
         serial = SERIALS[c]
         if serial not in [str(x) for x in meta["serials"]]:
             continue
-        K = read_intrinsics(reader.root, serial)
+        try:
+            K = read_intrinsics(reader.root, serial)
+        except DataError as e:
+            reader._fail(e, f"{subject}_{seq_dir.name}_{serial}")
+            continue
         kept = []
         for f in range(0, int(meta["num_frames"]), setting.frame_stride):
             fid = f"{subject}_{seq_dir.name}_{serial}_{f:06d}"
@@ -73,9 +77,14 @@ def sequence_frames(reader, s: int, seq_index: int, seq_dir: Path, meta: dict) -
                 reader.skipped.append(Skip(fid, reason, str(label_path(seq_dir, serial, f))))
                 continue
             kept.append((f, fid, labels))
-        yield from _frames_for_camera(reader, kept, dict(subject=subject, seq_dir=seq_dir, seq_index=seq_index,
+        try:
+            frames = list(_frames_for_camera(reader, kept, dict(subject=subject, seq_dir=seq_dir, seq_index=seq_index,
                                                          serial=serial, K=K, side=side, betas=betas,
-                                                         grasp=grasp, name=name, class_id=int(meta["ycb_ids"][grasp])))
+                                                         grasp=grasp, name=name, class_id=int(meta["ycb_ids"][grasp]))))
+        except DataError as e:  # e.g. the grasped object's model is missing (proximity filter)
+            reader._fail(e, f"{subject}_{seq_dir.name}_{serial}")
+            continue
+        yield from frames
 
 
 def _frames_for_camera(reader, kept: list, ctx: dict) -> Iterator[Frame]:

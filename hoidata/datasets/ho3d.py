@@ -59,7 +59,10 @@ def read_meta(path: Path, split: str) -> dict:
 
 
 def _vector(meta: dict, key: str, size: int, path: Path) -> np.ndarray:
-    value = np.asarray(meta[key], dtype=np.float64).reshape(-1)
+    try:
+        value = np.asarray(meta[key], dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError) as e:
+        raise DataError(path, key, f"expected {size} numbers: {e}") from e
     if value.size != size:
         raise DataError(path, key, f"expected {size} values, got {value.size}")
     return value
@@ -120,9 +123,7 @@ class HO3DReader:
         return png if png.exists() or not (rgb / f"{fid}.jpg").exists() else rgb / f"{fid}.jpg"
 
     def _frame(self, seq: str, fid: str, frame_id: str, meta: dict, path: Path) -> Frame:
-        K = np.asarray(meta["camMat"], dtype=np.float64)
-        if K.shape != (3, 3):
-            raise DataError(path, "camMat", f"expected shape (3, 3), got {K.shape}")
+        K = _vector(meta, "camMat", 9, path).reshape(3, 3)
         name = str(meta["objName"])
         seg = self.root / self.split / seq / "seg" / f"{fid}.jpg"
         common = dict(dataset="ho3d", split=self.split, frame_id=frame_id, image_path=self._image_path(seq, fid),
@@ -133,9 +134,7 @@ class HO3DReader:
         if self.split == "evaluation":
             root = OPENGL_TO_OPENCV @ _vector(meta, "handJoints3D", 3, path)
             return Frame(root_3d=root, hand_box=_vector(meta, "handBoundingBox", 4, path), **common)
-        joints_gl = np.asarray(meta["handJoints3D"], dtype=np.float64)
-        if joints_gl.shape != (21, 3):
-            raise DataError(path, "handJoints3D", f"expected shape (21, 3), got {joints_gl.shape}")
+        joints_gl = _vector(meta, "handJoints3D", 63, path).reshape(21, 3)
         joints = (joints_gl @ OPENGL_TO_OPENCV.T)[MANO_TO_DEXYCB]
         betas = _vector(meta, "handBeta", 10, path)
         pose, transl = change_frame(_vector(meta, "handPose", 48, path), _vector(meta, "handTrans", 3, path),

@@ -54,7 +54,7 @@ def split_rows(root: str | Path, layout: str) -> list[dict]:
 
         for name, setting in SETTINGS.items():
             for split in ("train", "val", "test"):
-                reader = DexYCBReader(root, root / "mano", split, setting)
+                reader = DexYCBReader(root, root / "mano", split, replace(setting, complete_subjects=False))
                 frames = list(reader.frames())
                 rows.append({"setting": name, "split": split, "frames": len(frames),
                              "left_mirrored": sum(f.mirror for f in frames), "skipped": len(reader.skipped)})

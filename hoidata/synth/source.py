@@ -76,9 +76,12 @@ def load_grasps(source: Path, mano) -> list[GraspSource]:
 
         grasps = grasps_from_frames(HO3DReader(source, source / "mano", "train", on_error="skip").frames(), mano)
     elif (source / "calibration").is_dir():
+        from dataclasses import replace
+
         from hoidata.datasets.dexycb import SETTINGS, DexYCBReader
 
-        reader = DexYCBReader(source, source / "mano", "train", SETTINGS["dexycb"], on_error="skip")
+        setting = replace(SETTINGS["dexycb"], complete_subjects=False)  # any grasps will do, splits do not matter
+        reader = DexYCBReader(source, source / "mano", "train", setting, on_error="skip")
         grasps = grasps_from_frames(reader.frames(), mano)
     else:
         raise DataError(source, None, "not a store (index.zarr), an HO-3D folder (train.txt) or a DexYCB folder "
