@@ -92,6 +92,9 @@ def finger_min_distance(vertices: np.ndarray, samples: list, fingers: list[int],
     beyond ``band`` are not computed and read as +inf (clear of the object). That is safe for a
     finger closing from a clear pose in steps much shorter than 2 * band: no point can jump from
     beyond +band to below -band without a level in between being seen."""
+    empty = [f for f in fingers if samples[f].shape[0] == 0]
+    if empty:  # reduceat would hand an empty finger its neighbour's distances
+        raise ValueError(f"no surface samples on finger(s) {empty}: increase the sampling density")
     weights = scipy.sparse.vstack([samples[f] for f in fingers]).tocsr()
     n_levels, n_vertices = vertices.shape[:2]
     points = (weights @ vertices.transpose(1, 0, 2).reshape(n_vertices, -1)).reshape(-1, n_levels, 3)
