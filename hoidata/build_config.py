@@ -28,12 +28,13 @@ class DatasetConfig:
     proximity_mm: float = -1.0  # negative: no proximity filter
     proximity_splits: tuple[str, ...] = ("train", "val", "test")
     complete_subjects: bool = True  # DexYCB: require 100 sequences per subject (see DexYCBSetting)
+    fix_left_shapedirs: bool = False  # DexYCB: its labels use MANO_LEFT without the shapedirs fix
 
     def dexycb_setting(self) -> DexYCBSetting:
         return DexYCBSetting(name=self.setting, setup=self.setup, sides=tuple(self.sides), frame_stride=self.frame_stride,
                              proximity_mm=None if self.proximity_mm < 0 else self.proximity_mm,
                              proximity_splits=tuple(self.proximity_splits), mirror_left="left" in self.sides,
-                             complete_subjects=self.complete_subjects)
+                             complete_subjects=self.complete_subjects, fix_left_shapedirs=self.fix_left_shapedirs)
 
 
 @dataclass(frozen=True)

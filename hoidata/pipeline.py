@@ -69,15 +69,26 @@ _WORKER: dict = {}
 
 
 def _init_worker(mano_dir: Path, models_dir: Path, crop_size: int) -> None:
-    """Per-process state: the right MANO layer, object geometry cache and one mask renderer."""
+    """Per-process state: MANO layers (loaded on first use), object geometry cache and one mask renderer."""
     import torch
 
-    from hoidata.hand import load_mano
     from hoidata.render import Renderer
 
     torch.set_num_threads(1)
-    _WORKER.update(mano=load_mano(mano_dir, side="right", dtype=torch.float64), models_dir=Path(models_dir),
-                   objects={}, renderer=Renderer(crop_size // 2, crop_size // 2))
+    _WORKER.update(mano_dir=Path(mano_dir), manos={}, models_dir=Path(models_dir), objects={},
+                   renderer=Renderer(crop_size // 2, crop_size // 2))
+
+
+def hand_model(side: str, fix_left_shapedirs: bool):
+    """The worker's MANO layer for a side and left-hand shape convention, loaded once."""
+    import torch
+
+    from hoidata.hand import load_mano
+
+    key = (side, fix_left_shapedirs or side == "right")
+    if key not in _WORKER["manos"]:
+        _WORKER["manos"][key] = load_mano(_WORKER["mano_dir"], side=side, fix_left_shapedirs=key[1], dtype=torch.float64)
+    return _WORKER["manos"][key]
 
 
 def object_asset(models_dir: Path, name: str):
@@ -98,7 +109,8 @@ def _build_one(frame, key: str, settings):
     objects = _WORKER["objects"]
     if frame.object_name not in objects:
         objects[frame.object_name] = object_asset(_WORKER["models_dir"], frame.object_name)
-    rec = build_record(frame, _WORKER["mano"], objects[frame.object_name], _WORKER["renderer"], key, settings)
+    mano = hand_model(frame.side, frame.fix_left_shapedirs)  # the model the frame's labels were made with
+    rec = build_record(frame, mano, objects[frame.object_name], _WORKER["renderer"], key, settings)
     return store.encode_record(key, rec["img"], rec["seg"], rec["heatmap"], rec["sdf"], rec["meta"])
 
 

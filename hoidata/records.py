@@ -83,29 +83,37 @@ def pack_masks(labels: np.ndarray, amodal: np.ndarray) -> np.ndarray:
     return seg
 
 
-def posed_meshes(frame: Frame, mano, obj: ObjectAsset) -> tuple[np.ndarray, np.ndarray]:
-    """Closed hand vertices (779, 3) and object vertices (V, 3), camera frame, metres."""
+def posed_hand(frame: Frame, mano) -> np.ndarray:
+    """Closed hand vertices (779, 3), camera frame, metres, from the frame's MANO parameters."""
     with torch.no_grad():
         out = mano(torch.as_tensor(frame.mano_pose)[None], torch.as_tensor(frame.mano_betas)[None],
                    torch.as_tensor(frame.mano_transl)[None])
-        hand = mano.close(out.vertices)[0].double().numpy()
+        return mano.close(out.vertices)[0].double().numpy()
+
+
+def posed_object(frame: Frame, obj: ObjectAsset) -> np.ndarray:
+    """Object vertices (V, 3) under the frame's object pose, camera frame, metres."""
     pose = frame.object_pose
-    return hand, obj.vertices @ pose[:3, :3].T + pose[:3, 3]
+    return obj.vertices @ pose[:3, :3].T + pose[:3, 3]
 
 
 def build_record(frame: Frame, mano, obj: ObjectAsset, renderer, key: str, settings: RecordSettings) -> dict:
     """Build the schema members of one frame (a right hand, or a left one with ``mirror`` set).
 
-    Returns a dict with the decoded arrays (``img``, ``seg``, ``heatmap``, ``sdf``, ``meta``) that
-    :func:`hoidata.store.encode_record` turns into bytes.
+    `mano` is the hand model the frame's labels were made with (its own side and, for left hands,
+    shape convention); a mirrored frame's mesh is that model's mesh, reflected, which is exact
+    whatever the shape convention. Returns a dict with the decoded arrays (``img``, ``seg``,
+    ``heatmap``, ``sdf``, ``meta``) that :func:`hoidata.store.encode_record` turns into bytes.
     """
     from hoidata.geometry.sampling import build_sdf_record
     from hoidata.render import RenderMesh
 
     image = frame.load_image()
+    hand, faces = posed_hand(frame, mano), mano.closed_faces
     if frame.mirror:
         frame, image = mirror_frame(frame), np.ascontiguousarray(image[:, ::-1])
-    hand, obj_verts = posed_meshes(frame, mano, obj)
+        hand, faces = mirror_points(hand), np.ascontiguousarray(faces[:, ::-1])  # reflection flips the winding
+    obj_verts = posed_object(frame, obj)
     pose = frame.object_pose
     box = crop_ops.square_crop_box(frame.joints_2d, project(obj.box21 @ pose[:3, :3].T + pose[:3, 3], frame.K),
                                    settings.context)
@@ -113,7 +121,6 @@ def build_record(frame: Frame, mano, obj: ObjectAsset, renderer, key: str, setti
     to_crop = crop_ops.crop_affine(box, size)
     K_crop = to_crop @ frame.K
     K_mask = crop_ops.resize_affine(size, half) @ K_crop
-    faces = mano.closed_faces
     meshes = [RenderMesh(vertices=hand, faces=faces, label=1), RenderMesh(vertices=obj_verts, faces=obj.faces, label=2)]
     labels, amodal = renderer.masks(K_mask, meshes)
     sdf, counts = build_sdf_record(hand, faces, mano.closed_face_parts, obj_verts, obj.faces, obj.watertight,

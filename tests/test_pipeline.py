@@ -103,15 +103,26 @@ def test_records_hold_exact_sdf_and_consistent_masks(built, tiny_root):
     from hoidata.objects import load_object_mesh, object_mesh_path, repair_mesh
 
     out, _ = built
-    mano = load_mano(tiny_root / "mano", dtype=torch.float64)
-    for rec in list(store.iter_records(out))[::5]:
+    from hoidata.geometry.mirror import mirror_axis_angle, mirror_points
+
+    right = load_mano(tiny_root / "mano", dtype=torch.float64)
+    left = load_mano(tiny_root / "mano", side="left", fix_left_shapedirs=False, dtype=torch.float64)
+    records = list(store.iter_records(out))
+    assert any(r[schema.META]["mirrored"] for r in records[::3]) and not all(r[schema.META]["mirrored"] for r in records[::3])
+    for rec in records[::3]:
         meta = rec[schema.META]
         xyz, sdf_h, sdf_o, _ = schema.dequantize_sdf(rec[schema.SDF])
         points = xyz.astype(np.float64) + meta["hand_root"]
-        posed = mano(torch.as_tensor(meta["mano_pose"])[None], torch.as_tensor(meta["mano_betas"])[None],
-                     torch.as_tensor(meta["mano_transl"])[None])
-        hand = mano.close(posed.vertices)[0].numpy()
-        ref_h = brute_force_signed_distance(points[::8], hand, mano.closed_faces)[0]
+        pose, transl = np.asarray(meta["mano_pose"]), np.asarray(meta["mano_transl"])
+        if meta["mirrored"]:  # the left hand as DexYCB annotated it (MANO_LEFT unfixed), reflected
+            posed = left(torch.as_tensor(mirror_axis_angle(pose))[None], torch.as_tensor(meta["mano_betas"])[None],
+                         torch.as_tensor(mirror_points(transl))[None])
+            hand, faces = mirror_points(left.close(posed.vertices)[0].numpy()), left.closed_faces[:, ::-1]
+        else:
+            posed = right(torch.as_tensor(pose)[None], torch.as_tensor(meta["mano_betas"])[None],
+                          torch.as_tensor(transl)[None])
+            hand, faces = right.close(posed.vertices)[0].numpy(), right.closed_faces
+        ref_h = brute_force_signed_distance(points[::8], hand, faces)[0]
         assert np.abs(ref_h - sdf_h[::8]).max() < 5e-5  # stored distances exact to 0.05 mm
         geo, _ = repair_mesh(load_object_mesh(object_mesh_path(tiny_root / "models", meta["object_name"])))
         pose = np.asarray(meta["object_pose"])

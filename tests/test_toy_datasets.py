@@ -96,11 +96,11 @@ def _mano_joints(frame, mano):
 
 
 def test_dexycb_labels_are_consistent(dex_root):
-    frames, _ = _read(dex_root, "train", "dexycb_full")
-    manos = {s: load_mano(dex_root / "mano", side=s, dtype=torch.float64) for s in ("right", "left")}
+    frames, reader = _read(dex_root, "train", "dexycb_full")
+    assert {f.side for f in frames} == {"right", "left"}
     for frame in frames[::7]:
         np.testing.assert_allclose(project(frame.joints_3d, frame.K), frame.joints_2d, atol=0.5)
-        joints, _ = _mano_joints(frame, manos[frame.side])
+        joints, _ = _mano_joints(frame, reader.mano(frame.side))  # left: MANO_LEFT without the fix
         np.testing.assert_allclose(joints, frame.joints_3d, atol=1e-5)  # PCA pose -> axis-angle is exact
 
 
@@ -186,15 +186,14 @@ def test_ho3d_segmentation_and_depth_agree_with_the_labels(ho3d_root):
 
 
 def test_no_toy_grasp_penetrates_more_than_2mm(dex_root):
-    frames, _ = _read(dex_root, "train", "dexycb_full")
-    manos = {s: load_mano(dex_root / "mano", side=s, dtype=torch.float64) for s in ("right", "left")}
+    frames, reader = _read(dex_root, "train", "dexycb_full")
     seen = set()
     for frame in frames:
-        key = (frame.source["subject"], frame.source["sequence"])
+        key = (frame.source["subject"], frame.source["sequence"], frame.source["frame"])  # every frame, one camera
         if key in seen:
             continue
         seen.add(key)
-        _, verts = _mano_joints(frame, manos[frame.side])
+        _, verts = _mano_joints(frame, reader.mano(frame.side))
         geo, _ = repair_mesh(load_object_mesh(object_mesh_path(dex_root / "models", frame.object_name)))
         local = (verts - frame.object_pose[:3, 3]) @ frame.object_pose[:3, :3]
         wn = igl.winding_number(np.asarray(geo.vertices), np.asarray(geo.faces), local)

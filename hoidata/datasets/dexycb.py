@@ -79,6 +79,9 @@ class DexYCBSetting:
     # The toolkit indexes sequences by position and asserts 100 per subject: with a partial download,
     # sequences would silently change split. False accepts any count (toy data, deliberate subsets).
     complete_subjects: bool = True
+    # DexYCB's labels were fitted with manopth's MANO_LEFT as shipped, without the shapedirs fix
+    # (dex-ycb-toolkit#28): reproducing its joints and meshes needs the unfixed left model.
+    fix_left_shapedirs: bool = False
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -239,7 +242,8 @@ class DexYCBReader:
 
             from hoidata.hand import load_mano
 
-            self._mano[side] = load_mano(self.mano_dir, side=side, dtype=torch.float64)
+            fix = self.setting.fix_left_shapedirs or side == "right"
+            self._mano[side] = load_mano(self.mano_dir, side=side, fix_left_shapedirs=fix, dtype=torch.float64)
         return self._mano[side]
 
     def object_vertices(self, name: str) -> np.ndarray:

@@ -110,6 +110,7 @@ def _frames_for_camera(reader, kept: list, ctx: dict) -> Iterator[Frame]:
             object_id=ctx["class_id"], object_pose=pose, mano_pose=full[k], mano_betas=ctx["betas"],
             mano_transl=transl[k], joints_3d=joints, joints_2d=lab["joint_2d"][0].astype(np.float64),
             tip_convention="manopth", mirror=reader.setting.mirror_left and ctx["side"] == "left",
+            fix_left_shapedirs=reader.setting.fix_left_shapedirs,
             segmentation_path=lpath,
             source={"labels": str(lpath), "subject": ctx["subject"], "sequence": ctx["seq_dir"].name,
                     "sequence_index": ctx["seq_index"], "serial": ctx["serial"], "frame": f,

@@ -43,6 +43,7 @@ class Frame:
     tip_convention: str = "manopth"  # fingertip vertices the joints use: 'manopth' | 'ho3d'
     hand_box: np.ndarray | None = None  # (4,) x1, y1, x2, y2 pixels, where the dataset gives one
     mirror: bool = False  # True: a left hand that a "full" setting asks to mirror to a right hand
+    fix_left_shapedirs: bool = True  # left hands: the MANO_LEFT shape convention the labels were made with
     segmentation_path: Path | None = None  # the dataset's own segmentation, if any
     source: dict = field(default_factory=dict)  # provenance: raw file paths and indices
     image: np.ndarray | None = None  # (H, W, 3) RGB already in memory (synthetic renders); else read image_path

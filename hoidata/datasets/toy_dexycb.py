@@ -147,7 +147,9 @@ def _init_worker(mano_dir: Path, models_dir: Path) -> None:
     from hoidata.render import Renderer
 
     torch.set_num_threads(1)
-    _WORKER["manos"] = {side: load_mano(mano_dir, side=side, dtype=torch.float64) for side in ("right", "left")}
+    # Left labels are made with MANO_LEFT as shipped (no shapedirs fix), as DexYCB's were.
+    _WORKER["manos"] = {side: load_mano(mano_dir, side=side, fix_left_shapedirs=False, dtype=torch.float64)
+                        for side in ("right", "left")}
     _WORKER["objects"] = toy_scenes.load_toy_objects(models_dir)
     _WORKER["renderer"] = Renderer(640, 480)
 

@@ -57,6 +57,26 @@ def _rigid(rot: np.ndarray, trans: np.ndarray) -> np.ndarray:
     return t
 
 
+def retreat_direction(mano, obj: ToyObject, grasp, frames: int, step: float, max_penetration: float = 0.002):
+    """A direction (object frame) along which the hand can back off `frames` x `step` without entering
+    the object: the reverse of the palm's approach, else away from the object's centre, else None."""
+    from hoidata.synth.contact import penetration_depth
+
+    if frames == 0:
+        return None
+    closed = mano.closed_faces
+    for direction in (-np.asarray(grasp.approach, np.float64), grasp.transl - obj.vertices.mean(0)):
+        direction = direction / (np.linalg.norm(direction) + 1e-12)
+        offsets = [k * step * direction for k in range(1, frames + 1)]
+        with torch.no_grad():
+            out = mano(torch.as_tensor(np.tile(grasp.pose, (frames, 1))), torch.as_tensor(np.tile(grasp.betas, (frames, 1))),
+                       torch.as_tensor(np.array([grasp.transl + o for o in offsets])))
+        hands = mano.close(out.vertices).double().numpy()
+        if all(penetration_depth(h, obj.vertices, obj.faces, hand_faces=closed) <= max_penetration for h in hands):
+            return direction
+    return None  # the sequence then starts in contact
+
+
 def make_sequence(mano, obj: ToyObject, betas: np.ndarray, n_frames: int, rng: np.random.Generator,
                   approach_frames: int = 2, approach_step: float = 0.015) -> Sequence:
     """Synthesize a grasp of `obj` and move the hand-object pair over `n_frames` frames (world: z up)."""
@@ -64,11 +84,7 @@ def make_sequence(mano, obj: ToyObject, betas: np.ndarray, n_frames: int, rng: n
 
     grasp = synthesize_grasp(mano, obj.vertices, obj.faces, rng, betas=betas)
     wrist = mano.rest_joints(torch.as_tensor(betas)[None].to(mano.v_template))[0, 0].double().numpy()
-    with torch.no_grad():
-        joints = mano(torch.as_tensor(grasp.pose)[None], torch.as_tensor(betas)[None],
-                      torch.as_tensor(grasp.transl)[None]).joints[0].double().numpy()
-    away = joints.mean(0) - obj.vertices.mean(0)
-    away /= np.linalg.norm(away) + 1e-12
+    away = retreat_direction(mano, obj, grasp, approach_frames, approach_step)
     base_rot = Rotation.from_euler("z", rng.uniform(-np.pi, np.pi)).as_matrix()
     lift = rng.uniform(0.02, 0.06)
     turn = rng.normal(0.0, 0.25, size=3)
@@ -77,7 +93,7 @@ def make_sequence(mano, obj: ToyObject, betas: np.ndarray, n_frames: int, rng: n
         s = max(0, f - approach_frames) / max(1, n_frames - approach_frames - 1)
         rot = Rotation.from_rotvec(turn * s).as_matrix() @ base_rot
         obj_pose = _rigid(rot, np.array([0.0, 0.0, 0.05 + lift * s]))
-        retreat = max(0, approach_frames - f) * approach_step * away  # object frame
+        retreat = max(0, approach_frames - f) * approach_step * away if away is not None else np.zeros(3)
         pose, transl = change_frame(grasp.pose, grasp.transl + retreat, wrist, obj_pose[:3, :3], obj_pose[:3, 3])
         poses.append(obj_pose)
         hand_pose.append(pose)
