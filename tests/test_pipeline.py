@@ -166,3 +166,11 @@ def test_ho3d_build_converts_and_records_quality(tmp_path):
     assert set(index.labels["tip_convention"].tolist()) == {"ho3d"}
     assert (index.labels["hand_root"][:, 2] > 0).all()  # OpenGL annotations arrive in the OpenCV frame
     assert (index.labels["seg_iou"][:, 0] > 0.5).all()  # against HO-3D's quarter-resolution JPEG masks
+
+
+def test_estimate_writes_nothing_and_reports_time_and_disk(tiny_root, tmp_path, capsys):
+    out = tmp_path / "never"
+    assert main(["build-sdf", "--dataset", "toy", "--root", str(tiny_root), "--out", str(out), "--estimate", *SMALL]) == 0
+    text = capsys.readouterr().out
+    assert not out.exists()
+    assert "frames: 16" in text and "bytes_per_frame" in text and "estimated_minutes" in text
