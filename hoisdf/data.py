@@ -1,0 +1,376 @@
+"""Training data for HOISDF: mixed, epoch-seeded WebDataset pipelines over ``hoidata`` stores.
+
+One :class:`MixedStores` dataset reads several stores (e.g. real DexYCB with weight 1.0 and synthetic
+renders with weight 0.6) and yields dicts of batched torch tensors (see :func:`build_dataset`).
+
+How the pieces fit, per store::
+
+    _ShardStream  endless (training) sequence of shard paths, reshuffled for every pass, seeded by
+                  (seed, epoch, pass): every rank and worker computes the *same* sequence ...
+    split_by_node, split_by_worker
+                  ... and keeps its own slice of it, so ranks/workers read disjoint shard *passes*
+    tarfile_to_samples -> _Shuffle (sample buffer) -> _Decode -> _ToArrays (SDF row sampling)
+
+then :class:`_Mix` draws the next sample from store ``i`` with probability ``weight_i / sum(weights)``
+and :class:`_Batch` stacks samples into tensors; ``with_epoch`` cuts every worker at the same number of
+batches.
+
+Why an endless repeated shard stream rather than a finite list split between workers: with fewer shards
+than ``world_size * num_workers`` a finite split leaves some workers with nothing, and ``with_epoch``
+then gives ranks different batch counts (DDP hangs on the missing all-reduce). Repeating the reshuffled
+list before splitting means worker ``w`` simply reads passes ``w, w + W, ...`` of the same shard: every
+worker has data, no sample is invented, and for large stores (many shards) it degrades to the usual
+"disjoint shards per worker". ``wds.ResampledShards`` would also never hang, but draws shards with
+replacement, so within an epoch some shards are read twice and others not at all.
+
+Epochs and workers: :meth:`MixedStores.set_epoch` stores the epoch in a small holder object shared
+by every stage. DataLoader workers receive a pickled copy of the dataset when ``iter(loader)`` is
+called, so call ``dataset.set_epoch(e)`` *before* ``for batch in loader`` each epoch, and do not use
+``persistent_workers=True`` (persistent workers keep the copy from the first epoch).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from itertools import count
+from pathlib import Path
+
+import numpy as np
+import torch
+import webdataset as wds
+from webdataset.utils import pytorch_worker_info
+
+from hoidata import schema
+from hoidata.store import KEY, decode_record, read_index
+
+_MIX_STREAM, _SHUFFLE_STREAM = 1, 2  # distinguish the RNG streams drawn from the same seed
+
+
+@dataclass(frozen=True)
+class StoreSpec:
+    """A store folder (``shard-*.tar`` + ``index.zarr``) and its relative sampling weight (> 0)."""
+
+    path: Path | str
+    weight: float = 1.0
+
+
+class _EpochState:
+    """Mutable holder of the current epoch, shared by reference between all stages of one dataset."""
+
+    def __init__(self, epoch: int = 0):
+        self.epoch = epoch
+
+
+def _worker_seed(seed: int, epoch: int, stream: int, store: int) -> np.random.Generator:
+    """An RNG for this (rank, worker): different per worker, reproducible for a fixed world layout."""
+    rank, _, worker, _ = pytorch_worker_info()
+    return np.random.default_rng([seed, epoch, stream, store, rank, worker])
+
+
+def _key_seed(key: str) -> int:
+    """A stable 63-bit integer from a record key (Python's hash() is salted per process)."""
+    return int.from_bytes(hashlib.sha1(key.encode("utf-8")).digest()[:8], "little") >> 1
+
+
+class _ShardStream:
+    """Source stage: ``{"url": shard path}`` dicts, one shuffled pass of the shard list after another.
+
+    The order depends only on (seed, epoch, pass number), never on the rank or worker, so the
+    split_by_node / split_by_worker stages that follow partition one common sequence.
+    """
+
+    def __init__(self, urls: list[str], seed: int, state: _EpochState, repeat: bool):
+        self.urls, self.seed, self.state, self.repeat = list(urls), seed, state, repeat
+
+    def __call__(self):
+        for n in count():
+            rng = np.random.default_rng([self.seed, self.state.epoch, n])
+            order = rng.permutation(len(self.urls)) if self.repeat else range(len(self.urls))
+            for i in order:
+                yield {"url": self.urls[i]}
+            if not self.repeat:  # evaluation: one pass in stored order
+                return
+
+
+class _Shuffle:
+    """Reservoir-style sample shuffle with a buffer of ``bufsize`` raw (undecoded) samples."""
+
+    def __init__(self, bufsize: int, seed: int, state: _EpochState, store: int):
+        self.bufsize, self.seed, self.state, self.store = bufsize, seed, state, store
+
+    def __call__(self, src):
+        if self.bufsize < 2:
+            yield from src
+            return
+        rng = _worker_seed(self.seed, self.state.epoch, _SHUFFLE_STREAM, self.store)
+        buf = []
+        for sample in src:
+            buf.append(sample)
+            if len(buf) >= self.bufsize:
+                i = int(rng.integers(len(buf)))
+                buf[i], buf[-1] = buf[-1], buf[i]  # swap-pop: O(1) random removal
+                yield buf.pop()
+        rng.shuffle(buf)
+        yield from buf
+
+
+class _Decode:
+    """Raw WebDataset sample -> :func:`hoidata.store.decode_record` output (errors name the shard)."""
+
+    def __call__(self, src):
+        for sample in src:
+            yield decode_record(sample, sample.get("__url__", "<stream>"))
+
+
+def _pick_rows(rng: np.random.Generator, rows: np.ndarray, n: int) -> np.ndarray:
+    """``n`` row indices from ``rows``: without replacement if there are enough, else with replacement."""
+    if len(rows) == 0:
+        raise ValueError("cannot sample SDF rows from an empty block")
+    return rng.choice(rows, size=n, replace=len(rows) < n)
+
+
+def _near_rows(rows: np.ndarray, dist: np.ndarray, near: float, n: int) -> np.ndarray:
+    """Rows of a block whose |sdf| < near; if none are, the ``n`` closest rows (never empty)."""
+    close = rows[np.abs(dist[rows]) < near]
+    if len(close):
+        return close
+    return rows[np.argsort(np.abs(dist[rows]), kind="stable")[:n]]
+
+
+def sample_sdf(sdf: np.ndarray, counts, rng: np.random.Generator, n_hand: int, n_object: int,
+               near: float | None) -> dict[str, np.ndarray]:
+    """Draw the SDF training points of one record.
+
+    sdf: stored int16 (N, 6); counts: meta ``sdf_counts`` = [n_hand_set, n_object_set, n_uniform].
+    Returns float32 arrays: hand_points (n_hand, 3) m relative to the hand root and hand_sdf (n_hand,) m
+    (signed distance to the hand) from the hand-set rows; obj_points (n_object, 3) / obj_sdf (n_object,)
+    (signed distance to the object) from the object-set rows; with ``near`` also hand_near_* / obj_near_*
+    of the same sizes, drawn from the rows of the same block whose |sdf| < near. Row indices of every
+    draw are returned under ``<name>_rows`` (int64) for checking.
+    """
+    xyz, sdf_hand, sdf_obj, _ = schema.dequantize_sdf(sdf)
+    n_h, n_o = int(counts[0]), int(counts[1])
+    hand_rows, obj_rows = np.arange(n_h), np.arange(n_h, n_h + n_o)
+    draws = {"hand": (hand_rows, sdf_hand, n_hand), "obj": (obj_rows, sdf_obj, n_object)}
+    out = {}
+    for name, (rows, dist, n) in draws.items():
+        picks = {name: _pick_rows(rng, rows, n)}
+        if near is not None:
+            picks[f"{name}_near"] = _pick_rows(rng, _near_rows(rows, dist, near, n), n)
+        for prefix, idx in picks.items():
+            out[f"{prefix}_points"] = xyz[idx]
+            out[f"{prefix}_sdf"] = dist[idx]
+            out[f"{prefix}_rows"] = idx.astype(np.int64)
+    return out
+
+
+def _f32(value) -> np.ndarray:
+    return np.asarray(value, dtype=np.float32)
+
+
+class _ToArrays:
+    """Decoded record -> dict of per-sample numpy arrays in the final dtypes and layouts (see build_dataset)."""
+
+    def __init__(self, seed: int, state: _EpochState, n_hand: int, n_object: int, near: float | None):
+        self.seed, self.state = seed, state
+        self.n_hand, self.n_object, self.near = n_hand, n_object, near
+
+    def __call__(self, src):
+        for rec in src:
+            yield self.convert(rec)
+
+    def convert(self, rec: dict) -> dict:
+        meta, key = rec[schema.META], rec[KEY]
+        # seeded by the key, not by position, so the draw does not depend on the worker or shuffle
+        rng = np.random.default_rng([self.seed, self.state.epoch, _key_seed(key)])
+        out = sample_sdf(rec[schema.SDF], meta["sdf_counts"], rng, self.n_hand, self.n_object, self.near)
+        bits = np.arange(4, dtype=np.uint8)[:, None, None]
+        out.update({
+            "img": np.ascontiguousarray(rec[schema.IMG].transpose(2, 0, 1), dtype=np.float32) / 255.0,
+            "seg": ((rec[schema.SEG][None] >> bits) & 1).astype(bool),
+            "heatmap": rec[schema.HEATMAP][None].astype(np.float32) / 255.0,
+            "K": _f32(meta["K"]), "hand_root": _f32(meta["hand_root"]),
+            "joints_3d": _f32(meta["joints_3d"]), "joints_2d": _f32(meta["joints_2d"]),
+            "mano_pose": _f32(meta["mano_pose"]), "mano_betas": _f32(meta["mano_betas"]),
+            "object_pose": _f32(meta["object_pose"]),
+            "object_id": np.int64(meta["object_id"]),
+            "is_synthetic": np.bool_(meta["dataset"] == "synthetic"),
+            "key": key,
+        })
+        return out
+
+
+class _Mix:
+    """Source stage: the next sample comes from store ``i`` with probability ``w_i / sum(w)``.
+
+    A finite (evaluation) store that runs out is dropped and the rest are renormalised. With
+    ``per_epoch=False`` (evaluation) the draw ignores the epoch, so every evaluation has the same order.
+    """
+
+    def __init__(self, stores: list, weights: list[float], seed: int, state: _EpochState, per_epoch: bool):
+        self.stores, self.weights, self.seed, self.state = stores, weights, seed, state
+        self.per_epoch = per_epoch
+
+    def __call__(self):
+        epoch = self.state.epoch if self.per_epoch else 0
+        rng = _worker_seed(self.seed, epoch, _MIX_STREAM, 0)
+        iters = [iter(s) for s in self.stores]
+        w = np.asarray(self.weights, dtype=np.float64)
+        while w.sum() > 0:
+            i = int(rng.choice(len(iters), p=w / w.sum()))
+            try:
+                yield next(iters[i])
+            except StopIteration:
+                w[i] = 0.0
+
+
+class _Batch:
+    """Stack ``batch_size`` per-sample dicts into tensors; ``key`` stays a list of strings."""
+
+    def __init__(self, batch_size: int, partial: bool):
+        self.batch_size, self.partial = batch_size, partial
+
+    def __call__(self, src):
+        group = []
+        for sample in src:
+            group.append(sample)
+            if len(group) == self.batch_size:
+                yield collate(group)
+                group = []
+        if group and self.partial:
+            yield collate(group)
+
+
+def collate(samples: list[dict]) -> dict:
+    """List of per-sample dicts (numpy values, ``key`` str) -> dict of batched tensors + ``key`` list."""
+    out = {"key": [s["key"] for s in samples]}
+    for name in samples[0]:
+        if name != "key":
+            out[name] = torch.from_numpy(np.stack([s[name] for s in samples]))
+    return out
+
+
+class MixedStores(wds.DataPipeline):
+    """The dataset returned by :func:`build_dataset`; adds ``set_epoch`` and a per-worker epoch length."""
+
+    def __init__(self, stages: list, state: _EpochState, epoch_samples: int | None, batch_size: int):
+        super().__init__(*stages)
+        self.state, self.epoch_samples, self.batch_size = state, epoch_samples, batch_size
+        self.num_workers = 0  # set by make_loader; only used by __len__ in the main process
+
+    def set_epoch(self, epoch: int) -> None:
+        """Select the shard order, sample shuffle, mixing and SDF draws of ``epoch`` (call before iter)."""
+        self.state.epoch = int(epoch)
+
+    def batches_per_worker(self, num_workers: int, world_size: int = 1) -> int:
+        """Batches each worker of each rank yields per epoch: epoch_samples // (B * workers * ranks), >= 1."""
+        per = self.batch_size * max(1, num_workers) * max(1, world_size)
+        return max(1, self.epoch_samples // per)
+
+    def __len__(self) -> int:
+        """Batches per epoch on this rank (needs epoch_samples; uses the make_loader worker count)."""
+        if self.epoch_samples is None:
+            raise TypeError("a single-pass dataset (training=False, no epoch_samples) has no length")
+        _, world_size, _, _ = pytorch_worker_info()
+        return self.batches_per_worker(self.num_workers, world_size) * max(1, self.num_workers)
+
+    def __iter__(self):
+        if self.epoch_samples is not None:
+            # decided here, not at construction: only now do we know this worker's world layout
+            _, world_size, _, num_workers = pytorch_worker_info()
+            self.with_epoch(self.batches_per_worker(num_workers, world_size))
+        return super().__iter__()
+
+
+def _store_pipeline(urls: list[str], number: int, seed: int, state: _EpochState, training: bool,
+                    shuffle_buffer: int, to_arrays: _ToArrays) -> wds.DataPipeline:
+    """One store's sample stream (see the module docstring for the stages)."""
+    return wds.DataPipeline(
+        _ShardStream(urls, seed, state, repeat=training),
+        wds.split_by_node,
+        wds.split_by_worker,
+        wds.tarfile_to_samples(),
+        _Shuffle(shuffle_buffer if training else 0, seed, state, number),
+        _Decode(),
+        to_arrays,
+    )
+
+
+def _check_args(stores: list[StoreSpec], batch_size: int, n_hand: int, n_object: int) -> None:
+    if not stores:
+        raise ValueError("build_dataset needs at least one store")
+    for spec in stores:
+        if not (np.isfinite(spec.weight) and spec.weight > 0):
+            raise ValueError(f"{spec.path}: weight must be a positive number, got {spec.weight}")
+    if min(batch_size, n_hand, n_object) < 1:
+        raise ValueError(f"batch_size, n_hand and n_object must be >= 1, got {batch_size}, {n_hand}, {n_object}")
+
+
+def build_dataset(stores: list[StoreSpec], batch_size: int, epoch_samples: int | None = None, seed: int = 0,
+                  n_hand: int = 600, n_object: int = 200, near: float = 0.05, shuffle_buffer: int = 64,
+                  training: bool = True) -> MixedStores:
+    """A batched, weight-mixed, epoch-seeded IterableDataset over ``stores``.
+
+    Each element is a dict (B = batch_size, S = crop size, H = S // 2, all tensors on the CPU):
+
+    ==================  ===================  ======================================================
+    img                 (B, 3, S, S) f32     RGB crop in [0, 1]
+    seg                 (B, 4, H, H) bool    visible hand, visible object, amodal hand, amodal object
+    heatmap             (B, 1, H, H) f32     joint heatmap in [0, 1]
+    hand_points         (B, n_hand, 3) f32   metres, camera axes, relative to hand_root; hand-set rows
+    hand_sdf            (B, n_hand) f32      metres, signed distance to the hand (negative inside)
+    obj_points          (B, n_object, 3) f32 as hand_points, from the object-set rows
+    obj_sdf             (B, n_object) f32    metres, signed distance to the object
+    hand_near_points    (B, n_hand, 3) f32   training only: hand-set rows with |hand sdf| < near
+    hand_near_sdf       (B, n_hand) f32      (HOISDF's "pre" points; drawn with replacement; if a
+    obj_near_points     (B, n_object, 3) f32  record has no such row, its closest rows instead)
+    obj_near_sdf        (B, n_object) f32
+    *_rows              (B, n) int64         row index into the record's sdf.npy of each point above
+    K                   (B, 3, 3) f32        intrinsics of img, crop pixels
+    hand_root           (B, 3) f32           wrist joint, camera frame, metres
+    joints_3d           (B, 21, 3) f32       camera frame, metres, DexYCB order
+    joints_2d           (B, 21, 2) f32       crop pixels
+    mano_pose           (B, 48) f32          flat-hand-mean axis-angle, camera frame
+    mano_betas          (B, 10) f32          MANO shape
+    object_pose         (B, 4, 4) f32        object model -> camera, metres
+    object_id           (B,) int64           DexYCB class id 1..21
+    is_synthetic        (B,) bool            record from a synthetic store (meta dataset)
+    key                 list of B str        record keys
+    ==================  ===================  ======================================================
+
+    SDF rows are drawn per record with an RNG seeded by (seed, epoch, key): ``n_hand`` from the hand block
+    and ``n_object`` from the object block, without replacement when the block is large enough.
+    Mixing: the next sample comes from store i with probability weight_i / sum(weights).
+    ``epoch_samples``: samples per epoch over all ranks and workers; default (training) the stores' sizes
+    from their indexes scaled by their weights, ``sum(count_i * weight_i)``. Each worker yields
+    ``batches_per_worker`` batches, so every rank and worker gives the same number.
+    ``training=False``: no near points, no sample shuffle, one pass over each store's shards in stored
+    order (a partial last batch is kept) unless ``epoch_samples`` is given.
+    Call :meth:`MixedStores.set_epoch` before iterating each epoch (see the module docstring).
+    """
+    _check_args(stores, batch_size, n_hand, n_object)
+    state = _EpochState()
+    to_arrays = _ToArrays(seed, state, n_hand, n_object, near if training else None)
+    pipes, sizes = [], []
+    for number, spec in enumerate(stores):
+        index = read_index(spec.path)
+        urls = [str(Path(spec.path) / info.name) for info in index.shards]
+        if not urls:
+            raise ValueError(f"{spec.path}: the store has no shards")
+        sizes.append(sum(info.count for info in index.shards))
+        pipes.append(_store_pipeline(urls, number, seed, state, training, shuffle_buffer, to_arrays))
+    if epoch_samples is None and training:
+        epoch_samples = max(1, round(sum(n * s.weight for n, s in zip(sizes, stores))))
+    mix = _Mix(pipes, [s.weight for s in stores], seed, state, per_epoch=training)
+    return MixedStores([mix, _Batch(batch_size, partial=not training)], state, epoch_samples, batch_size)
+
+
+def make_loader(dataset: MixedStores, num_workers: int, pin_memory: bool = False) -> torch.utils.data.DataLoader:
+    """A DataLoader over already-batched ``dataset`` elements (batch_size=None: no re-collation).
+
+    Workers are not persistent, so a ``dataset.set_epoch(e)`` before each ``iter(loader)`` reaches them.
+    """
+    dataset.num_workers = num_workers
+    return torch.utils.data.DataLoader(dataset, batch_size=None, num_workers=num_workers,
+                                       pin_memory=pin_memory, persistent_workers=False)

@@ -1,0 +1,179 @@
+"""hoisdf.data: batch layout, SDF rows vs the store, weighted mixing, epoch seeding, workers, near points."""
+
+from __future__ import annotations
+
+import pickle
+
+import numpy as np
+import pytest
+import torch
+
+from hoidata import schema, store
+from hoidata.build_config import load_build_config
+from hoidata.datasets.toy import write_assets
+from hoidata.datasets.toy_dexycb import ToyDexYCBSize, write_toy_dexycb
+from hoidata.datasets.toy_ho3d import ToyHO3DSize, write_toy_ho3d
+from hoidata.pipeline import build_store
+from hoidata.records import RecordSettings
+from hoidata.synth.render_synthetic import render_synthetic
+from hoisdf.data import StoreSpec, build_dataset, make_loader
+
+CROP, N_HAND, N_OBJECT, NEAR = 128, 32, 16, 0.05
+# one shard per store on purpose: the two-worker test needs fewer shards than workers
+REAL = ["dataset.splits=[\"train\"]", f"record.crop_size={CROP}", "record.n_hand=256", "record.n_object=128",
+        "store.records_per_shard=16"]
+
+
+@pytest.fixture(scope="module")
+def stores(tmp_path_factory):
+    """(real store: 16 toy DexYCB records, synthetic store: 6 records), one shard each."""
+    root = tmp_path_factory.mktemp("data_stores")
+    mano_dir, models_dir = write_assets(root)
+    size = ToyDexYCBSize(subjects=(0,), sequences=2, serials=(0,), frames=8)
+    write_toy_dexycb(root, mano_dir, models_dir, size, workers=1, progress=False)
+    build_store(load_build_config("toy", REAL), root, mano_dir, models_dir, root / "real", workers=1,
+                part=(0, 1), progress=False)
+    write_toy_ho3d(root, mano_dir, models_dir, ToyHO3DSize(train_sequences=2, eval_sequences=0, frames=2),
+                   progress=False)
+    render_synthetic(root, root / "synth", 6, mano_dir, models_dir, seed=0, workers=1,
+                     record=RecordSettings(crop_size=CROP, n_hand=128, n_object=64), records_per_shard=6,
+                     progress=False)
+    return root / "real", root / "synth"
+
+
+@pytest.fixture(scope="module")
+def records(stores):
+    """key -> decoded record, for both stores."""
+    return {r[store.KEY]: r for path in stores for r in store.iter_records(path)}
+
+
+def _dataset(stores, batch_size=4, **kw):
+    real, synth = stores
+    kw = {"n_hand": N_HAND, "n_object": N_OBJECT, "near": NEAR, **kw}
+    return build_dataset([StoreSpec(real, 1.0), StoreSpec(synth, 0.6)], batch_size, **kw)
+
+
+def _keys(dataset, n_batches):
+    out = []
+    for i, batch in enumerate(dataset):
+        if i == n_batches:
+            break
+        out.append(batch["key"])
+    return out
+
+
+def test_batch_shapes_and_dtypes(stores):
+    b, h = 4, CROP // 2
+    batch = next(iter(_dataset(stores, batch_size=b)))
+    expected = {
+        "img": ((b, 3, CROP, CROP), torch.float32), "seg": ((b, 4, h, h), torch.bool),
+        "heatmap": ((b, 1, h, h), torch.float32),
+        "hand_points": ((b, N_HAND, 3), torch.float32), "hand_sdf": ((b, N_HAND), torch.float32),
+        "obj_points": ((b, N_OBJECT, 3), torch.float32), "obj_sdf": ((b, N_OBJECT), torch.float32),
+        "hand_near_points": ((b, N_HAND, 3), torch.float32), "hand_near_sdf": ((b, N_HAND), torch.float32),
+        "obj_near_points": ((b, N_OBJECT, 3), torch.float32), "obj_near_sdf": ((b, N_OBJECT), torch.float32),
+        "hand_rows": ((b, N_HAND), torch.int64), "obj_rows": ((b, N_OBJECT), torch.int64),
+        "hand_near_rows": ((b, N_HAND), torch.int64), "obj_near_rows": ((b, N_OBJECT), torch.int64),
+        "K": ((b, 3, 3), torch.float32), "hand_root": ((b, 3), torch.float32),
+        "joints_3d": ((b, 21, 3), torch.float32), "joints_2d": ((b, 21, 2), torch.float32),
+        "mano_pose": ((b, 48), torch.float32), "mano_betas": ((b, 10), torch.float32),
+        "object_pose": ((b, 4, 4), torch.float32), "object_id": ((b,), torch.int64),
+        "is_synthetic": ((b,), torch.bool),
+    }
+    assert set(batch) == set(expected) | {"key"}
+    for name, (shape, dtype) in expected.items():
+        assert tuple(batch[name].shape) == shape and batch[name].dtype == dtype, name
+    assert isinstance(batch["key"], list) and len(batch["key"]) == b and all(isinstance(k, str) for k in batch["key"])
+    assert 0 <= batch["img"].min() and batch["img"].max() <= 1 and batch["img"].max() > 0
+    assert 0 <= batch["heatmap"].min() and batch["heatmap"].max() <= 1
+    assert batch["seg"][:, 2].sum() >= batch["seg"][:, 0].sum()  # amodal hand covers the visible hand
+
+
+def test_values_match_the_store(stores, records):
+    batch = next(iter(_dataset(stores, batch_size=6)))
+    for i, key in enumerate(batch["key"]):
+        rec = records[key]
+        meta = rec[schema.META]
+        xyz, sdf_hand, sdf_obj, _ = schema.dequantize_sdf(rec[schema.SDF])
+        n_h, n_o, _ = meta["sdf_counts"]
+        for prefix, dist, lo, hi in (("hand", sdf_hand, 0, n_h), ("obj", sdf_obj, n_h, n_h + n_o)):
+            for name in (prefix, f"{prefix}_near"):
+                rows = batch[f"{name}_rows"][i].numpy()
+                assert rows.min() >= lo and rows.max() < hi, name  # drawn from its own block
+                np.testing.assert_array_equal(batch[f"{name}_points"][i].numpy(), xyz[rows])
+                np.testing.assert_array_equal(batch[f"{name}_sdf"][i].numpy(), dist[rows])
+        np.testing.assert_array_equal(batch["img"][i].permute(1, 2, 0).numpy(), rec[schema.IMG] / np.float32(255))
+        np.testing.assert_array_equal(batch["seg"][i, 1].numpy(), (rec[schema.SEG] & 2) > 0)
+        np.testing.assert_allclose(batch["joints_3d"][i].numpy(), meta["joints_3d"], rtol=1e-6)
+        np.testing.assert_allclose(batch["object_pose"][i].numpy(), meta["object_pose"], rtol=1e-6)
+        assert batch["object_id"][i] == meta["object_id"]
+        assert bool(batch["is_synthetic"][i]) == (meta["dataset"] == "synthetic")
+
+
+def test_hand_rows_are_unique_when_the_block_is_large_enough(stores):
+    batch = next(iter(_dataset(stores, batch_size=4)))
+    for rows in batch["hand_rows"]:
+        assert len(set(rows.tolist())) == N_HAND
+
+
+def test_near_points_are_near(stores):
+    for batch in _dataset(stores, batch_size=8, epoch_samples=16):
+        assert batch["hand_near_sdf"].abs().max() < NEAR
+        assert batch["obj_near_sdf"].abs().max() < NEAR
+
+
+def test_mixing_follows_the_weights(stores):
+    dataset = _dataset(stores, batch_size=10, epoch_samples=300, n_hand=4, n_object=4)
+    synthetic = torch.cat([batch["is_synthetic"] for batch in dataset])
+    assert len(synthetic) == 300
+    assert abs(synthetic.float().mean().item() - 0.6 / 1.6) < 0.07
+
+
+def test_default_epoch_length_is_the_weighted_store_size(stores):
+    dataset = _dataset(stores, batch_size=2)
+    assert dataset.epoch_samples == round(16 * 1.0 + 6 * 0.6)
+    assert len(list(dataset)) == len(dataset) == dataset.epoch_samples // 2
+
+
+def test_epoch_seeding(stores):
+    def first_keys(seed, epoch):
+        dataset = _dataset(stores, batch_size=4, seed=seed, n_hand=4, n_object=4)
+        dataset.set_epoch(epoch)
+        return _keys(dataset, 3)
+
+    assert first_keys(0, 0) == first_keys(0, 0)
+    assert first_keys(0, 1) == first_keys(0, 1)
+    assert first_keys(0, 0) != first_keys(0, 1)
+    assert first_keys(0, 0) != first_keys(1, 0)
+
+
+def test_sdf_draw_depends_on_the_epoch(stores):
+    def hand_rows(epoch):
+        dataset = _dataset(stores, batch_size=4, training=False)
+        dataset.set_epoch(epoch)
+        batch = next(iter(dataset))
+        return batch["key"], batch["hand_rows"]
+
+    keys0, rows0 = hand_rows(0)
+    keys1, rows1 = hand_rows(1)
+    assert keys0 == keys1  # evaluation order does not depend on the epoch, the SDF draw does
+    assert torch.equal(rows0, hand_rows(0)[1]) and not torch.equal(rows0, rows1)
+
+
+def test_evaluation_reads_every_record_once(stores, records):
+    dataset = _dataset(stores, batch_size=5, training=False)
+    batches = list(dataset)
+    keys = [k for b in batches for k in b["key"]]
+    assert sorted(keys) == sorted(records) and len(batches) == 5  # 22 records: 4 full batches + 2
+    assert "hand_near_sdf" not in batches[0]
+
+
+def test_two_workers_with_one_shard_per_store(stores):
+    dataset = _dataset(stores, batch_size=4, epoch_samples=40, n_hand=4, n_object=4)
+    pickle.dumps(dataset)  # spawn-started workers need a picklable dataset (no lambdas, no open files)
+    loader = make_loader(dataset, num_workers=2)
+    loader.timeout = 120  # fail instead of hanging if a worker never delivers
+    batches = list(loader)
+    assert len(batches) == len(loader) == 10  # 40 // (4 * 2) = 5 batches from each worker
+    assert all(len(b["key"]) == 4 for b in batches)
+    assert len({k for b in batches for k in b["key"]}) > 6  # both workers read, from both stores
