@@ -34,3 +34,16 @@ def mano_left(mano_dir):
     from hoidata.hand import load_mano
 
     return load_mano(mano_dir, side="left", dtype=torch.float64)
+
+
+@pytest.fixture(scope="session")
+def tiny_dexycb(tmp_path_factory):
+    """A tiny toy DexYCB (1 subject, 2 sequences: right and left hand, 1 camera, 8 frames) with mano/ and models/."""
+    from hoidata.datasets.toy import write_assets
+    from hoidata.datasets.toy_dexycb import ToyDexYCBSize, write_toy_dexycb
+
+    root = tmp_path_factory.mktemp("tiny_dexycb")
+    mano_dir, models_dir = write_assets(root)
+    size = ToyDexYCBSize(subjects=(0,), sequences=2, serials=(0,), frames=8)
+    write_toy_dexycb(root, mano_dir, models_dir, size, workers=1, progress=False)
+    return root

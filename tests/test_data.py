@@ -11,7 +11,6 @@ import torch
 from hoidata import schema, store
 from hoidata.build_config import load_build_config
 from hoidata.datasets.toy import write_assets
-from hoidata.datasets.toy_dexycb import ToyDexYCBSize, write_toy_dexycb
 from hoidata.datasets.toy_ho3d import ToyHO3DSize, write_toy_ho3d
 from hoidata.pipeline import build_store
 from hoidata.records import RecordSettings
@@ -25,14 +24,12 @@ REAL = ["dataset.splits=[\"train\"]", f"record.crop_size={CROP}", "record.n_hand
 
 
 @pytest.fixture(scope="module")
-def stores(tmp_path_factory):
+def stores(tiny_dexycb, tmp_path_factory):
     """(real store: 16 toy DexYCB records, synthetic store: 6 records), one shard each."""
     root = tmp_path_factory.mktemp("data_stores")
+    build_store(load_build_config("toy", REAL), tiny_dexycb, tiny_dexycb / "mano", tiny_dexycb / "models",
+                root / "real", workers=1, part=(0, 1), progress=False)
     mano_dir, models_dir = write_assets(root)
-    size = ToyDexYCBSize(subjects=(0,), sequences=2, serials=(0,), frames=8)
-    write_toy_dexycb(root, mano_dir, models_dir, size, workers=1, progress=False)
-    build_store(load_build_config("toy", REAL), root, mano_dir, models_dir, root / "real", workers=1,
-                part=(0, 1), progress=False)
     write_toy_ho3d(root, mano_dir, models_dir, ToyHO3DSize(train_sequences=2, eval_sequences=0, frames=2),
                    progress=False)
     render_synthetic(root, root / "synth", 6, mano_dir, models_dir, seed=0, workers=1,

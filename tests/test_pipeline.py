@@ -12,7 +12,6 @@ from hoidata import schema, store
 from hoidata.build_config import load_build_config
 from hoidata.cli import main
 from hoidata.datasets.toy import write_assets
-from hoidata.datasets.toy_dexycb import ToyDexYCBSize, write_toy_dexycb
 from hoidata.geometry.sdf import brute_force_signed_distance
 from hoidata.pipeline import build_store
 
@@ -21,12 +20,8 @@ SMALL = ["dataset.splits=[\"train\"]", "record.crop_size=128", "record.n_hand=38
 
 
 @pytest.fixture(scope="session")
-def tiny_root(tmp_path_factory):
-    root = tmp_path_factory.mktemp("tiny_dexycb")
-    mano_dir, models_dir = write_assets(root)
-    size = ToyDexYCBSize(subjects=(0,), sequences=2, serials=(0,), frames=8)
-    write_toy_dexycb(root, mano_dir, models_dir, size, workers=1, progress=False)
-    return root
+def tiny_root(tiny_dexycb):
+    return tiny_dexycb
 
 
 def _build(root, out, workers=1, part=(0, 1), extra=()):
