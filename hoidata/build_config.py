@@ -92,6 +92,9 @@ def load_build_config(name_or_path: str, overrides: list[str] = ()) -> BuildConf
     if unknown:
         raise DataError(path, sorted(unknown)[0], "unknown section")
     record = _section(RecordSettings, data.get("record", {}), path, "record")
-    return BuildConfig(_section(DatasetConfig, data.get("dataset", {}), path, "dataset"),
+    dataset = _section(DatasetConfig, data.get("dataset", {}), path, "dataset")
+    if dataset.name not in ("dexycb", "ho3d"):
+        raise DataError(path, "dataset.name", f"unknown dataset {dataset.name!r}; expected 'dexycb' or 'ho3d'")
+    return BuildConfig(dataset,
                        replace(record, sigmas=tuple(record.sigmas)),
                        _section(StoreConfig, data.get("store", {}), path, "store"))

@@ -206,7 +206,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except DataError as e:
+    except (DataError, ValueError) as e:  # bad files, settings or arguments: a message, not a traceback
         print(f"hoidata {args.command}: error: {e}", file=sys.stderr)
         return 2
 
