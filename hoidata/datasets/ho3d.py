@@ -149,4 +149,4 @@ class HO3DReader:
 
         if self._mano is None:
             self._mano = load_mano(self.mano_dir, side="right", tips="ho3d", dtype=torch.float64)
-        return self._mano.rest_joints(torch.as_tensor(betas)[None])[0, 0].numpy()
+        return self._mano.rest_wrist(betas)

@@ -26,6 +26,7 @@ from hoidata.datasets import toy_scenes
 from hoidata.datasets.dexycb import SERIALS, SUBJECTS
 from hoidata.datasets.frame import project
 from hoidata.hand.pose import axis_angle_to_pca
+from hoidata.render import skin_tone
 
 HAND_LABEL = 255  # DexYCB seg: 0 background, 1..21 YCB class id, 255 hand
 INVALID_FRAME = 7  # in every third sequence this frame's annotation is marked invalid, as the toolkit does
@@ -92,7 +93,7 @@ def write_sequence(root, renderer, manos, objects, subject_pos, s, seq, size, ca
         "serials": serials, "num_frames": size.frames, "ycb_ids": [grasped.class_id, other.class_id],
         "ycb_grasp_ind": 0, "mano_sides": [side], "mano_calib": [calib_name], "extrinsics": "20200702_151821"})
     _write_pose_npz(seq_dir, mano, sequence, other_pose)
-    skin = toy_scenes.random_look(rng, 8, 8).skin  # one skin tone per sequence, seen by every camera
+    skin = skin_tone(rng)  # one skin tone per sequence, seen by every camera
     invalid = INVALID_FRAME if seq % 3 == 2 and size.frames > INVALID_FRAME else None
     for serial in serials:
         (seq_dir / serial).mkdir(parents=True, exist_ok=True)

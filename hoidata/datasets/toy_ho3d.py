@@ -55,8 +55,7 @@ def unpack_depth(bgr: np.ndarray) -> np.ndarray:
 
 def _gl_meta(view, mano, seq, K) -> dict:
     """Full training annotation of one view, converted to HO-3D's OpenGL frame and joint order."""
-    wrist = mano.rest_joints(torch.as_tensor(seq.betas)[None].to(mano.v_template))[0, 0].double().numpy()
-    pose_gl, transl_gl = change_frame(view.hand_pose, view.hand_transl, wrist, GL, np.zeros(3))
+    pose_gl, transl_gl = change_frame(view.hand_pose, view.hand_transl, seq.rest_wrist, GL, np.zeros(3))
     obj_rot = GL @ view.object_pose[:3, :3]
     obj_t = GL @ view.object_pose[:3, 3]
     rest = box_corners(np.asarray(seq.object.mesh.vertices))

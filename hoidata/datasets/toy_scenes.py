@@ -49,7 +49,7 @@ class Sequence:
     object_poses: np.ndarray
     hand_pose: np.ndarray
     hand_transl: np.ndarray
-
+    rest_wrist: np.ndarray  # (3,) MANO rest wrist for these betas: the pivot of every frame change
 
 def _rigid(rot: np.ndarray, trans: np.ndarray) -> np.ndarray:
     t = np.eye(4)
@@ -83,7 +83,7 @@ def make_sequence(mano, obj: ToyObject, betas: np.ndarray, n_frames: int, rng: n
     from hoidata.synth.grasp import synthesize_grasp
 
     grasp = synthesize_grasp(mano, obj.vertices, obj.faces, rng, betas=betas)
-    wrist = mano.rest_joints(torch.as_tensor(betas)[None].to(mano.v_template))[0, 0].double().numpy()
+    wrist = mano.rest_wrist(betas)
     away = retreat_direction(mano, obj, grasp, approach_frames, approach_step)
     base_rot = Rotation.from_euler("z", rng.uniform(-np.pi, np.pi)).as_matrix()
     lift = rng.uniform(0.02, 0.06)
@@ -98,7 +98,7 @@ def make_sequence(mano, obj: ToyObject, betas: np.ndarray, n_frames: int, rng: n
         poses.append(obj_pose)
         hand_pose.append(pose)
         hand_transl.append(transl)
-    return Sequence(mano.side, betas, obj, np.array(poses), np.array(hand_pose), np.array(hand_transl))
+    return Sequence(mano.side, betas, obj, np.array(poses), np.array(hand_pose), np.array(hand_transl), wrist)
 
 
 def look_at(eye: np.ndarray, target: np.ndarray, up=np.array([0.0, 0.0, 1.0])) -> np.ndarray:
@@ -172,8 +172,7 @@ def render_view(renderer, mano, seq: Sequence, frame: int, K: np.ndarray, cam_to
     from hoidata.render import RenderMesh
 
     rot, trans = world_to_camera(cam_to_world)
-    wrist = mano.rest_joints(torch.as_tensor(seq.betas)[None].to(mano.v_template))[0, 0].double().numpy()
-    pose, transl = change_frame(seq.hand_pose[frame], seq.hand_transl[frame], wrist, rot, trans)
+    pose, transl = change_frame(seq.hand_pose[frame], seq.hand_transl[frame], seq.rest_wrist, rot, trans)
     with torch.no_grad():
         out = mano(torch.as_tensor(pose)[None], torch.as_tensor(seq.betas)[None], torch.as_tensor(transl)[None])
     verts = out.vertices[0].double().numpy()

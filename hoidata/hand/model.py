@@ -220,6 +220,11 @@ class MANO(nn.Module):
         v_shaped = self.v_template[None] + lbs_math.blend_shapes(betas, self.shapedirs)
         return lbs_math.vertices_to_joints(self.j_regressor, v_shaped)
 
+    def rest_wrist(self, betas) -> np.ndarray:
+        """Rest wrist joint J0 (3,) float64 for one shape betas (10,): the pivot ``change_frame`` needs."""
+        with torch.no_grad():
+            return self.rest_joints(torch.as_tensor(np.asarray(betas).reshape(1, NUM_BETAS)))[0, 0].double().numpy()
+
     def close(self, vertices: torch.Tensor) -> torch.Tensor:
         """Vertices (B, 778, 3) -> closed-mesh vertices (B, 779, 3), to use with ``closed_faces``."""
         return topology.close_vertices(vertices, torch.as_tensor(self.wrist_loop, device=vertices.device))

@@ -117,7 +117,7 @@ def make_sample(index: int, seed: int, s: SynthSettings) -> tuple[Frame, int]:
     trans = views.place_on_axis(rot, centre, rng.uniform(*s.distance))
     obj_pose = np.eye(4)
     obj_pose[:3, :3], obj_pose[:3, 3] = rot, trans
-    wrist = _W["mano"].rest_joints(torch.as_tensor(grasp.betas)[None])[0, 0].double().numpy()
+    wrist = _W["mano"].rest_wrist(grasp.betas)
     pose_c, transl_c = change_frame(pose, transl, wrist, rot, trans)
     out_c, closed_c = _hand(pose_c, grasp.betas, transl_c)
     K = views.ho3d_intrinsics(rng)

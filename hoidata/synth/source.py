@@ -53,13 +53,12 @@ def grasps_from_store(store_dir: Path, mano) -> list[GraspSource]:
 
 def grasps_from_frames(frames, mano) -> list[GraspSource]:
     """Grasps of dataset frames (readers' Frame records with a hand pose; left hands are skipped)."""
-    import torch
 
     out = []
     for f in frames:
         if not f.has_hand_pose or f.side != "right":
             continue
-        wrist = mano.rest_joints(torch.as_tensor(f.mano_betas)[None])[0, 0].double().numpy()
+        wrist = mano.rest_wrist(f.mano_betas)
         pose, transl = to_object_frame(f.mano_pose, f.mano_betas, f.mano_transl, f.object_pose, wrist)
         out.append(GraspSource(f"{f.dataset}-{f.split}-{f.frame_id}", f.object_name, int(f.object_id), pose,
                                np.asarray(f.mano_betas, np.float64), transl))
