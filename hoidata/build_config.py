@@ -52,7 +52,7 @@ class BuildConfig:
         return asdict(self)
 
 
-def _section(cls, values: dict, path: Path, name: str):
+def section(cls, values: dict, path: Path, name: str):
     known = {f.name: f for f in fields(cls)}
     kwargs = {}
     for key, value in values.items():
@@ -72,29 +72,43 @@ def resolve_pipeline(name_or_path: str) -> Path:
     return path
 
 
-def load_build_config(name_or_path: str, overrides: list[str] = ()) -> BuildConfig:
-    """Read a pipeline TOML and apply ``section.key=value`` overrides (values parsed as TOML)."""
+TRAIN_SECTIONS = ("model", "train", "augment", "loss", "eval")  # read by hoisdf.config, ignored by the build
+
+
+def apply_overrides(data: dict, overrides: list[str], path: Path) -> dict:
+    """Set ``section.key=value`` items (values parsed as TOML, else kept as bare strings) in ``data``; returns it."""
+    for item in overrides:
+        key, sep, raw = item.partition("=")
+        section_name, dot, name = key.partition(".")
+        if not sep or not dot:
+            raise DataError(path, item, "overrides look like section.key=value, e.g. record.n_hand=2048")
+        try:
+            data.setdefault(section_name, {})[name] = tomllib.loads(f"v = {raw}")["v"]
+        except tomllib.TOMLDecodeError:
+            data.setdefault(section_name, {})[name] = raw  # a bare string
+    unknown = set(data) - {"dataset", "record", "store", *TRAIN_SECTIONS}
+    if unknown:
+        raise DataError(path, sorted(unknown)[0], "unknown section")
+    return data
+
+
+def read_pipeline(name_or_path: str, overrides: list[str] = ()) -> tuple[Path, dict]:
+    """A pipeline TOML as a dict of sections with ``section.key=value`` overrides applied."""
     path = resolve_pipeline(name_or_path)
     try:
         data = tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as e:
         raise DataError(path, None, f"invalid TOML: {e}") from e
-    for item in overrides:
-        key, sep, raw = item.partition("=")
-        section, dot, name = key.partition(".")
-        if not sep or not dot:
-            raise DataError(path, item, "overrides look like section.key=value, e.g. record.n_hand=2048")
-        try:
-            data.setdefault(section, {})[name] = tomllib.loads(f"v = {raw}")["v"]
-        except tomllib.TOMLDecodeError:
-            data.setdefault(section, {})[name] = raw  # a bare string
-    unknown = set(data) - {"dataset", "record", "store", "model", "train"}
-    if unknown:
-        raise DataError(path, sorted(unknown)[0], "unknown section")
-    record = _section(RecordSettings, data.get("record", {}), path, "record")
-    dataset = _section(DatasetConfig, data.get("dataset", {}), path, "dataset")
+    return path, apply_overrides(data, overrides, path)
+
+
+def load_build_config(name_or_path: str, overrides: list[str] = ()) -> BuildConfig:
+    """Read a pipeline TOML and apply ``section.key=value`` overrides (values parsed as TOML)."""
+    path, data = read_pipeline(name_or_path, [o for o in overrides if o.split(".", 1)[0] not in TRAIN_SECTIONS])
+    record = section(RecordSettings, data.get("record", {}), path, "record")
+    dataset = section(DatasetConfig, data.get("dataset", {}), path, "dataset")
     if dataset.name not in ("dexycb", "ho3d"):
         raise DataError(path, "dataset.name", f"unknown dataset {dataset.name!r}; expected 'dexycb' or 'ho3d'")
     return BuildConfig(dataset,
                        replace(record, sigmas=tuple(record.sigmas)),
-                       _section(StoreConfig, data.get("store", {}), path, "store"))
+                       section(StoreConfig, data.get("store", {}), path, "store"))

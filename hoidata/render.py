@@ -23,6 +23,9 @@ import os
 from dataclasses import dataclass
 
 import numpy as np
+# Loading torch's compiler stack after an EGL context exists segfaults (CUDA bindings vs Mesa), so load it
+# first: any later `import torchvision` (the model) in a process that rendered (tests, the main job) then works.
+import torch._dynamo  # noqa: F401
 
 from hoidata.appearance import (  # noqa: F401  (re-exported: one import for rendering callers)
     DirectionalLight,

@@ -194,7 +194,9 @@ class _ToArrays:
             "joints_3d": _f32(meta["joints_3d"]), "joints_2d": _f32(meta["joints_2d"]),
             "mano_pose": _f32(meta["mano_pose"]), "mano_betas": _f32(meta["mano_betas"]),
             "object_pose": _f32(meta["object_pose"]),
+            "hand_box": _f32(meta["hand_box"]), "object_box": _f32(meta["object_box"]),
             "object_id": np.int64(meta["object_id"]),
+            "mirrored": np.bool_(meta["mirrored"]),
             "is_synthetic": np.bool_(meta["dataset"] == "synthetic"),
             "key": key,
         })
@@ -334,7 +336,10 @@ def build_dataset(stores: list[StoreSpec], batch_size: int, epoch_samples: int |
     mano_pose           (B, 48) f32          flat-hand-mean axis-angle, camera frame
     mano_betas          (B, 10) f32          MANO shape
     object_pose         (B, 4, 4) f32        object model -> camera, metres
+    hand_box            (B, 4) f32           x1, y1, x2, y2 of the projected hand mesh, img pixels
+    object_box          (B, 4) f32           same for the object mesh
     object_id           (B,) int64           DexYCB class id 1..21
+    mirrored            (B,) bool            a left hand mirrored to a right hand
     is_synthetic        (B,) bool            record from a synthetic store (meta dataset)
     key                 list of B str        record keys
     ==================  ===================  ======================================================

@@ -47,3 +47,20 @@ def tiny_dexycb(tmp_path_factory):
     size = ToyDexYCBSize(subjects=(0,), sequences=2, serials=(0,), frames=8)
     write_toy_dexycb(root, mano_dir, models_dir, size, workers=1, progress=False)
     return root
+
+
+@pytest.fixture(scope="session")
+def tiny_store(tiny_dexycb, tmp_path_factory):
+    """A built store of the tiny toy DexYCB train split: 128 px crops, 256 + 128 SDF rows, one shard.
+
+    Right and left (mirrored) hands; for model, augmentation and trainer tests.
+    """
+    from hoidata.build_config import load_build_config
+    from hoidata.pipeline import build_store
+
+    out = tmp_path_factory.mktemp("tiny_store") / "store"
+    overrides = ['dataset.splits=["train"]', "record.crop_size=128", "record.n_hand=256", "record.n_object=128",
+                 "store.records_per_shard=64"]
+    build_store(load_build_config("toy", overrides), tiny_dexycb, tiny_dexycb / "mano", tiny_dexycb / "models",
+                out, workers=1, part=(0, 1), progress=False)
+    return out

@@ -120,7 +120,8 @@ def lbs(
     """Full MANO forward in the model's own frame (no translation).
 
     Args:
-        pose: (B, J*3) axis-angle per joint, joint 0 global; the hand-mean offset must already be added.
+        pose: (B, J*3) axis-angle per joint, joint 0 global, or (B, J, 3, 3) rotation matrices; the hand-mean
+            offset must already be added.
         betas: (B, S) shape coefficients.
         v_template: (V, 3); shapedirs: (V, 3, S); posedirs: (V, 3, (J-1)*9); j_regressor: (J, V);
         parents: kinematic tree (length J); weights: (V, J) skinning weights.
@@ -131,7 +132,7 @@ def lbs(
     batch = pose.shape[0]
     v_shaped = v_template[None] + blend_shapes(betas, shapedirs)
     rest_joints = vertices_to_joints(j_regressor, v_shaped)
-    rot_mats = batch_rodrigues(pose.reshape(batch, -1, 3))
+    rot_mats = pose if pose.ndim == 4 else batch_rodrigues(pose.reshape(batch, -1, 3))
     v_posed = v_shaped + pose_offsets(rot_mats, posedirs)
     joints, rel = rigid_transform(rot_mats, rest_joints, parents)
     return skin(v_posed, weights, rel), joints, rel

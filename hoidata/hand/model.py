@@ -193,9 +193,15 @@ class MANO(nn.Module):
 
     def forward(self, pose: torch.Tensor, betas: torch.Tensor | None = None,
                 transl: torch.Tensor | None = None) -> MANOOutput:
-        """Pose (B, 48) flat-hand-mean axis-angle, betas (B, 10), transl (B, 3) metres -> MANOOutput."""
+        """Pose (B, 48) flat-hand-mean axis-angle, betas (B, 10), transl (B, 3) metres -> MANOOutput.
+
+        ``pose`` may also be (B, 16, 3, 3) rotation matrices (MANO joint order), e.g. from a network head.
+        """
         ref = self.v_template
-        pose = self._check(pose, NUM_POSE, "pose").to(ref)
+        if torch.is_tensor(pose) and pose.ndim == 4 and pose.shape[1:] == (NUM_POSE // 3, 3, 3):
+            pose = pose.to(ref)
+        else:
+            pose = self._check(pose, NUM_POSE, "pose").to(ref)
         batch = pose.shape[0]
         betas = ref.new_zeros(batch, NUM_BETAS) if betas is None else self._check(betas, NUM_BETAS, "betas", batch).to(ref)
         transl = ref.new_zeros(batch, 3) if transl is None else self._check(transl, 3, "transl", batch).to(ref)

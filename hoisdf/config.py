@@ -1,0 +1,125 @@
+"""Training settings: the ``[model]``, ``[train]``, ``[augment]`` and ``[loss]`` sections of ``pipelines/<name>.toml``.
+
+Same file and override syntax as the build (``section.key=value``, values parsed as TOML). Only the
+trainer and the evaluator read these dataclasses; they pass explicit values to the model, the loss,
+the augmentation and the data pipeline.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+from hoidata.build_config import apply_overrides, read_pipeline, section
+from hoidata.errors import DataError
+from hoisdf.augment import AugmentSettings
+from hoisdf.losses import LossWeights
+
+
+@dataclass(frozen=True)
+class ModelSettings:
+    """Constructor arguments of :class:`hoisdf.model.HOISDF` (defaults: the paper's DexYCB model)."""
+
+    depth: int = 50  # ResNet depth: 18, 34 or 50
+    decoder: str = "small"  # U-Net decoder: "small" (DexYCB settings) or "big" (HO-3D setting)
+    weights: str = ""  # backbone init: "" random, "imagenet" (torch hub cache, never downloaded) or a .pth path
+    normalize_input: bool = True  # ImageNet mean/std inside the model (the reference feeds raw [0, 1])
+    freeze_bn_affine: bool = True
+    image_size: int = 256
+    sdf_scale: float = 3.1
+    sdf_clamp: float = 0.15  # scaled units
+    n_freq: int = 5
+    d_model: int = 256
+    heads: int = 4
+    ff: int = 1024
+    dropout: float = 0.1
+    hand_layers: int = 6
+    decoder_layers: int = 4
+    object_layers: int = 3
+    sdf_hidden: int = 512
+    sdf_dropout: float = 0.2
+    n_hand: int = 600
+    n_object: int = 200
+    grid_resolution: int = 64
+    sheared_grid: bool = False  # reproduce the reference's sheared inference lattice
+    sampling: str = "absolute"  # absolute | signed | random | gradient
+    feature_augmentation: str = "density"  # density | none | density_concat | distance_concat
+    cross_field: str = "sdf"  # sdf | none | image | target
+    pose_regressor: str = "mano"  # mano | mano_only | voting | ik
+    density_sign: str = "paper"  # paper: sigmoid(-d/a)/a; code: sigmoid(+d/a)/a (released checkpoints)
+    beta_init: float = 0.1
+    beta_min: float = 2e-3
+    object_rotation: str = "chordal"  # chordal (rotation mean) | axis_angle (reference: mean of axis-angles)
+    test_boxes: str = "gt"  # gt (published protocol) | predicted (from the predicted masks)
+    mask_threshold: float = 0.5
+    chunk: int = 32768  # grid points per SDF-decoder call at inference
+    cls_dist: float = 0.04  # m: voting classification radius
+
+
+@dataclass(frozen=True)
+class TrainSettings:
+    epochs: int = 70
+    batch_size: int = 22
+    lr: float = 1e-4
+    weight_decay: float = 0.01
+    lr_drop: int = 9  # epochs per step of the StepLR schedule
+    lr_gamma: float = 0.7
+    lr_min: float = 1e-5
+    point_sampling_epoch: int = 40  # from this epoch on, field-guided sampling with probability field_prob
+    field_prob: float = 0.6
+    noise_ratios: tuple[float, ...] = (0.3, 0.7)
+    noise_dists: tuple[float, ...] = (0.03, 0.05, 0.07)
+    near: float = 0.05  # m: |sdf| below which SDF rows are "near" (training query points)
+    epoch_samples: int = 0  # 0: the stores' sizes times their weights
+    workers: int = 4
+    seed: int = 0
+    bf16: bool = True  # autocast on CUDA
+    log_every: int = 20  # steps between TensorBoard scalars
+    val_every: int = 1  # epochs between validations (0: never)
+    val_batches: int = 50
+    ckpt_every: int = 1  # epochs between checkpoints
+    max_steps: int = 0  # stop after this many steps in total (0: run all epochs)
+    shuffle_buffer: int = 64
+    record_keys: bool = False  # write the record keys each rank trained on (for checking DDP splits)
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    model: ModelSettings = field(default_factory=ModelSettings)
+    train: TrainSettings = field(default_factory=TrainSettings)
+    augment: AugmentSettings = field(default_factory=AugmentSettings)
+    loss: LossWeights = field(default_factory=LossWeights)
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def load_train_config(name_or_path: str | None, overrides: list[str] = ()) -> TrainConfig:
+    """Pipeline TOML (or the defaults when None) + ``section.key=value`` overrides -> TrainConfig.
+
+    ``augment.input_size`` follows ``model.image_size`` unless set; a mismatch is an error.
+    """
+    if name_or_path:
+        path, data = read_pipeline(name_or_path, overrides)
+    else:
+        path = Path("<defaults>")
+        data = apply_overrides({}, overrides, path)
+    model = section(ModelSettings, data.get("model", {}), path, "model")
+    train = section(TrainSettings, data.get("train", {}), path, "train")
+    augment_values = dict(data.get("augment", {}))
+    augment_values.setdefault("input_size", model.image_size)
+    augment = section(AugmentSettings, augment_values, path, "augment")
+    if augment.input_size != model.image_size:
+        raise DataError(path, "augment.input_size", f"must equal model.image_size ({model.image_size})")
+    loss = section(LossWeights, data.get("loss", {}), path, "loss")
+    return TrainConfig(model, replace(train, noise_ratios=tuple(train.noise_ratios),
+                                      noise_dists=tuple(train.noise_dists)), augment, loss)
+
+
+def config_from_dict(data: dict) -> TrainConfig:
+    """Inverse of :meth:`TrainConfig.as_dict` (checkpoints store the resolved config as a dict)."""
+    path = Path("<checkpoint>")
+    model = section(ModelSettings, data.get("model", {}), path, "model")
+    train = section(TrainSettings, data.get("train", {}), path, "train")
+    return TrainConfig(model, train, section(AugmentSettings, data.get("augment", {}), path, "augment"),
+                       section(LossWeights, data.get("loss", {}), path, "loss"))

@@ -1,0 +1,242 @@
+"""Result files for the official evaluators: HO-3D challenge ``pred.json`` and DexYCB HPE ``.txt``.
+
+HO-3D (``reference/datasets.md`` section 2.5; ``shreyashampali/ho3d:pred.py``, ``eval.py``):
+    ``pred.json`` is the JSON list ``[xyz_list, verts_list]``: N items of 21 x 3 joints and N items of
+    778 x 3 vertices, metres, **OpenGL** camera frame (our OpenCV points times diag(1, -1, -1)), joints in
+    HO-3D order (16 MANO joints, then the thumb..pinky tips), samples in ``evaluation.txt`` order
+    (N = 11,524 for v2). The server expects it zipped as ``pred.zip``.
+
+DexYCB (``reference/datasets.md`` section 1.9; ``dex_ycb_toolkit/hpe_eval.py``):
+    one line per sample, 64 comma-separated numbers: the integer sample index, then x1,y1,z1 ... x21,y21,z21
+    in **millimetres**, camera frame, DexYCB joint order.
+
+Inside the project joints are (N, 21, 3) metres, OpenCV frame, DexYCB/manopth order; these writers and
+readers convert at the border, and each reader inverts its writer exactly (up to the text precision).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import tempfile
+import zipfile
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from hoidata.errors import DataError
+from hoidata.hand import DEXYCB_TO_MANO, MANO_TO_DEXYCB, TIP_VERTICES
+
+OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0])  # its own inverse
+HO3D_TIP_VERTICES = TIP_VERTICES[("ho3d", "right")]  # thumb, index, middle, ring, pinky
+DEXYCB_TIP_JOINTS = (4, 8, 12, 16, 20)  # thumb..little tips in DexYCB order
+NUM_JOINTS = 21
+HPE_COLUMNS = 1 + NUM_JOINTS * 3  # 64
+
+
+def _write_atomic(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` via a temporary file in the same folder, so it appears whole or not at all."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _points(x, name: str, count: int | None = None) -> np.ndarray:
+    arr = np.asarray(x, dtype=np.float64)
+    if arr.ndim != 3 or arr.shape[2] != 3 or (count is not None and arr.shape[1] != count):
+        want = f"(N, {count if count is not None else 'V'}, 3)"
+        raise ValueError(f"{name} must have shape {want}, got {arr.shape}")
+    if not np.isfinite(arr).all():
+        raise ValueError(f"{name} holds non-finite values")
+    return arr
+
+
+# ---------------------------------------------------------------- HO-3D pred.json
+
+def _rows_in_order(ids: Sequence[str], order: Sequence[str] | None) -> np.ndarray:
+    """Row index of each frame of ``order`` in ``ids``; raises naming the first missing frame."""
+    ids = [str(i) for i in ids]
+    row = {}
+    for k, frame in enumerate(ids):
+        if frame in row:
+            raise ValueError(f"frame {frame!r} has two predictions (rows {row[frame]} and {k})")
+        row[frame] = k
+    if order is None:
+        return np.arange(len(ids))
+    missing = [str(f) for f in order if str(f) not in row]
+    if missing:
+        raise ValueError(f"no prediction for frame {missing[0]!r} of the evaluation list "
+                         f"({len(missing)} of {len(order)} frames missing)")
+    return np.array([row[str(f)] for f in order], dtype=np.int64)
+
+
+def to_ho3d(joints, verts, tip_vertices: Sequence[int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Our convention -> HO-3D's: (N, 21, 3) joints, (N, V, 3) vertices, OpenCV, DexYCB order, metres ->
+    OpenGL, HO-3D joint order, metres.
+
+    ``tip_vertices`` (thumb..pinky vertex ids, e.g. :data:`HO3D_TIP_VERTICES`) replaces the five
+    fingertip joints by those vertices first: HO-3D's ground truth takes its tips from 744/333/444/555/672,
+    manopth (and so a model trained on DexYCB-style joints) from 745/317/444/556/673.
+    """
+    joints, verts = _points(joints, "joints", NUM_JOINTS), _points(verts, "verts")
+    if tip_vertices is not None:
+        joints = joints.copy()
+        joints[:, list(DEXYCB_TIP_JOINTS)] = verts[:, list(tip_vertices)]
+    return joints[:, DEXYCB_TO_MANO] @ OPENCV_TO_OPENGL.T, verts @ OPENCV_TO_OPENGL.T
+
+
+def from_ho3d(joints, verts) -> tuple[np.ndarray, np.ndarray]:
+    """HO-3D's convention -> ours (the inverse of :func:`to_ho3d` without tip replacement)."""
+    joints, verts = _points(joints, "joints", NUM_JOINTS), _points(verts, "verts")
+    return (joints @ OPENCV_TO_OPENGL.T)[:, MANO_TO_DEXYCB], verts @ OPENCV_TO_OPENGL.T
+
+
+def write_ho3d_pred(path, ids: Sequence[str], joints, verts, order: Sequence[str] | None = None,
+                    tip_vertices: Sequence[int] | None = None) -> Path:
+    """Write an HO-3D challenge submission.
+
+    Args:
+        path: ``pred.json``, or a ``.zip`` path to get the archive the server takes (member ``pred.json``).
+        ids: (N,) frame ids of the prediction rows, as in ``evaluation.txt`` (``SEQ/id``).
+        joints: (N, 21, 3) metres, OpenCV camera frame, DexYCB order (absolute, not root-relative).
+        verts: (N, V, 3) metres, OpenCV camera frame (V = 778 for the mesh metrics to be computed).
+        order: the evaluation list; samples are written in this order, and a frame without a
+            prediction is an error naming it. None writes the rows in the order given.
+        tip_vertices: see :func:`to_ho3d`.
+
+    Returns:
+        The written path. Raises ValueError for missing frames, duplicate ids, bad shapes, or joints
+        all at positive OpenGL z (the server's ``pred.py`` check: points behind the camera, usually
+        joints already in OpenGL or root-relative).
+    """
+    path = Path(path)
+    joints, verts = _points(joints, "joints", NUM_JOINTS), _points(verts, "verts")
+    if not len(ids) == len(joints) == len(verts):
+        raise ValueError(f"ids, joints and verts differ in length: {len(ids)}, {len(joints)}, {len(verts)}")
+    rows = _rows_in_order(ids, order)
+    gl_joints, gl_verts = to_ho3d(joints[rows], verts[rows], tip_vertices)
+    if len(gl_joints) and np.all(gl_joints[..., 2] > 0):
+        raise ValueError("every joint has positive z in OpenGL (negative depth in OpenCV): pass absolute "
+                         "camera-frame joints in the OpenCV frame")
+    text = json.dumps([gl_joints.tolist(), gl_verts.tolist()]).encode()
+    if path.suffix == ".zip":
+        buf = io.BytesIO()
+        with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+            zf.writestr("pred.json", text)
+        text = buf.getvalue()
+    _write_atomic(path, text)
+    return path
+
+
+def _as_point_list(items, path: Path, field: str, count: int | None) -> np.ndarray:
+    """A JSON list of N (K, 3) nested lists -> (N, K, 3) float64, checked like the evaluator's reshape."""
+    if not isinstance(items, list):
+        raise DataError(path, field, f"expected a list of samples, got {type(items).__name__}")
+    try:
+        arr = np.array(items, dtype=np.float64)
+    except (ValueError, TypeError) as err:
+        raise DataError(path, field, f"samples are not all (K, 3) lists of numbers: {err}") from None
+    if len(items) == 0:
+        return np.zeros((0, count or 0, 3))
+    if arr.ndim != 3 or arr.shape[2] != 3 or (count is not None and arr.shape[1] != count):
+        raise DataError(path, field, f"expected shape (N, {count or 'V'}, 3), got {arr.shape}")
+    if not np.isfinite(arr).all():
+        raise DataError(path, field, "holds non-finite values")
+    return arr
+
+
+def read_ho3d_pred(path) -> tuple[np.ndarray, np.ndarray]:
+    """Read a ``pred.json`` (or a ``pred.zip`` holding one) back into our convention.
+
+    Returns:
+        joints (N, 21, 3) and verts (N, V, 3): metres, OpenCV frame, DexYCB order, in file order.
+        Raises :class:`hoidata.errors.DataError` naming the file and the part that is malformed.
+    """
+    path = Path(path)
+    try:
+        if zipfile.is_zipfile(path):
+            with zipfile.ZipFile(path) as zf:
+                if "pred.json" not in zf.namelist():
+                    raise DataError(path, "pred.json", "the archive has no member pred.json")
+                data = json.loads(zf.read("pred.json"))
+        else:
+            data = json.loads(path.read_bytes())
+    except json.JSONDecodeError as err:
+        raise DataError(path, None, f"not valid JSON: {err}") from None
+    if not isinstance(data, list) or len(data) != 2:
+        raise DataError(path, None, "expected the JSON list [xyz_list, verts_list]")
+    joints = _as_point_list(data[0], path, "xyz_list", NUM_JOINTS)
+    verts = _as_point_list(data[1], path, "verts_list", None)
+    if len(joints) != len(verts):
+        raise DataError(path, None, f"xyz_list has {len(joints)} samples but verts_list {len(verts)}")
+    return from_ho3d(joints, verts)
+
+
+# ---------------------------------------------------------------- DexYCB HPE result file
+
+def write_dexycb_hpe(path, ids: Sequence[int], joints, decimals: int = 6) -> Path:
+    """Write a DexYCB HPE result file: per line the sample index, then 63 coordinates in millimetres.
+
+    Args:
+        path: output ``.txt`` path.
+        ids: (N,) non-negative integer sample indices of the DexYCB split (the toolkit's image ids).
+        joints: (N, 21, 3) metres, camera frame (OpenCV, as DexYCB), DexYCB joint order.
+        decimals: digits after the decimal point, in millimetres (6 = 1 nm).
+    """
+    path = Path(path)
+    joints = _points(joints, "joints", NUM_JOINTS)
+    ids_arr = np.asarray(ids)
+    if ids_arr.shape != (len(joints),) or (len(ids_arr) and not np.issubdtype(ids_arr.dtype, np.integer)):
+        raise ValueError(f"ids must be {len(joints)} integers, got shape {ids_arr.shape}, dtype {ids_arr.dtype}")
+    if len(np.unique(ids_arr)) != len(ids_arr) or (len(ids_arr) and ids_arr.min() < 0):
+        raise ValueError("ids must be unique non-negative integers")
+    mm = joints.reshape(len(joints), -1) * 1000.0
+    lines = [f"{int(i):d}," + ",".join(f"{v:.{decimals}f}" for v in row) for i, row in zip(ids_arr, mm)]
+    _write_atomic(path, "".join(line + "\n" for line in lines).encode())
+    return path
+
+
+def read_dexycb_hpe(path) -> tuple[np.ndarray, np.ndarray]:
+    """Parse a DexYCB HPE result file as ``hpe_eval.py::_load_results`` does, more strictly.
+
+    Returns:
+        ids (N,) int64 and joints (N, 21, 3) metres, in file order.
+
+    Raises:
+        DataError naming the file and the 1-based line for a line without exactly 64 comma-separated
+        fields (blank lines included, as the toolkit), a non-integer index, a non-numeric or non-finite
+        coordinate, or an index seen on an earlier line (the toolkit would silently keep the last one).
+    """
+    path = Path(path)
+    ids, rows, seen = [], [], {}
+    with open(path, encoding="utf-8") as f:
+        for number, line in enumerate(f, start=1):
+            where = f"line {number}"
+            elems = line.split(",")
+            if len(elems) != HPE_COLUMNS:
+                raise DataError(path, where, f"expected {HPE_COLUMNS} comma-separated values, got {len(elems)}")
+            try:
+                image_id = int(elems[0])
+            except ValueError:
+                raise DataError(path, where, f"sample index {elems[0].strip()!r} is not an integer") from None
+            try:
+                coords = np.array([float(v) for v in elems[1:]], dtype=np.float64)
+            except ValueError as err:
+                raise DataError(path, where, f"non-numeric coordinate: {err}") from None
+            if not np.isfinite(coords).all():
+                raise DataError(path, where, "non-finite coordinate")
+            if image_id in seen:
+                raise DataError(path, where, f"sample index {image_id} already on line {seen[image_id]}")
+            seen[image_id] = number
+            ids.append(image_id)
+            rows.append(coords.reshape(NUM_JOINTS, 3) / 1000.0)
+    joints = np.stack(rows) if rows else np.zeros((0, NUM_JOINTS, 3))
+    return np.asarray(ids, dtype=np.int64), joints

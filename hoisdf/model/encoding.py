@@ -1,0 +1,115 @@
+"""Point encodings: Fourier positional codes and pixel-aligned image features.
+
+Conventions
+-----------
+* Points are in the OpenCV camera frame (x right, y down, z forward), metres.
+* ``K`` is the intrinsic matrix of the *crop* (pixel coordinates of the network input image).
+* Pixels follow the OpenCV convention: pixel centres lie at integer coordinates, so an ``S``-pixel-wide
+  image spans ``[-0.5, S - 0.5]``. Normalised grid coordinates are for ``grid_sample(align_corners=False)``,
+  under which ``-1`` / ``+1`` are the outer edges of the image; a feature map of any stride covering the same
+  image therefore uses the same normalised coordinates.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+MIN_DEPTH = 1e-6
+"""Depths (z, metres) are clamped to at least this before the perspective division."""
+
+
+def fourier_encode(x: torch.Tensor, n_freq: int = 5) -> torch.Tensor:
+    """NeRF-style Fourier code without the input and without a pi factor.
+
+    Args:
+        x: ``(..., 3)`` points (HOISDF: scaled space, |coords| <~ 1).
+        n_freq: number of octaves; frequencies ``2^0 .. 2^(n_freq-1)``.
+
+    Returns:
+        ``(..., 6 * n_freq)``; for each frequency ``f`` (ascending) the block
+        ``[sin(f x), sin(f y), sin(f z), cos(f x), cos(f y), cos(f z)]``.
+    """
+    freqs = 2.0 ** torch.arange(n_freq, device=x.device, dtype=x.dtype)  # (F,)
+    scaled = x.unsqueeze(-2) * freqs.unsqueeze(-1)  # (..., F, 3)
+    code = torch.cat([torch.sin(scaled), torch.cos(scaled)], dim=-1)  # (..., F, 6)
+    return code.flatten(-2)
+
+
+def project_points(points: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+    """Pinhole projection of camera-frame points to pixel coordinates.
+
+    Args:
+        points: ``(B, N, 3)`` camera-frame points, metres.
+        K: ``(B, 3, 3)`` intrinsics (pixels).
+
+    Returns:
+        ``(B, N, 2)`` pixel coordinates ``(u, v)``. The homogeneous depth is clamped to ``MIN_DEPTH`` so points
+        on or behind the camera give large but finite values (never inf/nan).
+    """
+    homo = torch.einsum("bij,bnj->bni", K.to(points.dtype), points)  # (B, N, 3)
+    depth = homo[..., 2:3].clamp_min(MIN_DEPTH)
+    return homo[..., :2] / depth
+
+
+def pixel_to_grid(uv: torch.Tensor, image_size: int) -> torch.Tensor:
+    """Pixel coordinates -> normalised ``grid_sample`` coordinates (``align_corners=False``).
+
+    Args:
+        uv: ``(B, N, 2)`` pixel coordinates (OpenCV convention, pixel centres at integers).
+        image_size: side length ``S`` of the square input image in pixels.
+
+    Returns:
+        ``(B, N, 2)`` with ``g = (uv + 0.5) / S * 2 - 1`` (``-1`` = left/top image edge, ``+1`` = right/bottom).
+    """
+    return (uv + 0.5) / float(image_size) * 2.0 - 1.0
+
+
+def sample_pyramid(features: Sequence[torch.Tensor], grid: torch.Tensor) -> torch.Tensor:
+    """Bilinearly sample every pyramid level at the same normalised locations and concatenate.
+
+    Args:
+        features: list of ``(B, C_l, H_l, W_l)`` maps covering the same image extent (any strides).
+        grid: ``(B, N, 2)`` normalised coordinates (see :func:`pixel_to_grid`). It is detached: no gradient
+            flows back to the points, only to the features.
+
+    Returns:
+        ``(B, N, sum_l C_l)``, levels concatenated in list order. Outside the image the border value is used
+        (``padding_mode="border"``).
+    """
+    grid = grid.detach().unsqueeze(1)  # (B, 1, N, 2)
+    out = []
+    for fmap in features:
+        sampled = F.grid_sample(fmap, grid.to(fmap.dtype), mode="bilinear", padding_mode="border",
+                                align_corners=False)  # (B, C_l, 1, N)
+        out.append(sampled.squeeze(2).transpose(1, 2))
+    return torch.cat(out, dim=-1)
+
+
+def pixel_aligned_features(features: Sequence[torch.Tensor], points_cam: torch.Tensor, K: torch.Tensor,
+                           image_size: int) -> torch.Tensor:
+    """Project camera-frame points into the image and sample the feature pyramid there.
+
+    Args:
+        features: list of ``(B, C_l, H_l, W_l)`` feature maps of the ``image_size``-pixel input crop.
+        points_cam: ``(B, N, 3)`` camera-frame points, metres.
+        K: ``(B, 3, 3)`` crop intrinsics.
+        image_size: input crop side length in pixels.
+
+    Returns:
+        ``(B, N, sum_l C_l)`` features (no gradient to ``points_cam``).
+    """
+    uv = project_points(points_cam.detach(), K)
+    return sample_pyramid(features, pixel_to_grid(uv, image_size))
+
+
+class PixelAlignedFeatures(nn.Module):
+    """Parameter-free module wrapper of :func:`pixel_aligned_features`."""
+
+    def forward(self, features: Sequence[torch.Tensor], points_cam: torch.Tensor, K: torch.Tensor,
+                image_size: int) -> torch.Tensor:
+        """``points_cam (B, N, 3)``, ``K (B, 3, 3)`` -> ``(B, N, sum_l C_l)``."""
+        return pixel_aligned_features(features, points_cam, K, image_size)

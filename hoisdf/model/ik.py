@@ -1,0 +1,138 @@
+"""Inverse kinematics: 21 hand joints + MANO betas -> MANO pose (the "MANO shape + IK" variant, spec §1.13).
+
+Method (batched, after gSDF / upstream ``ik_solver_mano``):
+
+1. Template joints: the MANO forward at zero pose with the given betas (21 joints, tips included), wrist-relative.
+2. Global rotation: Kabsch/SVD aligning the template's five wrist->MCP vectors to the target's (no centring:
+   the wrist is the pivot), with the reflection fix (det = +1). Upstream skips reflected samples instead.
+3. Along each finger chain (all five fingers at once, one level at a time), the local rotation of a joint is the
+   minimal rotation (axis = cross product, angle = atan2(|cross|, dot)) taking the template bone to the target
+   bone expressed in the parent's accumulated frame; the accumulated frame is updated with it.
+
+The twist of each bone about its own axis is not observable from joints, so the minimal-rotation solution
+reproduces the joint positions (exactly for the 16 MANO joints when the palm is rigid), not the pose itself.
+Units: metres; output in the flat-hand-mean axis-angle convention of :class:`hoidata.hand.MANO`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from hoidata.hand.lbs import batch_rodrigues
+from hoidata.hand.model import MANO_TO_DEXYCB
+
+# DexYCB order: 0 wrist, then thumb, index, middle, ring, little with 4 joints each (MCP, PIP, DIP, tip).
+MCP_DEXYCB = [1, 5, 9, 13, 17]
+
+
+def kabsch_rotation(source: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Rotation R (B, 3, 3) minimising sum_i |R s_i - t_i|^2 for vectors (B, N, 3) (no centring), det(R) = +1."""
+    h = source.transpose(1, 2) @ target  # (B, 3, 3) = sum_i s_i t_i^T
+    u, _, vh = torch.linalg.svd(h)
+    v = vh.transpose(1, 2)
+    sign = torch.sign(torch.linalg.det(v @ u.transpose(1, 2)))
+    sign = torch.where(sign == 0, torch.ones_like(sign), sign)
+    fix = torch.ones(h.shape[0], 3, dtype=h.dtype, device=h.device)
+    fix = torch.cat([fix[:, :2], sign[:, None]], dim=1)
+    return v @ torch.diag_embed(fix) @ u.transpose(1, 2)
+
+
+def minimal_rotation(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Axis-angle (..., 3) of the smallest rotation turning direction ``a`` (..., 3) into direction ``b``.
+
+    Angle = atan2(|a x b|, a . b) in [0, pi]; for (nearly) opposite vectors the axis is any unit vector
+    perpendicular to ``a``. Zero-length inputs give the zero rotation.
+    """
+    tiny = torch.finfo(a.dtype).tiny
+    a = a / a.norm(dim=-1, keepdim=True).clamp_min(tiny)
+    b = b / b.norm(dim=-1, keepdim=True).clamp_min(tiny)
+    cross = torch.linalg.cross(a, b, dim=-1)
+    s = cross.norm(dim=-1, keepdim=True)
+    c = (a * b).sum(-1, keepdim=True)
+    angle = torch.atan2(s, c)
+    aa = cross * (angle / s.clamp_min(tiny))
+    # Opposite directions: the cross product carries no reliable axis; rotate by pi about a perpendicular.
+    opposite = (c < 0) & (s < math.sqrt(torch.finfo(a.dtype).eps))
+    basis = torch.eye(3, dtype=a.dtype, device=a.device)[a.abs().argmin(dim=-1)]
+    perp = torch.linalg.cross(a, basis, dim=-1)
+    perp = perp / perp.norm(dim=-1, keepdim=True).clamp_min(tiny)
+    return torch.where(opposite, perp * angle, aa)
+
+
+def matrix_to_quaternion(rot: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices (..., 3, 3) -> unit quaternions (..., 4) as (w, x, y, z), w >= 0 (Shepperd's method)."""
+    m = rot
+    m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
+    # 4 |q_k|^2 for k = w, x, y, z; the largest gives a well-conditioned division.
+    sq = torch.stack([1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], dim=-1)
+    q_abs = torch.sqrt(sq.clamp_min(0.0))
+    d21, d02, d10 = m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]
+    s21, s02, s10 = m[..., 2, 1] + m[..., 1, 2], m[..., 0, 2] + m[..., 2, 0], m[..., 1, 0] + m[..., 0, 1]
+    # Row k: 4 q_k * (w, x, y, z), i.e. every quaternion scaled by 4 q_k (q_k = q_abs[k] / 2).
+    cand = torch.stack([
+        torch.stack([sq[..., 0], d21, d02, d10], dim=-1),
+        torch.stack([d21, sq[..., 1], s10, s02], dim=-1),
+        torch.stack([d02, s10, sq[..., 2], s21], dim=-1),
+        torch.stack([d10, s02, s21, sq[..., 3]], dim=-1),
+    ], dim=-2)  # (..., 4, 4)
+    cand = cand / (2.0 * q_abs[..., :, None]).clamp_min(0.1)
+    best = q_abs.argmax(dim=-1)
+    q = torch.gather(cand, -2, best[..., None, None].expand(*best.shape, 1, 4)).squeeze(-2)
+    q = q / q.norm(dim=-1, keepdim=True)
+    return torch.where(q[..., :1] < 0, -q, q)
+
+
+def quaternion_to_axis_angle(q: torch.Tensor) -> torch.Tensor:
+    """Unit quaternions (..., 4) (w, x, y, z) -> axis-angle (..., 3) with angle in [0, pi]."""
+    q = torch.where(q[..., :1] < 0, -q, q)
+    w, xyz = q[..., :1], q[..., 1:]
+    n = xyz.norm(dim=-1, keepdim=True)
+    angle = 2.0 * torch.atan2(n, w)
+    small = n < 1e-6
+    # angle / n -> 2 / w as n -> 0 (w -> 1).
+    scale = torch.where(small, 2.0 / w.clamp_min(1e-6), angle / n.clamp_min(torch.finfo(q.dtype).tiny))
+    return xyz * scale
+
+
+def matrix_to_axis_angle(rot: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices (..., 3, 3) -> axis-angle (..., 3), robust near 0 and pi."""
+    return quaternion_to_axis_angle(matrix_to_quaternion(rot))
+
+
+def solve_ik(joints: torch.Tensor, betas: torch.Tensor, mano) -> torch.Tensor:
+    """MANO pose reproducing 21 target joints with the given shape.
+
+    Args:
+        joints: (B, 21, 3) metres, DexYCB order, root-relative (the wrist is subtracted again here anyway).
+        betas: (B, 10) MANO shape used for the template (e.g. the network's predicted betas).
+        mano: the project's MANO layer (:func:`hoidata.hand.load_mano`); called once at zero pose.
+
+    Returns:
+        pose: (B, 48) flat-hand-mean axis-angle in MANO joint order (joint 0 = global rotation), dtype/device
+        of ``joints``. ``mano(pose, betas).joints`` minus its wrist reproduces ``joints`` minus its wrist.
+    """
+    if joints.ndim != 3 or joints.shape[1:] != (21, 3):
+        raise ValueError(f"joints: expected (B, 21, 3), got {tuple(joints.shape)}")
+    batch = joints.shape[0]
+    zero = torch.zeros(batch, 48, dtype=joints.dtype, device=joints.device)
+    template = mano(zero, betas).joints.to(joints)
+    template = template - template[:, :1]
+    target = joints - joints[:, :1]
+
+    pose = joints.new_zeros(batch, 16, 3)
+    rot_global = kabsch_rotation(template[:, MCP_DEXYCB], target[:, MCP_DEXYCB])
+    pose[:, 0] = matrix_to_axis_angle(rot_global)
+
+    frame = rot_global[:, None].expand(batch, 5, 3, 3)  # accumulated rotation of each finger's parent joint
+    for level in range(3):  # MCP, PIP, DIP of all five fingers at once
+        joint_ids = [m + level for m in MCP_DEXYCB]
+        child_ids = [j + 1 for j in joint_ids]
+        bone_template = template[:, child_ids] - template[:, joint_ids]  # (B, 5, 3) rest frame
+        bone_target = target[:, child_ids] - target[:, joint_ids]  # (B, 5, 3) world frame
+        local_target = (frame.transpose(-1, -2) @ bone_target[..., None])[..., 0]
+        aa = minimal_rotation(bone_template, local_target)
+        pose[:, [MANO_TO_DEXYCB[j] for j in joint_ids]] = aa
+        frame = frame @ batch_rodrigues(aa)
+    return pose.reshape(batch, 48)
