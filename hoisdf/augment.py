@@ -153,7 +153,7 @@ def matrix_to_axis_angle(rot: torch.Tensor) -> torch.Tensor:
     best = diag.argmax(1)
     idx = torch.arange(len(m), device=m.device)
     q = rows[idx, best] / (2 * diag[idx, best].clamp_min(1e-12).sqrt())[:, None]
-    pass  # w >= 0: angle in [0, pi]
+    q = torch.where(q[:, :1] < 0, -q, q)  # w >= 0: angle in [0, pi]
     norm = q[:, 1:].norm(dim=1, keepdim=True)
     angle = 2 * torch.atan2(norm, q[:, :1])
     factor = torch.where(norm > 1e-7, angle / norm.clamp_min(1e-7), 2 / q[:, :1].clamp_min(1e-7))

@@ -79,6 +79,16 @@ def test_joints_project_with_new_intrinsics(batch, augmented):
     assert torch.allclose(augmented["obj_center"][:, 2], augmented["hand_root"][:, 2])
 
 
+def test_rotated_crop_keeps_the_stored_centre_in_the_middle(batch):
+    """Rotation about the optical axis moves the crop centre; the crop follows it (no jitter, scale 1)."""
+    settings = AugmentSettings(input_size=64, rotation="uniform", center_jitter=0.0, scale_sigma=0.0)
+    out = augment_batch(batch, settings, torch.Generator().manual_seed(4), train=True)
+    centre = torch.tensor([63.5, 63.5, 1.0]).expand(4, 3)[..., None]  # the stored 128 px crop's centre
+    moved = out["K"] @ out["rotation"] @ torch.linalg.solve(batch["K"], centre)
+    torch.testing.assert_close(moved[:, :2, 0], torch.full((4, 2), 31.5), atol=1e-3, rtol=0)
+    torch.testing.assert_close(out["crop_scale"], torch.ones(4))
+
+
 def test_boxes_contain_the_moved_box_corners(batch, augmented):
     for name in ("hand_box", "object_box"):
         x1, y1, x2, y2 = batch[name].unbind(1)
@@ -234,6 +244,11 @@ def test_colour_and_blur_identities_and_effects():
     assert (shifted - img).abs().max() > 0.05
     desaturated = color_jitter(img, torch.tensor([[1.0, 1.0, 0.0, 0.0]] * 2), torch.arange(4))
     assert (desaturated.std(1)).max() < 1e-6  # saturation 0: grey pixels
+    flat = color_jitter(img, torch.tensor([[1.0, 0.0, 1.0, 0.0]] * 2), torch.arange(4))  # contrast 0
+    mean_grey = torch.einsum("c,bchw->b", grey, img) / 256
+    torch.testing.assert_close(flat, mean_grey[:, None, None, None].expand_as(img))
+    brighter = color_jitter(img, torch.tensor([[1.5, 1.0, 1.0, 0.0]] * 2), torch.arange(4))
+    torch.testing.assert_close(brighter, (1.5 * img).clamp(max=1.0))
     blurred = gaussian_blur(img, torch.tensor([0.0, 1.0]), 3)
     torch.testing.assert_close(blurred[0], img[0])
     assert blurred[1].std() < 0.7 * img[1].std()
