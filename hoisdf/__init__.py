@@ -1,6 +1,7 @@
 """hoisdf: the HOISDF model (CVPR 2024), streamed from hoidata stores into a GPU trainer.
 
-The model, losses, data pipeline and trainer are built in later milestones; this package may import
+Modules: data (store streaming), augment (GPU batched augmentation), model/ (the network), losses, trainer +
+train (the CLI), evaluate, metrics, export, plausibility, visualize. This package may import
 :mod:`hoidata`'s public API (schema, hand model), never the reverse.
 """
 

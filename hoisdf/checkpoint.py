@@ -71,7 +71,7 @@ def load_checkpoint(run_or_file: str | os.PathLike, map_location="cpu") -> dict:
     path = find_checkpoint(run_or_file)
     try:
         payload = torch.load(path, map_location=map_location, weights_only=True)
-    except Exception as e:  # noqa: BLE001 - torch raises several types for corrupt or unsafe files
+    except Exception as e:
         raise DataError(path, None, f"cannot read checkpoint: {e}") from e
     for key in ("model", "config"):
         if key not in payload:

@@ -36,7 +36,8 @@ class ModelSettings:
     hand_layers: int = 6
     decoder_layers: int = 4
     object_layers: int = 3
-    sdf_hidden: int = 512
+    sdf_features: int = 256  # width of the pixel-aligned feature entering the SDF decoders
+    sdf_hidden: int = 512  # must exceed sdf_features + 33 (DeepSDF skip connection)
     sdf_dropout: float = 0.2
     n_hand: int = 600
     n_object: int = 200

@@ -5,10 +5,10 @@ renders with weight 0.6) and yields dicts of batched torch tensors (see :func:`b
 
 How the pieces fit, per store::
 
-    _ShardStream  endless (training) sequence of shard paths, reshuffled for every pass, seeded by
-                  (seed, epoch, pass): every rank and worker computes the *same* sequence ...
-    split_by_node, split_by_worker
-                  ... and keeps its own slice of it, so ranks/workers read disjoint shard *passes*
+    _ShardStream  endless (training) sequence of this rank's shard paths: disjoint shard subsets per
+                  rank when there are enough shards, else a slice of one common sequence of passes
+    split_by_worker
+                  each DataLoader worker keeps its own slice of the rank's sequence
     tarfile_to_samples -> _Shuffle (sample buffer) -> _Decode -> _ToArrays (SDF row sampling)
 
 then :class:`_Mix` draws the next sample from store ``i`` with probability ``weight_i / sum(weights)``
@@ -74,22 +74,36 @@ def _key_seed(key: str) -> int:
 
 
 class _ShardStream:
-    """Source stage: ``{"url": shard path}`` dicts, one shuffled pass of the shard list after another.
+    """Source stage: this rank's ``{"url": shard path}`` dicts, one shuffled pass after another.
 
-    The order depends only on (seed, epoch, pass number), never on the rank or worker, so the
-    split_by_node / split_by_worker stages that follow partition one common sequence.
+    Training with at least as many shards as ranks: every epoch the shard list is shuffled by
+    (seed, epoch) and rank r keeps every world-th shard of it, so ranks read disjoint shards (disjoint
+    samples); passes over the rank's own shards are reshuffled by (seed, epoch, pass, rank). With fewer
+    shards than ranks, all ranks partition one common endless sequence of passes (seeded by
+    (seed, epoch, pass)) by position instead: every rank has data, and ranks read different passes.
+    Evaluation (``repeat=False``): one pass in stored order, split by position. The split_by_worker
+    stage that follows divides the rank's stream between its DataLoader workers the same way.
     """
 
     def __init__(self, urls: list[str], seed: int, state: _EpochState, repeat: bool):
         self.urls, self.seed, self.state, self.repeat = list(urls), seed, state, repeat
 
     def __call__(self):
-        for n in count():
-            rng = np.random.default_rng([self.seed, self.state.epoch, n])
-            order = rng.permutation(len(self.urls)) if self.repeat else range(len(self.urls))
+        rank, world, _, _ = pytorch_worker_info()
+        epoch, n = self.state.epoch, len(self.urls)
+        if self.repeat and n >= world:
+            mine = np.random.default_rng([self.seed, epoch]).permutation(n)[rank::world]
+            for p in count():
+                for i in np.random.default_rng([self.seed, epoch, p, rank]).permutation(mine):
+                    yield {"url": self.urls[i]}
+        position = 0
+        for p in count():
+            order = np.random.default_rng([self.seed, epoch, p]).permutation(n) if self.repeat else range(n)
             for i in order:
-                yield {"url": self.urls[i]}
-            if not self.repeat:  # evaluation: one pass in stored order
+                if position % world == rank:
+                    yield {"url": self.urls[i]}
+                position += 1
+            if not self.repeat:
                 return
 
 
@@ -290,7 +304,6 @@ def _store_pipeline(urls: list[str], number: int, seed: int, state: _EpochState,
     """One store's sample stream (see the module docstring for the stages)."""
     return wds.DataPipeline(
         _ShardStream(urls, seed, state, repeat=training),
-        wds.split_by_node,
         wds.split_by_worker,
         wds.tarfile_to_samples(),
         _Shuffle(shuffle_buffer if training else 0, seed, state, number),

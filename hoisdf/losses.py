@@ -14,6 +14,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from hoidata.hand.model import TIP_VERTICES
 from hoisdf.model.heads import wrist_centred_mano
 from hoisdf.model.rotation import axis_angle_to_matrix, matrix_to_axis_angle
 
@@ -42,11 +43,31 @@ def mirrored_shape_mano(mano) -> nn.Module:
 
     DexYCB labels left hands with MANO_LEFT as shipped (without the shapedirs fix); a left hand mirrored to
     a right hand is then the right model with ``shapedirs[:, 0]`` negated, not the right model itself
-    (identical for betas = 0). Ground truth of ``mirrored`` records is computed with this layer.
+    (identical for betas = 0). Its fingertip joints are the left model's (manopth picks vertex 445, not 444,
+    for the left middle tip). Ground truth of ``mirrored`` records is computed with this layer.
     """
     twin = copy.deepcopy(mano)
     twin.shapedirs[:, 0] = -twin.shapedirs[:, 0]
+    twin.tip_vertices = TIP_VERTICES[(mano.tips, "left")]
     return twin
+
+
+def hand_targets(mano, mirrored_mano, batch: dict) -> dict[str, torch.Tensor]:
+    """Wrist-centred ground-truth MANO ``verts`` (B, 778, 3), ``joints`` (B, 21, 3) and ``rotations`` (B, 16, 3, 3).
+
+    Records flagged ``mirrored`` use ``mirrored_mano`` (see :func:`mirrored_shape_mano`).
+    """
+    pose, betas = batch["mano_pose"].float(), batch["mano_betas"].float()
+    B = pose.shape[0]
+    rotations = axis_angle_to_matrix(pose.view(B, 16, 3))
+    with torch.no_grad():
+        verts, joints = wrist_centred_mano(mano, rotations, betas)
+        mirrored = batch.get("mirrored")
+        if mirrored is not None and bool(mirrored.any()):
+            m_verts, m_joints = wrist_centred_mano(mirrored_mano, rotations, betas)
+            flag = mirrored.to(verts.device)[:, None, None]
+            verts, joints = torch.where(flag, m_verts, verts), torch.where(flag, m_joints, joints)
+    return {"verts": verts, "joints": joints, "rotations": rotations}
 
 
 class HOISDFLoss(nn.Module):
@@ -93,18 +114,7 @@ class HOISDFLoss(nn.Module):
 
     # --- targets --------------------------------------------------------------------------------------------
     def targets(self, batch: dict) -> dict[str, torch.Tensor]:
-        """Wrist-centred ground-truth MANO verts (B, 778, 3) / joints (B, 21, 3) and rotations (B, 16, 3, 3)."""
-        pose, betas = batch["mano_pose"].float(), batch["mano_betas"].float()
-        B = pose.shape[0]
-        rotations = axis_angle_to_matrix(pose.view(B, 16, 3))
-        with torch.no_grad():
-            verts, joints = wrist_centred_mano(self._mano[0], rotations, betas)
-            mirrored = batch.get("mirrored")
-            if mirrored is not None and bool(mirrored.any()):
-                m_verts, m_joints = wrist_centred_mano(self._mano[1], rotations, betas)
-                flag = mirrored.to(verts.device)[:, None, None]
-                verts, joints = torch.where(flag, m_verts, verts), torch.where(flag, m_joints, joints)
-        return {"verts": verts, "joints": joints, "rotations": rotations}
+        return hand_targets(self._mano[0], self._mano[1], batch)
 
     @staticmethod
     def root_relative_joints(batch: dict) -> torch.Tensor:

@@ -75,7 +75,8 @@ def test_batch_shapes_and_dtypes(stores):
         "joints_3d": ((b, 21, 3), torch.float32), "joints_2d": ((b, 21, 2), torch.float32),
         "mano_pose": ((b, 48), torch.float32), "mano_betas": ((b, 10), torch.float32),
         "object_pose": ((b, 4, 4), torch.float32), "object_id": ((b,), torch.int64),
-        "is_synthetic": ((b,), torch.bool),
+        "hand_box": ((b, 4), torch.float32), "object_box": ((b, 4), torch.float32),
+        "is_synthetic": ((b,), torch.bool), "mirrored": ((b,), torch.bool),
     }
     assert set(batch) == set(expected) | {"key"}
     for name, (shape, dtype) in expected.items():

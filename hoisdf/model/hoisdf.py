@@ -5,7 +5,7 @@ Data flow of :meth:`HOISDF.forward` (B batch, Nh / No hand / object query points
 1. ``ResNetUNet``: image (B, 3, S, S) -> feature pyramid (5 levels) + 2D heads (heatmap, hand and object
    mask logits at S/2).
 2. Pixel-aligned features of any camera-frame point: its projection samples every pyramid level.
-   ``sdf_in`` (-> 256) feeds the SDF decoders, ``token_in`` (-> d_model - 33) the transformer tokens.
+   ``sdf_in`` (-> sdf_features, 256) feeds the SDF decoders, ``token_in`` (-> d_model - 33) the transformer tokens.
 3. SDF decoders (hand, object): scaled SDF (metric x ``sdf_scale``) clamped to +-``sdf_clamp``.
 4. Query points: near-surface ground-truth rows + noise ("gt", training) or the grid points of smallest
    |SDF| inside the 2D boxes ("field").
@@ -51,7 +51,7 @@ class HOISDF(nn.Module):
 
     def __init__(self, mano, depth=50, decoder="small", weights="", normalize_input=True, freeze_bn_affine=True,
                  image_size=256, sdf_scale=3.1, sdf_clamp=0.15, n_freq=5, d_model=256, heads=4, ff=1024, dropout=0.1,
-                 hand_layers=6, decoder_layers=4, object_layers=3, sdf_hidden=512, sdf_dropout=0.2, n_hand=600,
+                 hand_layers=6, decoder_layers=4, object_layers=3, sdf_features=256, sdf_hidden=512, sdf_dropout=0.2, n_hand=600,
                  n_object=200, grid_resolution=64, sheared_grid=False, sampling="absolute",
                  feature_augmentation="density", cross_field="sdf", pose_regressor="mano", density_sign="paper",
                  beta_init=0.1, beta_min=2e-3, object_rotation="chordal", test_boxes="gt", mask_threshold=0.5,
@@ -76,12 +76,12 @@ class HOISDF(nn.Module):
 
         self.backbone = ResNetUNet(depth, decoder, weights or None, freeze_bn_affine, normalize_input)
         feat = sum(self.backbone.channels)
-        self.sdf_in = MLP(feat, [512], 256, relu_last=True)
+        self.sdf_in = MLP(feat, [2 * sdf_features], sdf_features, relu_last=True)
         concat = feature_augmentation in ("density_concat", "distance_concat")
         self.token_in = MLP(feat, [1024, 512, 256], d_model - POINT_DIM - int(concat), relu_last=True)
         pe = 6 * n_freq
-        self.hand_sdf = SDFDecoder(256, pe, sdf_hidden, dropout=sdf_dropout)
-        self.obj_sdf = SDFDecoder(256, pe, sdf_hidden, dropout=sdf_dropout)
+        self.hand_sdf = SDFDecoder(sdf_features, pe, sdf_hidden, dropout=sdf_dropout)
+        self.obj_sdf = SDFDecoder(sdf_features, pe, sdf_hidden, dropout=sdf_dropout)
         if feature_augmentation != "none":
             self.hand_beta = nn.Parameter(torch.tensor(float(beta_init)))
             self.obj_beta = nn.Parameter(torch.tensor(float(beta_init)))
@@ -235,10 +235,10 @@ class HOISDF(nn.Module):
         if self.regressor == "ik":
             betas = self.shape_head(queries)["betas"]
             out["betas"] = betas
-            joints = H.with_root(votes["joints"][-1])
-            with torch.no_grad():
-                pose = solve_ik(joints.detach().float(), betas[-1].detach().float(), self.mano)
-                verts, ik_joints = H.wrist_centred_mano(self.mano, pose, betas[-1].detach().float())
+            voted = H.with_root(votes["joints"][-1])
+            with torch.no_grad():  # the reported hand is the MANO fit of the voted joints (as the reference)
+                pose = solve_ik(voted.detach().float(), betas[-1].detach().float(), self.mano)
+                verts, joints = H.wrist_centred_mano(self.mano, pose, betas[-1].detach().float())
             out.update({"joints": joints, "verts": verts, "ik_pose": pose})
             return out
         mano_out = self.mano_head(queries, self.mano)

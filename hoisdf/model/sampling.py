@@ -12,7 +12,7 @@ fewer than ``n`` grid points still yields ``n`` points (the reference code crash
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 

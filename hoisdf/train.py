@@ -1,0 +1,120 @@
+"""``python -m hoisdf.train --shards STORE[:WEIGHT] ... --mano DIR [--config NAME] [section.key=value ...]``
+
+Trains HOISDF on one or more stores (weights set the mixing ratio, e.g. ``shards/dexycb:1.0
+shards/ho3d_render:0.6``). Multi-GPU / multi-process: ``torchrun --nproc_per_node N -m hoisdf.train ...``
+(NCCL on GPUs, gloo on CPUs). ``--resume`` continues ``--out``'s last checkpoint exactly.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+import torch
+
+from hoidata.build_config import apply_overrides
+from hoidata.errors import DataError
+from hoidata.pipeline import git_commit
+from hoisdf.checkpoint import CHECKPOINTS, LAST, load_checkpoint
+from hoisdf.config import TrainConfig, config_from_dict, load_train_config
+from hoisdf.data import StoreSpec
+from hoisdf.trainer import Trainer
+
+
+def parse_store(text: str) -> StoreSpec:
+    """'path' or 'path:weight' -> StoreSpec."""
+    path, sep, weight = text.rpartition(":")
+    if sep and path and not weight.startswith(("/", "\\")):
+        try:
+            return StoreSpec(Path(path), float(weight))
+        except ValueError:
+            pass
+    return StoreSpec(Path(text), 1.0)
+
+
+def distributed_setup(device_arg: str | None) -> tuple[int, int, torch.device]:
+    """(rank, world size, device); initialises the process group under torchrun (WORLD_SIZE > 1)."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank, local = int(os.environ.get("RANK", "0")), int(os.environ.get("LOCAL_RANK", "0"))
+    if device_arg:
+        device = torch.device(device_arg)
+    else:
+        device = torch.device(f"cuda:{local}" if torch.cuda.is_available() else "cpu")
+    if device.type == "cuda":
+        torch.cuda.set_device(device)
+    if world > 1:
+        torch.distributed.init_process_group("nccl" if device.type == "cuda" else "gloo")
+    return rank, world, device
+
+
+def write_run_info(run_dir: Path, config: TrainConfig, stores, val_stores, world: int, argv: list[str]) -> None:
+    from hoisdf import __version__
+    info = {"config": config.as_dict(), "stores": [[str(s.path), s.weight] for s in stores],
+            "val_stores": [str(s.path) for s in val_stores], "git_commit": git_commit(), "version": __version__,
+            "world_size": world, "argv": argv}
+    (run_dir / "config.json").write_text(json.dumps(info, indent=2))
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m hoisdf.train", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--shards", nargs="+", required=True, metavar="STORE[:WEIGHT]", help="training stores")
+    p.add_argument("--val-shards", nargs="*", default=[], metavar="STORE", help="validation stores")
+    p.add_argument("--mano", required=True, type=Path, help="folder with MANO_RIGHT.pkl")
+    p.add_argument("--config", default=None, help="pipelines/<name>.toml or a path (default: the paper's settings)")
+    p.add_argument("--out", type=Path, default=None, help="run folder (default runs/<config>)")
+    p.add_argument("--resume", action="store_true", help="continue the run folder's last checkpoint")
+    p.add_argument("--device", default=None, help="cpu, cuda, cuda:1 (default: cuda when present)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("overrides", nargs="*", metavar="section.key=value", help="e.g. train.batch_size=8 model.depth=18")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    args = build_parser().parse_args(argv)
+    try:
+        return run(args, argv)
+    except (DataError, ValueError, FileNotFoundError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+
+
+def run(args, argv: list[str]) -> int:
+    from hoidata.hand import load_mano
+
+    stores = [parse_store(s) for s in args.shards]
+    val_stores = [StoreSpec(Path(s)) for s in args.val_shards]
+    run_dir = args.out or Path("runs") / Path(args.config or "default").stem
+    payload = load_checkpoint(run_dir) if args.resume else None
+    if payload:  # the run's own config; overrides (e.g. a later train.max_steps) still apply
+        config = config_from_dict(apply_overrides(payload["config"], args.overrides, run_dir / "config.json"))
+    else:
+        if (run_dir / CHECKPOINTS / LAST).exists():
+            raise DataError(run_dir, None, "the run folder already holds a checkpoint: pass --resume or another --out")
+        config = load_train_config(args.config, args.overrides)
+    rank, world, device = distributed_setup(args.device)
+    torch.manual_seed(config.train.seed + rank)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    mano = load_mano(args.mano, side="right")
+    trainer = Trainer(config, stores, mano, run_dir, device, val_stores, rank, world)
+    rng = trainer.load(payload) if payload else None
+    if rank == 0 and not payload:
+        write_run_info(run_dir, config, stores, val_stores, world, argv)
+    if rank == 0:
+        p = trainer.progress
+        print(f"training {config.model.depth}-layer HOISDF on {device} x{world}: epoch {p.epoch} step {p.step}, "
+              f"{len(trainer.dataset)} batches/epoch, run folder {run_dir}", flush=True)
+    progress = trainer.fit(rng, progress_bar=not args.no_progress)
+    if rank == 0:
+        print(f"done: epoch {progress.epoch}, {progress.global_step} steps; checkpoint {run_dir}/checkpoints/last.pt")
+    if world > 1:
+        torch.distributed.destroy_process_group()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,241 @@
+"""The training loop: one step, one epoch, validation, checkpoints, logs. The CLI is :mod:`hoisdf.train`.
+
+Exact resume: a checkpoint holds the model, optimizer, scheduler, every RNG state (torch CPU/CUDA,
+Python ``random``, the augmentation/sampling generator) and the position in the epoch. Resuming
+rebuilds the epoch's loader (its order depends only on seed and epoch), skips the batches already
+trained on without computing anything, and then restores the RNG states, so a run interrupted after
+step k continues exactly as if it had not stopped (on the CPU; cuDNN kernels are not bitwise
+deterministic on GPUs).
+"""
+
+from __future__ import annotations
+
+import csv
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from hoisdf.augment import augment_batch
+from hoisdf.checkpoint import CHECKPOINTS, LAST, rng_state, save_checkpoint, set_rng_state
+from hoisdf.config import TrainConfig
+from hoisdf.data import StoreSpec, build_dataset, make_loader
+from hoisdf.losses import HOISDFLoss
+from hoisdf.model import build_model
+from hoisdf.model.sampling import noise_scale
+
+CURVE = "metrics.csv"
+
+
+@dataclass
+class Progress:
+    epoch: int = 0
+    step: int = 0  # batches done in this epoch
+    global_step: int = 0
+
+
+def to_device(batch: dict, device: torch.device) -> dict:
+    """Move every tensor of a batch to ``device`` (non-blocking when the batch is in pinned memory)."""
+    return {k: v.to(device, non_blocking=True) if torch.is_tensor(v) else v for k, v in batch.items()}
+
+
+def epoch_lr(epoch: int, lr: float, drop: int, gamma: float, lr_min: float) -> float:
+    """The reference schedule: lr * gamma^(epoch // drop), floored at lr_min."""
+    return max(lr * gamma ** (epoch // drop), lr_min)
+
+
+def unwrap(model: nn.Module) -> nn.Module:
+    return model.module if hasattr(model, "module") else model
+
+
+class Trainer:
+    """Owns the model, loss, optimizer and data of one training run on one rank."""
+
+    def __init__(self, config: TrainConfig, stores: list[StoreSpec], mano, run_dir: Path, device: torch.device,
+                 val_stores: list[StoreSpec] = (), rank: int = 0, world_size: int = 1):
+        self.config, self.run_dir, self.device = config, Path(run_dir), device
+        self.rank, self.world_size = rank, world_size
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        t, m = config.train, config.model
+        model = build_model(m, mano).to(device)
+        if world_size > 1:
+            model = nn.parallel.DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None)
+        self.model = model
+        self.loss = HOISDFLoss(config.loss, mano, m.sdf_scale, m.sdf_clamp, m.cls_dist)
+        params = [p for p in model.parameters() if p.requires_grad]
+        self.optimizer = torch.optim.AdamW(params, lr=t.lr, weight_decay=t.weight_decay)
+        self.dataset = build_dataset(list(stores), t.batch_size, t.epoch_samples or None, t.seed, m.n_hand, m.n_object,
+                                     t.near, t.shuffle_buffer, training=True)
+        self.loader = make_loader(self.dataset, t.workers, pin_memory=device.type == "cuda")
+        self.val_stores = list(val_stores)
+        self.generator = torch.Generator().manual_seed(t.seed * 1000 + rank)
+        self.progress = Progress()
+        self.autocast = device.type == "cuda" and t.bf16
+        self._writer = None
+
+    # --- state ----------------------------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        p = self.progress
+        return {"model": unwrap(self.model).state_dict(), "optimizer": self.optimizer.state_dict(),
+                "rng": rng_state(self.generator), "config": self.config.as_dict(),
+                "progress": {"epoch": p.epoch, "step": p.step, "global_step": p.global_step}}
+
+    def save(self, name: str = LAST) -> Path | None:
+        if self.rank != 0:
+            return None
+        payload = self.state_dict()
+        path = save_checkpoint(self.run_dir / CHECKPOINTS / LAST, payload)
+        if name != LAST:
+            save_checkpoint(self.run_dir / CHECKPOINTS / name, payload)
+        return path
+
+    def load(self, payload: dict) -> dict:
+        """Restore model, optimizer and progress; returns the RNG states to apply after skipping batches."""
+        unwrap(self.model).load_state_dict(payload["model"])
+        self.optimizer.load_state_dict(payload["optimizer"])
+        self.progress = Progress(**payload["progress"])
+        return payload["rng"]
+
+    # --- one step -------------------------------------------------------------------------------------------
+    def train_step(self, batch: dict, points: str, noise: float) -> dict[str, float]:
+        batch = augment_batch(to_device(batch, self.device), self.config.augment, self.generator, train=True)
+        with torch.autocast("cuda", dtype=torch.bfloat16, enabled=self.autocast):
+            out = self.model(batch, points=points, noise=noise, generator=self.generator)
+        total, terms = self.loss(out, batch)
+        self.optimizer.zero_grad(set_to_none=True)
+        total.backward()
+        self.optimizer.step()
+        logged = {name: float(v.detach()) for name, v in terms.items()}
+        logged["total"] = float(total.detach())
+        return logged
+
+    def _points_mode(self, epoch: int) -> str:
+        t = self.config.train
+        if epoch < t.point_sampling_epoch:
+            return "gt"
+        return "field" if float(torch.rand((), generator=self.generator)) < t.field_prob else "gt"
+
+    # --- epochs ---------------------------------------------------------------------------------------------
+    def fit(self, rng_after_skip: dict | None = None, progress_bar: bool = True) -> Progress:
+        """Train until ``train.epochs`` (or ``train.max_steps`` steps in total); returns the final progress."""
+        t = self.config.train
+        while self.progress.epoch < t.epochs and not self._done():
+            self._run_epoch(rng_after_skip, progress_bar)
+            rng_after_skip = None
+        return self.progress
+
+    def _done(self) -> bool:
+        max_steps = self.config.train.max_steps
+        return bool(max_steps) and self.progress.global_step >= max_steps
+
+    def _run_epoch(self, rng_after_skip: dict | None, progress_bar: bool) -> None:
+        t, p = self.config.train, self.progress
+        for group in self.optimizer.param_groups:
+            group["lr"] = epoch_lr(p.epoch, t.lr, t.lr_drop, t.lr_gamma, t.lr_min)
+        self.dataset.set_epoch(p.epoch)
+        unwrap(self.model).train()
+        n_batches = len(self.dataset)
+        # resume: a checkpoint from an epoch's end holds the RNG before the next loader starts (it draws its
+        # seed from torch's RNG); one from inside an epoch holds it after that draw and the batches done
+        if rng_after_skip is not None and p.step == 0:
+            set_rng_state(rng_after_skip, self.generator)
+        batches = iter(self.loader)
+        for _ in range(p.step):
+            next(batches)
+        if rng_after_skip is not None and p.step > 0:
+            set_rng_state(rng_after_skip, self.generator)
+        bar = self._bar(n_batches, p.step, progress_bar)
+        tick, seen = time.perf_counter(), 0
+        for batch in batches:
+            points = self._points_mode(p.epoch)
+            terms = self.train_step(batch, points, noise_scale(p.step / n_batches, t.noise_ratios, t.noise_dists))
+            self._record_keys(batch["key"])
+            p.step += 1
+            p.global_step += 1
+            seen += len(batch["key"]) * self.world_size
+            rate = seen / max(time.perf_counter() - tick, 1e-9)
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(loss=f"{terms['total']:.3f}", samples_s=f"{rate:.1f}", points=points)
+            if p.global_step % t.log_every == 0 or p.step == 1:
+                self.log("train", {**terms, "lr": self.optimizer.param_groups[0]["lr"], "samples_per_s": rate})
+            if self._done():
+                break
+        if bar is not None:
+            bar.close()
+        if p.step >= n_batches:  # a finished epoch: validate, checkpoint, next epoch
+            epoch = p.epoch
+            p.epoch, p.step = p.epoch + 1, 0
+            if t.val_every and self.val_stores and p.epoch % t.val_every == 0 and self.rank == 0:
+                self.log("val", self.validate())
+            if t.ckpt_every and p.epoch % t.ckpt_every == 0:
+                self.save(f"epoch-{epoch:03d}.pt")
+        if self._done():
+            self.save()
+
+    def _bar(self, total: int, start: int, enabled: bool):
+        if self.rank != 0 or not enabled:
+            return None
+        from tqdm import tqdm
+
+        return tqdm(total=total, initial=start, desc=f"epoch {self.progress.epoch}", unit="batch", leave=False)
+
+    def _record_keys(self, keys: list[str]) -> None:
+        if self.config.train.record_keys:
+            with open(self.run_dir / f"keys-rank{self.rank}.txt", "a") as f:
+                f.writelines(k + "\n" for k in keys)
+
+    # --- validation and logs --------------------------------------------------------------------------------
+    @torch.no_grad()
+    def validate(self) -> dict[str, float]:
+        """Mean loss terms, root-relative MJE and object centre error (mm) on up to ``val_batches`` batches."""
+        t, m = self.config.train, self.config.model
+        model = unwrap(self.model)
+        model.eval()
+        data = build_dataset(self.val_stores, t.batch_size, seed=t.seed, n_hand=m.n_hand, n_object=m.n_object,
+                             training=False)
+        sums: dict[str, float] = {}
+        count = 0
+        for i, batch in enumerate(data):
+            if i == t.val_batches:
+                break
+            batch = augment_batch(to_device(batch, self.device), self.config.augment, None, train=False)
+            with torch.autocast("cuda", dtype=torch.bfloat16, enabled=self.autocast):
+                out = model(batch, points="field")
+            total, terms = self.loss(out, batch)
+            gt = batch["joints_3d"] - batch["hand_root"][:, None]
+            values = {**{k: float(v) for k, v in terms.items()}, "total": float(total),
+                      "mje_mm": float((out["joints"].float() - gt).norm(dim=-1).mean()) * 1000,
+                      "oce_mm": float((out["obj_translation"] - batch["object_pose"][:, :3, 3]).norm(dim=-1).mean()) * 1000}
+            n = len(batch["key"])
+            for k, v in values.items():
+                sums[k] = sums.get(k, 0.0) + v * n
+            count += n
+        model.train()
+        return {k: v / max(count, 1) for k, v in sums.items()}
+
+    def log(self, split: str, values: dict[str, float]) -> None:
+        if self.rank != 0:
+            return
+        p = self.progress
+        path = self.run_dir / CURVE
+        new = not path.exists()
+        with open(path, "a", newline="") as f:
+            writer = csv.writer(f)
+            if new:
+                writer.writerow(["split", "epoch", "step", "name", "value"])
+            for name, value in values.items():
+                writer.writerow([split, p.epoch, p.global_step, name, f"{value:.6g}"])
+        if self._writer is None:
+            try:
+                from torch.utils.tensorboard import SummaryWriter
+            except ImportError:  # tensorboard is optional; metrics.csv has the same numbers
+                self._writer = False
+            else:
+                self._writer = SummaryWriter(str(self.run_dir / "tb"))
+        if self._writer:
+            for name, value in values.items():
+                self._writer.add_scalar(f"{split}/{name}", value, p.global_step)
+            self._writer.flush()
