@@ -137,17 +137,18 @@ def predict_batch(model, mano, mirrored, batch: dict, config) -> tuple[dict, dic
 
 
 def infer(model, mano, config, stores: list, batch_size: int, device: torch.device, limit: int | None = None,
-          vis: int = 0, progress: bool = True, workers: int = 0) -> Collected:
+          vis: int = 0, progress: bool = True, workers: int = 0, indexes: dict | None = None) -> Collected:
     """Predictions and ground truth of the records of ``stores``, returned in stored order (store after store).
 
     ``workers`` loader processes decode records (shards are split between them, so with ``limit`` the first
     samples are the first ones the loader delivers); ``vis`` keeps pictures' inputs of the first samples.
+    ``indexes``: already read store indexes by store path.
     """
     mano.to(device)
     mirrored, col = mirrored_shape_mano(mano), Collected()
     bar = tqdm(desc="evaluating", unit="img", disable=not progress)
     for s, store in enumerate(stores):
-        index = read_index(store)
+        index = (indexes or {}).get(store) or read_index(store)
         rows, lab = {k: i for i, k in enumerate(index.keys)}, index.labels
         bar.total = (bar.total or 0) + min(len(rows), (limit or len(rows) + len(col.keys)) - len(col.keys))
         data = build_dataset([StoreSpec(store)], batch_size, n_hand=1, n_object=1, training=False)
@@ -212,10 +213,10 @@ def score(joints, gt_joints, verts, gt_verts, obj_pose, gt_obj_pose, obj_verts: 
     return {**out, **_masked(fn, obj_ok, obj_pose, gt_obj_pose, np.arange(len(obj_pose)))}
 
 
-def mean_hand(store, mano, max_rows: int = BASELINE_ROWS) -> tuple[np.ndarray, np.ndarray, int]:
+def mean_hand(store, mano, max_rows: int = BASELINE_ROWS, index=None) -> tuple[np.ndarray, np.ndarray, int]:
     """Mean wrist-relative GT joints (21, 3) and MANO vertices (778, 3) over a store's labels (metres), and
     the number of rows used (at most ``max_rows``, evenly spaced; rows without finite joints are skipped)."""
-    lab = read_index(store).labels
+    lab = (index or read_index(store)).labels
     n = len(lab["key"])
     rows = np.unique(np.linspace(0, n - 1, min(n, max_rows)).round().astype(np.int64)) if n else np.zeros(0, int)
     rows = rows[np.isfinite(lab["joints_3d"][rows]).all((1, 2)) & np.isfinite(lab["mano_pose"][rows]).all(1)]
@@ -282,7 +283,7 @@ def write_per_object(path: Path, summary: dict, counts: dict[str, int]) -> None:
                              *(f"{summary[name][m]:.6g}" for m in metric_names)])
 
 
-def export(col: Collected, stores: list, out_dir: Path, ho3d_order=None) -> dict[str, str]:
+def export(col: Collected, stores: list, out_dir: Path, ho3d_order=None, indexes: dict | None = None) -> dict[str, str]:
     """HPE file per store and, with ``ho3d_order``, pred.json/pred.zip of HO-3D stores.
 
     HPE ids are the records' rows in their store's index: the toolkit's sample index when the store holds
@@ -299,7 +300,7 @@ def export(col: Collected, stores: list, out_dir: Path, ho3d_order=None) -> dict
         sel = np.flatnonzero(store == s)
         name = "dexycb_hpe.txt" if len(stores) == 1 else f"dexycb_hpe_{Path(path).name}.txt"
         written[f"hpe:{path}"] = str(write_dexycb_hpe(out_dir / name, np.asarray(col.rows)[sel], joints[sel]))
-        if read_index(path).skipped:
+        if ((indexes or {}).get(path) or read_index(path)).skipped:
             print(f"warning: {path} skipped frames at build time: {name}'s ids (index rows) are not the toolkit's")
         if order is None:
             continue
@@ -318,9 +319,9 @@ def export(col: Collected, stores: list, out_dir: Path, ho3d_order=None) -> dict
     return written
 
 
-def _baseline(col: Collected, mano, store, obj_verts: list, obj_valid) -> dict[str, np.ndarray]:
+def _baseline(col: Collected, mano, store, obj_verts: list, obj_valid, index=None) -> dict[str, np.ndarray]:
     """Per-sample metrics of the mean-pose baseline (see the module docstring) on the collected samples."""
-    mean_j, mean_v, _ = mean_hand(store, mano)
+    mean_j, mean_v, _ = mean_hand(store, mano, index=index)
     root, verts = col.get("root")[:, None], col.get("verts")
     pose = np.tile(np.eye(4), (len(root), 1, 1))
     pose[:, :3, 3] = col.get("obj_center")
@@ -361,8 +362,9 @@ def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=No
     mano = load_mano(mano_dir, side="right")
     model, config, info = load_for_eval(run, mano, device, boxes)
     out_dir = Path(out_dir) if out_dir else run_folder(Path(run)) / f"eval-{'+'.join(s.name for s in stores)}"
-    objects = {name: mesh for s in stores for name, mesh in read_index(s).objects.items()}
-    col = infer(model, mano, config, stores, batch_size, device, limit, vis, progress, workers)
+    indexes = {s: read_index(s) for s in stores}
+    objects = {name: mesh for index in indexes.values() for name, mesh in index.objects.items()}
+    col = infer(model, mano, config, stores, batch_size, device, limit, vis, progress, workers, indexes)
     missing = sorted(set(col.names) - set(objects))
     if missing:
         raise DataError(stores[0], "objects", f"no mesh in the store index for {missing}")
@@ -373,21 +375,22 @@ def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=No
                        col.get("obj_pose"), col.get("gt_obj_pose"), obj_verts, obj_valid)
     summary = M.summarize(per_sample, names)
     base_src = Path(baseline_store) if baseline_store else stores[0]
-    base_summary = M.summarize(_baseline(col, mano, base_src, obj_verts, obj_valid))["all"]
+    base_summary = M.summarize(_baseline(col, mano, base_src, obj_verts, obj_valid, indexes.get(base_src)))["all"]
     counts = {str(name): int(c) for name, c in zip(*np.unique(names, return_counts=True))}
     result = {
         **info, "stores": [str(s) for s in stores], "device": str(device), "samples": len(col.keys),
         "counts": {"per_object": counts, "hand_metrics": int(np.isfinite(per_sample["rr_mje"]).sum()),
                    "object_metrics": int(np.isfinite(per_sample["oce"]).sum())},
         "overall": summary["all"], "per_object": {k: v for k, v in summary.items() if k != "all"},
-        "baseline": {"mean_pose_from": str(base_src), "rows_max": BASELINE_ROWS,
+        "baseline": {"method": "mean wrist-relative joints/verts placed at the GT wrist; object at obj_center, "
+                               "identity rotation", "mean_pose_from": str(base_src), "rows_max": BASELINE_ROWS,
                      "peeks_at_evaluated_labels": base_src.resolve() in [s.resolve() for s in stores],
                      "overall": base_summary},
         "plausibility": _plausibility(col, objects, mano, plausibility, progress),
         "units": "mm for lengths, ratios for AUC and F-scores",
     }
     out_dir.mkdir(parents=True, exist_ok=True)
-    result["files"] = export(col, stores, out_dir, ho3d_order)
+    result["files"] = export(col, stores, out_dir, ho3d_order, indexes)
     write_per_object(out_dir / "per_object.csv", summary, counts)
     (out_dir / "metrics.json").write_text(json.dumps(_clean(result), indent=2))
     if vis:

@@ -250,12 +250,12 @@ def read_curve(metrics_csv) -> dict[str, dict[str, tuple[np.ndarray, np.ndarray]
             for split, names in series.items()}
 
 
-def _plot_series(ax, series: dict, names: list[str], style: str, log: bool) -> None:
+def _plot_series(ax, series: dict, names: list[str], style: str, log: bool, prefix: str = "") -> None:
     for name in names:
         steps, values = series[name]
         keep = np.isfinite(values) & ((values > 0) if log else True)
         if keep.any():
-            ax.plot(steps[keep], values[keep], style, label=name, lw=2.2 if name == "total" else 1.0)
+            ax.plot(steps[keep], values[keep], style, label=prefix + name, lw=2.2 if name == "total" else 1.0)
 
 
 def plot_training_curve(metrics_csv, png_path) -> Path:
@@ -279,10 +279,10 @@ def plot_training_curve(metrics_csv, png_path) -> Path:
     ax = axes[0, 0]
     order = sorted(train, key=lambda n: (n != "total", n))
     _plot_series(ax, train, order, "-", log=True)
-    _plot_series(ax, val, [n for n in val_losses if n == "total"], "k--o", log=True)
+    _plot_series(ax, val, [n for n in val_losses if n == "total"], "k--o", log=True, prefix="val ")
     ax.set_yscale("log")
     ax.set_xlabel("step")
-    ax.set_ylabel("loss (weighted)")
+    ax.set_ylabel("loss")
     ax.set_title("training losses" + (" (dashed: validation total)" if "total" in val_losses else ""))
     ax.grid(True, which="both", alpha=0.3)
     if ax.lines:
