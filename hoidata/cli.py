@@ -117,15 +117,17 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 
 
 def cmd_toy_pipeline(args: argparse.Namespace) -> int:
-    """The main job on the embedded default: toy datasets -> verified store -> inspection PNG."""
+    """The data half of the main job: toy datasets -> verified train and test stores -> inspection PNG."""
     out = Path(args.out)
-    steps = [
-        ["make-toy", "--out", str(out / "data"), "--seed", str(args.seed)],
-        ["build-sdf", "--dataset", "toy", "--root", str(out / "data" / "dexycb"), "--out", str(out / "store"),
-         "--workers", str(args.workers)],
-        ["verify", str(out / "store")],
-        ["inspect", str(out / "store"), "--out", str(out / "store_grid.png")],
-    ]
+    size = [*(["--sequences", str(args.sequences)] if args.sequences else []),
+            *(["--frames", str(args.frames)] if args.frames else [])]
+    root = out / "data" / "dexycb"
+    steps = [["make-toy", "--out", str(out / "data"), "--seed", str(args.seed), *size]]
+    for split in ("train", "test"):
+        steps.append(["build-sdf", "--dataset", "toy", "--root", str(root), "--out", str(out / "store" / split),
+                      "--workers", str(args.workers), f'dataset.splits=["{split}"]'])
+    steps += [["verify", str(out / "store" / split)] for split in ("train", "test")]
+    steps.append(["inspect", str(out / "store" / "train"), "--out", str(out / "store_grid.png")])
     for argv in steps:
         print(f"\n$ hoidata {' '.join(argv)}", flush=True)
         status = main(argv)
@@ -184,10 +186,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="grid.png", help="output PNG")
     p.set_defaults(func=cmd_inspect)
 
-    p = sub.add_parser("toy-pipeline", help="the whole chain on the embedded toy data (the README's main job)")
-    p.add_argument("--out", default="toy_run", help="output folder (data/, store/, store_grid.png)")
+    p = sub.add_parser("toy-pipeline", help="toy data -> verified train/test stores (the data half of python -m hoisdf.toy)")
+    p.add_argument("--out", default="toy_run", help="output folder (data/, store/train, store/test, store_grid.png)")
     p.add_argument("--workers", type=int, default=2, help="worker processes for the store build")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--sequences", type=int, default=None, help="toy size: sequences per subject (see make-toy)")
+    p.add_argument("--frames", type=int, default=None, help="toy size: frames per sequence and camera")
     p.set_defaults(func=cmd_toy_pipeline)
 
     p = sub.add_parser("check-mano", help="load and check MANO_RIGHT.pkl / MANO_LEFT.pkl")

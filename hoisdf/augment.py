@@ -22,6 +22,7 @@ import torch
 import torch.nn.functional as F
 
 from hoidata.hand.lbs import batch_rodrigues
+from hoisdf.model.rotation import matrix_to_axis_angle
 
 POINT_KEYS = ("hand_points", "obj_points", "hand_near_points", "obj_near_points")
 ROTATIONS = ("dexycb", "uniform", "none")
@@ -137,27 +138,6 @@ def transform_boxes(M: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
     corners = torch.stack([torch.stack(c, -1) for c in ((x1, y1), (x2, y1), (x1, y2), (x2, y2))], 1)
     moved = transform_pixels(M, corners)
     return torch.cat([moved.amin(1), moved.amax(1)], 1)
-
-
-def matrix_to_axis_angle(rot: torch.Tensor) -> torch.Tensor:
-    """Rotations (..., 3, 3) -> axis-angle (..., 3), angle in [0, pi]; via Shepperd's quaternion (robust at pi)."""
-    m = rot.reshape(-1, 3, 3)
-    m00, m01, m02, m10, m11, m12, m20, m21, m22 = m.reshape(-1, 9).unbind(1)
-    # row i holds 4 q_i q (q = w, x, y, z); its i-th entry is 4 q_i^2, take the row with the largest one
-    rows = torch.stack([
-        torch.stack([1 + m00 + m11 + m22, m21 - m12, m02 - m20, m10 - m01], -1),
-        torch.stack([m21 - m12, 1 + m00 - m11 - m22, m01 + m10, m02 + m20], -1),
-        torch.stack([m02 - m20, m01 + m10, 1 - m00 + m11 - m22, m12 + m21], -1),
-        torch.stack([m10 - m01, m02 + m20, m12 + m21, 1 - m00 - m11 + m22], -1)], 1)  # (N, 4, 4)
-    diag = torch.diagonal(rows, dim1=1, dim2=2)
-    best = diag.argmax(1)
-    idx = torch.arange(len(m), device=m.device)
-    q = rows[idx, best] / (2 * diag[idx, best].clamp_min(1e-12).sqrt())[:, None]
-    q = torch.where(q[:, :1] < 0, -q, q)  # w >= 0: angle in [0, pi]
-    norm = q[:, 1:].norm(dim=1, keepdim=True)
-    angle = 2 * torch.atan2(norm, q[:, :1])
-    factor = torch.where(norm > 1e-7, angle / norm.clamp_min(1e-7), 2 / q[:, :1].clamp_min(1e-7))
-    return (q[:, 1:] * factor).reshape(rot.shape[:-1])
 
 
 def warp_theta(M: torch.Tensor, src_size: int, out_size: int) -> torch.Tensor:

@@ -45,5 +45,5 @@ def test_help_lists_subcommands(capsys):
 
 def test_hoidata_never_imports_hoisdf():
     root = pathlib.Path(__file__).resolve().parents[1] / "hoidata"
-    offenders = [p for p in root.rglob("*.py") if re.search(r"^\s*(from|import)\s+hoisdf", p.read_text(), re.M)]
+    offenders = [p for p in root.rglob("*.py") if re.search(r"^\s*(from|import)\s+hoisdf", p.read_text(), re.MULTILINE)]
     assert offenders == []

@@ -45,7 +45,7 @@ def grasps(meshes, manos):
 
 def forward(mano, grasp: Grasp):
     """MANO output of a grasp: the hand in the object's frame."""
-    as_t = lambda a: torch.as_tensor(a, dtype=torch.float64)[None]  # noqa: E731
+    as_t = lambda a: torch.as_tensor(a, dtype=torch.float64)[None]
     with torch.no_grad():
         return mano(as_t(grasp.pose), as_t(grasp.betas), as_t(grasp.transl))
 

@@ -31,8 +31,8 @@ from hoidata.objects import (
     simplify_mesh,
     surface_error,
     write_toy_objects,
+    ycb,
 )
-from hoidata.objects import ycb
 
 # Simplification to 1000 vertices must stay this close to the source surface (metres); measured
 # on the toy set: max 1.04 mm (mug wall faceting), mean <= 0.15 mm. See hoidata/objects/README_section.md.

@@ -22,6 +22,7 @@ import torch
 
 from hoidata.hand.lbs import batch_rodrigues
 from hoidata.hand.model import MANO_TO_DEXYCB
+from hoisdf.model.rotation import matrix_to_axis_angle
 
 # DexYCB order: 0 wrist, then thumb, index, middle, ring, little with 4 joints each (MCP, PIP, DIP, tip).
 MCP_DEXYCB = [1, 5, 9, 13, 17]
@@ -59,46 +60,6 @@ def minimal_rotation(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     perp = torch.linalg.cross(a, basis, dim=-1)
     perp = perp / perp.norm(dim=-1, keepdim=True).clamp_min(tiny)
     return torch.where(opposite, perp * angle, aa)
-
-
-def matrix_to_quaternion(rot: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices (..., 3, 3) -> unit quaternions (..., 4) as (w, x, y, z), w >= 0 (Shepperd's method)."""
-    m = rot
-    m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
-    # 4 |q_k|^2 for k = w, x, y, z; the largest gives a well-conditioned division.
-    sq = torch.stack([1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], dim=-1)
-    q_abs = torch.sqrt(sq.clamp_min(0.0))
-    d21, d02, d10 = m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]
-    s21, s02, s10 = m[..., 2, 1] + m[..., 1, 2], m[..., 0, 2] + m[..., 2, 0], m[..., 1, 0] + m[..., 0, 1]
-    # Row k: 4 q_k * (w, x, y, z), i.e. every quaternion scaled by 4 q_k (q_k = q_abs[k] / 2).
-    cand = torch.stack([
-        torch.stack([sq[..., 0], d21, d02, d10], dim=-1),
-        torch.stack([d21, sq[..., 1], s10, s02], dim=-1),
-        torch.stack([d02, s10, sq[..., 2], s21], dim=-1),
-        torch.stack([d10, s02, s21, sq[..., 3]], dim=-1),
-    ], dim=-2)  # (..., 4, 4)
-    cand = cand / (2.0 * q_abs[..., :, None]).clamp_min(0.1)
-    best = q_abs.argmax(dim=-1)
-    q = torch.gather(cand, -2, best[..., None, None].expand(*best.shape, 1, 4)).squeeze(-2)
-    q = q / q.norm(dim=-1, keepdim=True)
-    return torch.where(q[..., :1] < 0, -q, q)
-
-
-def quaternion_to_axis_angle(q: torch.Tensor) -> torch.Tensor:
-    """Unit quaternions (..., 4) (w, x, y, z) -> axis-angle (..., 3) with angle in [0, pi]."""
-    q = torch.where(q[..., :1] < 0, -q, q)
-    w, xyz = q[..., :1], q[..., 1:]
-    n = xyz.norm(dim=-1, keepdim=True)
-    angle = 2.0 * torch.atan2(n, w)
-    small = n < 1e-6
-    # angle / n -> 2 / w as n -> 0 (w -> 1).
-    scale = torch.where(small, 2.0 / w.clamp_min(1e-6), angle / n.clamp_min(torch.finfo(q.dtype).tiny))
-    return xyz * scale
-
-
-def matrix_to_axis_angle(rot: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices (..., 3, 3) -> axis-angle (..., 3), robust near 0 and pi."""
-    return quaternion_to_axis_angle(matrix_to_quaternion(rot))
 
 
 def solve_ik(joints: torch.Tensor, betas: torch.Tensor, mano) -> torch.Tensor:
