@@ -122,7 +122,10 @@ def cmd_toy_pipeline(args: argparse.Namespace) -> int:
     size = [*(["--sequences", str(args.sequences)] if args.sequences else []),
             *(["--frames", str(args.frames)] if args.frames else [])]
     root = out / "data" / "dexycb"
-    steps = [["make-toy", "--out", str(out / "data"), "--seed", str(args.seed), *size]]
+    made = out / "data" / f"made-seed{args.seed}{''.join(size)}.ok"  # make-toy finished with these settings
+    steps = [] if made.is_file() else [["make-toy", "--out", str(out / "data"), "--seed", str(args.seed), *size]]
+    if made.is_file():
+        print(f"{out / 'data'}: toy data made earlier with these settings; make-toy skipped")
     for split in ("train", "test"):
         steps.append(["build-sdf", "--dataset", "toy", "--root", str(root), "--out", str(out / "store" / split),
                       "--workers", str(args.workers), f'dataset.splits=["{split}"]'])
@@ -133,6 +136,8 @@ def cmd_toy_pipeline(args: argparse.Namespace) -> int:
         status = main(argv)
         if status:
             return status
+        if argv[0] == "make-toy":
+            made.touch()
     return 0
 
 

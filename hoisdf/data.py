@@ -158,14 +158,17 @@ def sample_sdf(sdf: np.ndarray, counts, rng: np.random.Generator, n_hand: int, n
 
     sdf: stored int16 (N, 6); counts: meta ``sdf_counts`` = [n_hand_set, n_object_set, n_uniform].
     Returns float32 arrays: hand_points (n_hand, 3) m relative to the hand root and hand_sdf (n_hand,) m
-    (signed distance to the hand) from the hand-set rows; obj_points (n_object, 3) / obj_sdf (n_object,)
-    (signed distance to the object) from the object-set rows; with ``near`` also hand_near_* / obj_near_*
-    of the same sizes, drawn from the rows of the same block whose |sdf| < near. Row indices of every
-    draw are returned under ``<name>_rows`` (int64) for checking.
+    (signed distance to the hand) from the hand-set and uniform rows; obj_points (n_object, 3) / obj_sdf
+    (n_object,) (signed distance to the object) from the object-set and uniform rows; with ``near`` also
+    hand_near_* / obj_near_* of the same sizes, drawn from the rows of the same pool whose |sdf| < near.
+    The uniform rows (about 1 in 7 of each pool with the default build) teach the decoders the field far
+    from the surface, which inference queries over its whole 64^3 grid (the reference's blocks mix them in
+    the same way). Row indices of every draw are returned under ``<name>_rows`` (int64) for checking.
     """
     xyz, sdf_hand, sdf_obj, _ = schema.dequantize_sdf(sdf)
-    n_h, n_o = int(counts[0]), int(counts[1])
-    hand_rows, obj_rows = np.arange(n_h), np.arange(n_h, n_h + n_o)
+    n_h, n_o, n_u = (int(c) for c in counts)
+    uniform = np.arange(n_h + n_o, n_h + n_o + n_u)
+    hand_rows, obj_rows = np.concatenate([np.arange(n_h), uniform]), np.concatenate([np.arange(n_h, n_h + n_o), uniform])
     draws = {"hand": (hand_rows, sdf_hand, n_hand), "obj": (obj_rows, sdf_obj, n_object)}
     out = {}
     for name, (rows, dist, n) in draws.items():
@@ -333,9 +336,10 @@ def build_dataset(stores: list[StoreSpec], batch_size: int, epoch_samples: int |
     img                 (B, 3, S, S) f32     RGB crop in [0, 1]
     seg                 (B, 4, H, H) bool    visible hand, visible object, amodal hand, amodal object
     heatmap             (B, 1, H, H) f32     joint heatmap in [0, 1]
-    hand_points         (B, n_hand, 3) f32   metres, camera axes, relative to hand_root; hand-set rows
+    hand_points         (B, n_hand, 3) f32   metres, camera axes, relative to hand_root; hand-set and
+                                             uniform rows
     hand_sdf            (B, n_hand) f32      metres, signed distance to the hand (negative inside)
-    obj_points          (B, n_object, 3) f32 as hand_points, from the object-set rows
+    obj_points          (B, n_object, 3) f32 as hand_points, from the object-set and uniform rows
     obj_sdf             (B, n_object) f32    metres, signed distance to the object
     hand_near_points    (B, n_hand, 3) f32   training only: hand-set rows with |hand sdf| < near
     hand_near_sdf       (B, n_hand) f32      (HOISDF's "pre" points; drawn with replacement; if a
@@ -357,8 +361,9 @@ def build_dataset(stores: list[StoreSpec], batch_size: int, epoch_samples: int |
     key                 list of B str        record keys
     ==================  ===================  ======================================================
 
-    SDF rows are drawn per record with an RNG seeded by (seed, epoch, key): ``n_hand`` from the hand block
-    and ``n_object`` from the object block, without replacement when the block is large enough.
+    SDF rows are drawn per record with an RNG seeded by (seed, epoch, key): ``n_hand`` from the hand and
+    uniform sets and ``n_object`` from the object and uniform sets, without replacement when the pool is
+    large enough.
     Mixing: the next sample comes from store i with probability weight_i / sum(weights).
     ``epoch_samples``: samples per epoch over all ranks and workers; default (training) the stores' sizes
     from their indexes scaled by their weights, ``sum(count_i * weight_i)``. Each worker yields

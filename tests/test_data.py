@@ -89,15 +89,18 @@ def test_batch_shapes_and_dtypes(stores):
 
 def test_values_match_the_store(stores, records):
     batch = next(iter(_dataset(stores, batch_size=6)))
+    uniform_drawn = 0
     for i, key in enumerate(batch["key"]):
         rec = records[key]
         meta = rec[schema.META]
         xyz, sdf_hand, sdf_obj, _ = schema.dequantize_sdf(rec[schema.SDF])
-        n_h, n_o, _ = meta["sdf_counts"]
+        n_h, n_o, n_u = meta["sdf_counts"]
+        uniform = set(range(n_h + n_o, n_h + n_o + n_u))
         for prefix, dist, lo, hi in (("hand", sdf_hand, 0, n_h), ("obj", sdf_obj, n_h, n_h + n_o)):
             for name in (prefix, f"{prefix}_near"):
                 rows = batch[f"{name}_rows"][i].numpy()
-                assert rows.min() >= lo and rows.max() < hi, name  # drawn from its own block
+                assert set(rows.tolist()) <= set(range(lo, hi)) | uniform, name  # its own set or the uniform set
+                uniform_drawn += len(set(rows.tolist()) & uniform)
                 np.testing.assert_array_equal(batch[f"{name}_points"][i].numpy(), xyz[rows])
                 np.testing.assert_array_equal(batch[f"{name}_sdf"][i].numpy(), dist[rows])
         np.testing.assert_array_equal(batch["img"][i].permute(1, 2, 0).numpy(), rec[schema.IMG] / np.float32(255))
@@ -106,6 +109,7 @@ def test_values_match_the_store(stores, records):
         np.testing.assert_allclose(batch["object_pose"][i].numpy(), meta["object_pose"], rtol=1e-6)
         assert batch["object_id"][i] == meta["object_id"]
         assert bool(batch["is_synthetic"][i]) == (meta["dataset"] == "synthetic")
+    assert uniform_drawn > 0  # the far-field rows reach training
 
 
 def test_hand_rows_are_unique_when_the_block_is_large_enough(stores):

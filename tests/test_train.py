@@ -256,3 +256,20 @@ def test_replace_keeps_config_roundtrip():
 
     cfg = load_train_config("toy", ["train.batch_size=3"])
     assert config_from_dict(cfg.as_dict()) == cfg and replace(cfg.train, batch_size=3) == cfg.train
+
+
+def test_projected_grid_features_equal_direct_sampling(tiny_store, mano):
+    """The inference grid path applies sdf_in's first layer before sampling; it must give the same SDF."""
+    cfg = load_train_config(None, TINY)
+    torch.manual_seed(0)
+    model = build_model(cfg.model, mano).eval()
+    batch = augment_batch(_batch(tiny_store), cfg.augment, None, train=False)
+    with torch.no_grad():
+        pyramid, _ = model.backbone(batch["img"])
+        points = batch["hand_root"][:, None] + torch.randn(2, 500, 3, generator=torch.Generator().manual_seed(1)) * 0.1
+        from hoisdf.model.encoding import project_pyramid
+
+        direct = model._sdf_fn(model.hand_sdf, pyramid, batch["K"], batch["hand_root"])(points)
+        projected = project_pyramid(pyramid, model.sdf_in.layers[0])
+        fast = model._grid_sdf_fn(model.hand_sdf, projected, batch["K"], batch["hand_root"])(points)
+    assert torch.allclose(direct, fast, atol=1e-5) and direct.abs().max() > 0

@@ -113,3 +113,33 @@ class PixelAlignedFeatures(nn.Module):
                 image_size: int) -> torch.Tensor:
         """``points_cam (B, N, 3)``, ``K (B, 3, 3)`` -> ``(B, N, sum_l C_l)``."""
         return pixel_aligned_features(features, points_cam, K, image_size)
+
+
+def project_pyramid(features: Sequence[torch.Tensor], linear: nn.Linear) -> list[torch.Tensor]:
+    """Apply a Linear layer over concatenated pyramid features *before* sampling: one 1x1 conv per level.
+
+    Bilinear sampling is linear per channel, so ``linear(sample_pyramid(features, g))`` equals
+    ``sum_l sample(conv_l(features_l), g) + bias`` with ``conv_l`` the weight columns of level l. For many
+    points (the 64^3 inference grid) this moves the widest matrix product from every point to every pixel
+    and samples ``out_features`` channels instead of ``sum C_l``. Returns per-level (B, out, H_l, W_l) maps
+    without the bias; use :func:`sample_projected`.
+    """
+    out, start = [], 0
+    for fmap in features:
+        c = fmap.shape[1]
+        weight = linear.weight[:, start:start + c, None, None].to(fmap.dtype)
+        out.append(F.conv2d(fmap, weight))
+        start += c
+    if start != linear.in_features:
+        raise ValueError(f"pyramid has {start} channels, the layer expects {linear.in_features}")
+    return out
+
+
+def sample_projected(projected: Sequence[torch.Tensor], grid: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+    """(B, N, out): the sum over levels of the sampled projected maps, plus ``bias`` (see :func:`project_pyramid`)."""
+    grid = grid.detach().unsqueeze(1)
+    total = bias.to(projected[0].dtype)
+    for fmap in projected:
+        sampled = F.grid_sample(fmap, grid.to(fmap.dtype), mode="bilinear", padding_mode="border", align_corners=False)
+        total = total + sampled.squeeze(2).transpose(1, 2)
+    return total

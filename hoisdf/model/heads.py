@@ -17,8 +17,9 @@ N_VOTED = 20  # joint 0 (the wrist, the origin of root-relative coordinates) is 
 
 def wrist_centred_mano(mano, rotations: torch.Tensor, betas: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """MANO from per-joint rotations (N, 16, 3, 3) and betas (N, 10) -> (verts (N, 778, 3), joints (N, 21, 3)),
-    both relative to the wrist joint (metres)."""
-    out = mano(rotations, betas)
+    both relative to the wrist joint (metres). Runs in float32 even under autocast (bf16 skinning errs by mm)."""
+    with torch.autocast(device_type=rotations.device.type, enabled=False):
+        out = mano(rotations.float(), betas.float())
     root = out.joints[:, :1]
     return out.vertices - root, out.joints - root
 

@@ -23,7 +23,14 @@ from torch import nn
 
 from hoisdf.model import heads as H
 from hoisdf.model.backbone import ResNetUNet
-from hoisdf.model.encoding import fourier_encode, pixel_aligned_features
+from hoisdf.model.encoding import (
+    fourier_encode,
+    pixel_aligned_features,
+    pixel_to_grid,
+    project_points,
+    project_pyramid,
+    sample_projected,
+)
 from hoisdf.model.ik import solve_ik
 from hoisdf.model.layers import MLP
 from hoisdf.model.sampling import field_guided_points, grid_points, jitter
@@ -116,8 +123,19 @@ class HOISDF(nn.Module):
         return out.float().clamp(-self.clamp, self.clamp)
 
     def _sdf_fn(self, decoder, pyramid, K, center):
+        """camera points (B, M, 3) -> clamped scaled SDF (B, M) of ``decoder``, for a few hundred points."""
         def fn(points_cam):
             return self.field(decoder, self.sdf_in(self.features(pyramid, points_cam, K)),
+                              (points_cam - center[:, None]) * self.scale)
+        return fn
+
+    def _grid_sdf_fn(self, decoder, projected, K, center):
+        """As :meth:`_sdf_fn` for many points: ``sdf_in``'s first layer was applied to the pyramid (exact)."""
+        first, rest = self.sdf_in.layers[0], self.sdf_in.layers[1:]
+
+        def fn(points_cam):
+            grid = pixel_to_grid(project_points(points_cam.detach(), K), self.image_size)
+            return self.field(decoder, rest(sample_projected(projected, grid, first.bias)),
                               (points_cam - center[:, None]) * self.scale)
         return fn
 
@@ -149,11 +167,13 @@ class HOISDF(nn.Module):
             return jitter(hand, noise, generator), jitter(obj, noise, generator)
         if mode != "field":
             raise ValueError(f"points must be 'gt' or 'field', got {mode!r}")
-        hand, _ = field_guided_points(self.grid, root, self.scale, K, boxes[0], self._sdf_fn(self.hand_sdf, pyramid, K, root),
-                                      self.n_hand, self.sampling, self.chunk, generator)
+        projected = project_pyramid(pyramid, self.sdf_in.layers[0])
+        hand, _ = field_guided_points(self.grid, root, self.scale, K, boxes[0],
+                                      self._grid_sdf_fn(self.hand_sdf, projected, K, root), self.n_hand,
+                                      self.sampling, self.chunk, generator)
         obj, _ = field_guided_points(self.grid, center, self.scale, K, boxes[1],
-                                     self._sdf_fn(self.obj_sdf, pyramid, K, center), self.n_object, self.sampling,
-                                     self.chunk, generator)
+                                     self._grid_sdf_fn(self.obj_sdf, projected, K, center), self.n_object,
+                                     self.sampling, self.chunk, generator)
         return hand, obj
 
     def boxes(self, batch: dict, maps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
