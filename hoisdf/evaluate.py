@@ -17,7 +17,6 @@ at the same wrist, and the object at the network's anchor ``obj_center`` with th
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import sys
 from dataclasses import dataclass, field, replace
@@ -34,16 +33,14 @@ from hoisdf.augment import augment_batch
 from hoisdf.checkpoint import CHECKPOINTS, find_checkpoint, load_checkpoint
 from hoisdf.config import config_from_dict
 from hoisdf.data import StoreSpec, build_dataset, make_loader
-from hoisdf.export import DEXYCB_TIP_JOINTS, HO3D_TIP_VERTICES, write_dexycb_hpe, write_ho3d_pred
+from hoisdf.eval_outputs import export, format_table, json_safe, write_per_object, write_vis
+from hoisdf.export import DEXYCB_TIP_JOINTS, HO3D_TIP_VERTICES
 from hoisdf.losses import hand_targets, mirrored_shape_mano
 from hoisdf.plausibility import plausibility_report
 
 UNSEEN_HO3D = "019_pitcher_base"  # excluded from HO-3D object metrics (upstream test.py)
 BASELINE_ROWS = 10000  # at most this many label rows (evenly spaced) make the mean pose
 SDF_KEYS = ("hand_points", "hand_sdf", "obj_points", "obj_sdf", "hand_rows", "obj_rows")
-TABLE = (("MJE", "rr_mje"), ("PA-MJE", "pa_mje"), ("OCE", "oce"), ("MCE", "mce"), ("ADD-S", "add_s"))
-MESH_TABLE = (("MME", "mme"), ("PA-MME", "pa_mme"), ("F@5", "f5"), ("F@15", "f15"))
-HO3D_TABLE = (("ST-MJE", "st_mje"), ("OME", "ome"))  # HO-3D tables: hand metrics from the server, object OME
 
 
 @dataclass
@@ -249,76 +246,6 @@ def plausibility_of(verts, poses, names: list[str], objects: dict, mano, progres
             else "winding number"}
 
 
-def format_table(rows: dict[str, dict[str, float]], mesh: bool, ho3d: bool = False) -> str:
-    """The paper's layout: one line per method, lengths in mm (F-scores as ratios); mesh and HO-3D columns
-    (ST-MJE, OME) when asked for."""
-    cols = TABLE + (MESH_TABLE if mesh else ()) + (HO3D_TABLE if ho3d else ())
-    width = max(len(name) for name in rows) + 2
-    lines = [" " * width + "".join(f"{title:>9}" for title, _ in cols)]
-    for name, values in rows.items():
-        cells = (f"{values.get(key, float('nan')):9.{3 if key in ('f5', 'f15') else 2}f}" for _, key in cols)
-        lines.append(f"{name:<{width}}" + "".join(cells))
-    return "\n".join(lines)
-
-
-def _clean(x):
-    """JSON-safe copy: NaN/inf -> None, numpy scalars -> Python."""
-    if isinstance(x, dict):
-        return {str(k): _clean(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_clean(v) for v in x]
-    if isinstance(x, (float, np.floating)):
-        return float(x) if np.isfinite(x) else None
-    return x.item() if isinstance(x, np.generic) else x
-
-
-def write_per_object(path: Path, summary: dict, counts: dict[str, int]) -> None:
-    names = sorted(k for k in summary if k != "all")
-    metric_names = list(summary["all"])
-    with open(path, "w", newline="") as f:
-        writer = csv.writer(f)
-        writer.writerow(["object", "samples", *metric_names])
-        for name in [*names, "all"]:
-            writer.writerow([name, counts.get(name, sum(counts.values())),
-                             *(f"{summary[name][m]:.6g}" for m in metric_names)])
-
-
-def export(col: Collected, stores: list, out_dir: Path, ho3d_order=None, indexes: dict | None = None) -> dict[str, str]:
-    """HPE file per store and, with ``ho3d_order``, pred.json/pred.zip of HO-3D stores.
-
-    HPE ids are the records' rows in their store's index: the toolkit's sample index when the store holds
-    the whole split in the toolkit's order with no skipped frame (a warning is printed otherwise).
-    """
-    written, joints, verts = {}, col.get("joints"), col.get("verts")
-    store, ho3d = np.asarray(col.store), col.get("ho3d").astype(bool)
-    order = None
-    if ho3d_order:
-        if not Path(ho3d_order).is_file():
-            raise DataError(ho3d_order, None, "HO-3D evaluation list not found")
-        order = [ln.strip() for ln in Path(ho3d_order).read_text().splitlines() if ln.strip()]
-    for s, path in enumerate(stores):
-        sel = np.flatnonzero(store == s)
-        name = "dexycb_hpe.txt" if len(stores) == 1 else f"dexycb_hpe_{Path(path).name}.txt"
-        written[f"hpe:{path}"] = str(write_dexycb_hpe(out_dir / name, np.asarray(col.rows)[sel], joints[sel]))
-        if ((indexes or {}).get(path) or read_index(path)).skipped:
-            print(f"warning: {path} skipped frames at build time: {name}'s ids (index rows) are not the toolkit's")
-        if order is None:
-            continue
-        if not ho3d[sel].all():
-            print(f"--ho3d-order: {path} is not an HO-3D store; no pred.json written for it")
-            continue
-        ids = ["/".join(col.frame_ids[i].rsplit("_", 1)) for i in sel]  # SEQ_id -> SEQ/id
-        v = verts[sel] if verts is not None else np.zeros((len(sel), 0, 3))
-        stem = "pred" if len(stores) == 1 else f"pred_{Path(path).name}"
-        try:
-            for suffix in (".json", ".zip"):
-                written[f"ho3d{suffix}:{path}"] = str(write_ho3d_pred(out_dir / f"{stem}{suffix}", ids, joints[sel],
-                                                                      v, order=order))
-        except ValueError as err:
-            print(f"--ho3d-order: {path}: not written: {err}")
-    return written
-
-
 def _baseline(col: Collected, mano, store, obj_verts: list, obj_valid, index=None) -> dict[str, np.ndarray]:
     """Per-sample metrics of the mean-pose baseline (see the module docstring) on the collected samples."""
     mean_j, mean_v, _ = mean_hand(store, mano, index=index)
@@ -392,26 +319,11 @@ def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=No
     out_dir.mkdir(parents=True, exist_ok=True)
     result["files"] = export(col, stores, out_dir, ho3d_order, indexes)
     write_per_object(out_dir / "per_object.csv", summary, counts)
-    (out_dir / "metrics.json").write_text(json.dumps(_clean(result), indent=2))
+    (out_dir / "metrics.json").write_text(json.dumps(json_safe(result), indent=2))
     if vis:
-        _write_vis(col, objects, mano, out_dir / "vis")
+        write_vis(col, objects, mano, out_dir / "vis")
     rows = {"HOISDF (this run)": summary["all"], "mean-pose baseline": base_summary}
     return {**result, "table": format_table(rows, col.get("verts") is not None, bool(col.get("ho3d").any()))}
-
-
-def _write_vis(col: Collected, objects: dict, mano, folder: Path) -> None:
-    """``folder/<key>.png``: result over the input image | query points coloured by predicted SDF."""
-    from hoisdf.visualize import result_panel, save_grid
-
-    a = {k: col.get(k) for k in ("joints", "gt_joints", "verts", "gt_verts", "obj_pose", "gt_obj_pose")}
-    where = {key: i for i, key in enumerate(col.keys)}
-    for key, item in col.vis.items():
-        i = where[key]
-        panels = result_panel(item["img"], item["K"], a["joints"][i], a["gt_joints"][i],
-                              None if a["verts"] is None else a["verts"][i], a["gt_verts"][i], mano.faces,
-                              a["obj_pose"][i], a["gt_obj_pose"][i], objects[col.names[i]][0], item["points"],
-                              item["sdf"])
-        save_grid(panels, folder / f"{col.keys[i]}.png")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -25,6 +25,7 @@ GT_COLOR = (40, 220, 80)  # ground truth: green
 HAND_PARENTS = (-1, 0, 1, 2, 3, 0, 5, 6, 7, 0, 9, 10, 11, 0, 13, 14, 15, 0, 17, 18, 19)
 HAND_BONES = tuple((p, j) for j, p in enumerate(HAND_PARENTS) if p >= 0)
 MIN_DEPTH = 1e-3  # metres
+NOT_LOSSES = ("lr", "samples_per_s")  # logged beside the loss terms, not plotted with them
 
 
 def project(points, K) -> tuple[np.ndarray, np.ndarray]:
@@ -274,10 +275,10 @@ def plot_training_curve(metrics_csv, png_path) -> Path:
         raise DataError(Path(metrics_csv), None, "the training curve has no rows")
     train, val = curves.get("train", {}), curves.get("val", {})
     val_metrics = sorted(n for n in val if n.endswith("_mm"))
-    val_losses = sorted(n for n in val if n not in val_metrics)
+    val_losses = sorted(n for n in val if n not in val_metrics and n not in NOT_LOSSES)
     fig, axes = plt.subplots(1, 2 if val_metrics else 1, figsize=(13 if val_metrics else 8, 5), squeeze=False)
     ax = axes[0, 0]
-    order = sorted(train, key=lambda n: (n != "total", n))
+    order = sorted((n for n in train if n not in NOT_LOSSES), key=lambda n: (n != "total", n))
     _plot_series(ax, train, order, "-", log=True)
     _plot_series(ax, val, [n for n in val_losses if n == "total"], "k--o", log=True, prefix="val ")
     ax.set_yscale("log")

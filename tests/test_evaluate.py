@@ -151,7 +151,8 @@ def test_cli_default_out_limit_and_ho3d_skip(run_dir, tiny_store, mano_dir, tmp_
 
 
 def test_ho3d_export_follows_the_evaluation_list(tiny_store, tmp_path):
-    from hoisdf.evaluate import Collected, export
+    from hoisdf.eval_outputs import export
+    from hoisdf.evaluate import Collected
     from hoisdf.export import read_dexycb_hpe, read_ho3d_pred
 
     rng = np.random.default_rng(0)

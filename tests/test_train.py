@@ -156,7 +156,8 @@ def _trainer(store, run_dir, mano, extra=(), stores=None):
 
 def test_overfitting_two_samples_lowers_every_loss_term(tiny_store, mano, tmp_path):
     # with the paper's weights the betas term (0.1) is traded for the vertex term (1e4) early in training,
-    # so it rises for a while; a larger shape weight makes every term's own gradient path visible
+    # so it rises for a while; a larger shape weight makes every term's own gradient path visible. The
+    # rotation term first rises while the global rotation is fitted (from the flat-hand start), then falls.
     trainer = _trainer(tiny_store, tmp_path, mano, NO_AUGMENT + ["model.dropout=0.0", "model.sdf_dropout=0.0",
                                                                  "loss.mano_shape=100.0"])
     batch = _batch(tiny_store, training=True)
@@ -171,7 +172,7 @@ def test_overfitting_two_samples_lowers_every_loss_term(tiny_store, mano, tmp_pa
         return {k: float(v) for k, v in terms.items()}
 
     before = losses()
-    for _ in range(40):
+    for _ in range(120):
         trainer.train_step(batch, "gt", 0.0)
     after = losses()
     worse = {k: (before[k], after[k]) for k in before if not after[k] < before[k]}
