@@ -284,16 +284,21 @@ def main() -> None:
 
         model = build_model(config.model, mano).to(device).eval()
         inputs = test_inputs(first_samples(batches, infer_batch), config, device)
-        infer_rows = [bench_infer(model, inputs, b, frames, warmup, device) for b in sorted({1, infer_batch})]
+        infer_rows = []
+        for grid_path in ("direct", "projected"):  # the baseline grid path and the default one, same weights
+            model.project_grid = grid_path == "projected"
+            for b in sorted({1, infer_batch}):
+                infer_rows.append({"grid_path": grid_path, **bench_infer(model, inputs, b, frames, warmup, device)})
         print(f"\ninference (field-guided points, eval, no_grad{', bf16' if cuda else ''}); paper: {PAPER_FPS} FPS "
-              "on a TITAN RTX")
-        print(f"{'batch':>5} {'frames':>6} {'frames/s':>9} {'ms/frame':>9} {'backbone':>9} {'sampling':>9} "
-              f"{'pose':>7} {'other':>7} {'peak GiB':>9}")
+              "on a TITAN RTX; grid path: direct = sample all pyramid channels per grid point, projected = "
+              "sdf_in's first layer applied to the pyramid before sampling (the default, exact)")
+        print(f"{'grid path':>9} {'batch':>5} {'frames':>6} {'frames/s':>9} {'ms/frame':>9} {'backbone':>9} "
+              f"{'sampling':>9} {'pose':>7} {'other':>7} {'peak GiB':>9}")
         for r in infer_rows:
             s = r["stage_ms_per_frame"]
-            print(f"{r['batch']:>5} {r['frames']:>6} {r['frames_per_s']:>9.2f} {r['ms_per_frame']:>9.0f} "
-                  f"{s['backbone']:>9.0f} {s['sampling']:>9.0f} {s['pose']:>7.0f} {s['other']:>7.0f} "
-                  f"{fmt(r['peak_gib'], '9.2f')}", flush=True)
+            print(f"{r['grid_path']:>9} {r['batch']:>5} {r['frames']:>6} {r['frames_per_s']:>9.2f} "
+                  f"{r['ms_per_frame']:>9.0f} {s['backbone']:>9.0f} {s['sampling']:>9.0f} {s['pose']:>7.0f} "
+                  f"{s['other']:>7.0f} {fmt(r['peak_gib'], '9.2f')}", flush=True)
         del model, inputs
 
         loader_rows = [bench_loader(store, config, args.loader_batch, w, loader_batches, device) for w in workers]

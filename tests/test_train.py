@@ -260,7 +260,7 @@ def test_replace_keeps_config_roundtrip():
 
 
 def test_projected_grid_features_equal_direct_sampling(tiny_store, mano):
-    """The inference grid path applies sdf_in's first layer before sampling; it must give the same SDF."""
+    """The big decoder's inference grid path applies sdf_in's first layer before sampling: the same SDF."""
     cfg = load_train_config(None, TINY)
     torch.manual_seed(0)
     model = build_model(cfg.model, mano).eval()
