@@ -72,7 +72,7 @@ def resolve_pipeline(name_or_path: str) -> Path:
     return path
 
 
-TRAIN_SECTIONS = ("model", "train", "augment", "loss", "eval")  # read by hoisdf.config, ignored by the build
+TRAIN_SECTIONS = ("model", "train", "augment", "loss")  # read by hoisdf.config, ignored by the build
 
 
 def apply_overrides(data: dict, overrides: list[str], path: Path) -> dict:

@@ -36,7 +36,7 @@ NUM_JOINTS = 21
 HPE_COLUMNS = 1 + NUM_JOINTS * 3  # 64
 
 
-def _write_atomic(path: Path, data: bytes) -> None:
+def write_atomic(path: Path, data: bytes) -> None:
     """Write ``data`` to ``path`` via a temporary file in the same folder, so it appears whole or not at all."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
@@ -132,7 +132,7 @@ def write_ho3d_pred(path, ids: Sequence[str], joints, verts, order: Sequence[str
         with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED) as zf:
             zf.writestr("pred.json", text)
         text = buf.getvalue()
-    _write_atomic(path, text)
+    write_atomic(path, text)
     return path
 
 
@@ -200,7 +200,7 @@ def write_dexycb_hpe(path, ids: Sequence[int], joints, decimals: int = 6) -> Pat
         raise ValueError("ids must be unique non-negative integers")
     mm = joints.reshape(len(joints), -1) * 1000.0
     lines = [f"{int(i):d}," + ",".join(f"{v:.{decimals}f}" for v in row) for i, row in zip(ids_arr, mm)]
-    _write_atomic(path, "".join(line + "\n" for line in lines).encode())
+    write_atomic(path, "".join(line + "\n" for line in lines).encode())
     return path
 
 

@@ -8,8 +8,6 @@ metres, projected with the image's intrinsics ``K`` (3, 3) in pixels; points at 
 from __future__ import annotations
 
 import csv
-import os
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -18,6 +16,7 @@ import numpy as np
 
 from hoidata.errors import DataError
 from hoidata.objects import BOX_EDGES, box_corners
+from hoisdf.export import write_atomic
 
 PRED_COLOR = (255, 80, 40)  # predictions: orange-red
 GT_COLOR = (40, 220, 80)  # ground truth: green
@@ -208,25 +207,13 @@ def grid_image(images: Sequence[np.ndarray], cols: int | None = None, pad: int =
     return out
 
 
-def _write_bytes(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def save_grid(images: Sequence[np.ndarray], path, cols: int | None = None) -> Path:
     """Write :func:`grid_image` of RGB uint8 ``images`` as a PNG (atomically); returns the path."""
     path = Path(path)
     ok, buf = cv2.imencode(".png", cv2.cvtColor(grid_image(images, cols), cv2.COLOR_RGB2BGR))
     if not ok:
         raise RuntimeError(f"{path}: PNG encoding failed")
-    _write_bytes(path, buf.tobytes())
+    write_atomic(path, buf.tobytes())
     return path
 
 
