@@ -274,3 +274,24 @@ def test_projected_grid_features_equal_direct_sampling(tiny_store, mano):
         projected = project_pyramid(pyramid, model.sdf_in.layers[0])
         fast = model._grid_sdf_fn(model.hand_sdf, projected, batch["K"], batch["hand_root"])(points)
     assert torch.allclose(direct, fast, atol=1e-5) and direct.abs().max() > 0
+
+
+def test_bad_settings_and_files_give_clear_errors(tmp_path, mano_dir, capsys):
+    from hoidata.errors import DataError
+    from hoisdf.checkpoint import load_checkpoint
+    from hoisdf.train import main
+
+    with pytest.raises(DataError, match="model.widht"):
+        load_train_config(None, ["model.widht=3"])
+    with pytest.raises(DataError, match="augment.input_size"):
+        load_train_config(None, ["model.image_size=128", "augment.input_size=256"])
+    with pytest.raises(ValueError, match="model.sampling"):
+        build_model(load_train_config(None, TINY + ['model.sampling="nearest"']).model, None)
+    bad = tmp_path / "run" / "checkpoints" / "last.pt"
+    bad.parent.mkdir(parents=True)
+    bad.write_bytes(b"not a checkpoint")
+    with pytest.raises(DataError, match="last.pt"):
+        load_checkpoint(tmp_path / "run")
+    assert main(["--shards", str(tmp_path / "nowhere"), "--mano", str(mano_dir), "--out", str(tmp_path / "r2"),
+                 *TINY]) == 2
+    assert "nowhere" in capsys.readouterr().err
