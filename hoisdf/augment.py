@@ -120,12 +120,6 @@ def transform_pixels(M: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     return uv @ M[:, :2, :2].transpose(1, 2) + M[:, None, :2, 2]
 
 
-def project(points: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
-    """Camera-frame points (B, N, 3) m -> pixels (B, N, 2) with intrinsics K (B, 3, 3)."""
-    p = points @ K.transpose(1, 2)
-    return p[..., :2] / p[..., 2:]
-
-
 def back_project(uv: torch.Tensor, K: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
     """Pixels (B, 2) at depths (B,) m -> camera-frame points (B, 3) m."""
     ray = torch.linalg.solve(K, torch.cat([uv, torch.ones_like(uv[:, :1])], 1)[..., None])[..., 0]

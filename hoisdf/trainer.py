@@ -11,6 +11,8 @@ deterministic on GPUs).
 from __future__ import annotations
 
 import csv
+import os
+import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -85,10 +87,11 @@ class Trainer:
     def save(self, name: str = LAST) -> Path | None:
         if self.rank != 0:
             return None
-        payload = self.state_dict()
-        path = save_checkpoint(self.run_dir / CHECKPOINTS / LAST, payload)
-        if name != LAST:
-            save_checkpoint(self.run_dir / CHECKPOINTS / name, payload)
+        path = save_checkpoint(self.run_dir / CHECKPOINTS / LAST, self.state_dict())
+        if name != LAST:  # the same bytes under the epoch's name, copied rather than serialised twice
+            copy = self.run_dir / CHECKPOINTS / (name + ".tmp")
+            shutil.copyfile(path, copy)
+            os.replace(copy, self.run_dir / CHECKPOINTS / name)
         return path
 
     def load(self, payload: dict) -> dict:

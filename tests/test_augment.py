@@ -15,10 +15,10 @@ from hoisdf.augment import (
     augment_batch,
     color_jitter,
     gaussian_blur,
-    project,
     rotation_z,
 )
 from hoisdf.data import StoreSpec, build_dataset
+from hoisdf.model.encoding import project_points
 from hoisdf.model.rotation import matrix_to_axis_angle
 
 # strong geometric augmentation; colour and blur off where pixels are compared
@@ -65,7 +65,7 @@ def _output_to_source(out: dict, i: int) -> np.ndarray:
 
 
 def test_joints_project_with_new_intrinsics(batch, augmented):
-    assert (project(augmented["joints_3d"], augmented["K"]) - augmented["joints_2d"]).abs().max() < 1e-3
+    assert (project_points(augmented["joints_3d"], augmented["K"]) - augmented["joints_2d"]).abs().max() < 1e-3
     rot = augmented["rotation"]
     assert torch.allclose(rot @ rot.transpose(1, 2), torch.eye(3).expand_as(rot), atol=1e-6)
     assert torch.allclose(augmented["hand_root"], augmented["joints_3d"][:, 0], atol=1e-6)
@@ -73,7 +73,7 @@ def test_joints_project_with_new_intrinsics(batch, augmented):
     assert torch.allclose(augmented["K"][:, 0, 0] / batch["K"][:, 0, 0], augmented["crop_scale"])
     # the object pseudo-centre projects onto the object box centre at the hand root's depth
     box = augmented["object_box"]
-    centre = project(augmented["obj_center"][:, None], augmented["K"])[:, 0]
+    centre = project_points(augmented["obj_center"][:, None], augmented["K"])[:, 0]
     assert torch.allclose(centre, 0.5 * (box[:, :2] + box[:, 2:]), atol=1e-3)
     assert torch.allclose(augmented["obj_center"][:, 2], augmented["hand_root"][:, 2])
 
@@ -93,7 +93,7 @@ def test_boxes_contain_the_moved_box_corners(batch, augmented):
         x1, y1, x2, y2 = batch[name].unbind(1)
         corners = torch.stack([torch.stack([x1, y1], 1), torch.stack([x2, y2], 1)], 1)  # (B, 2, 2)
         rays = torch.linalg.solve(batch["K"], torch.cat([corners, torch.ones(4, 2, 1)], 2).transpose(1, 2))
-        moved = project((augmented["rotation"] @ rays).transpose(1, 2), augmented["K"])
+        moved = project_points((augmented["rotation"] @ rays).transpose(1, 2), augmented["K"])
         new = augmented[name]
         assert (moved >= new[:, None, :2] - 1e-3).all() and (moved <= new[:, None, 2:] + 1e-3).all()
 

@@ -11,8 +11,8 @@ import torch.nn.functional as F
 from scipy.spatial.transform import Rotation
 
 from hoisdf.model.encoding import (
-    PixelAlignedFeatures,
     fourier_encode,
+    pixel_aligned_features,
     pixel_to_grid,
     project_points,
     sample_pyramid,
@@ -115,7 +115,7 @@ def test_no_gradient_to_points_but_to_features():
     feats = [torch.randn(2, 4, S, S, requires_grad=True), torch.randn(2, 3, S // 2, S // 2, requires_grad=True)]
     K = torch.tensor([[200.0, 0, 8], [0, 200, 8], [0, 0, 1]]).expand(2, 3, 3)
     pts = (torch.randn(2, 10, 3) * 0.02 + torch.tensor([0, 0, 0.5])).requires_grad_(True)
-    out = PixelAlignedFeatures()(feats, pts, K, S)
+    out = pixel_aligned_features(feats, pts, K, S)
     assert out.shape == (2, 10, 7)
     out.sum().backward()
     assert pts.grad is None

@@ -106,15 +106,6 @@ def pixel_aligned_features(features: Sequence[torch.Tensor], points_cam: torch.T
     return sample_pyramid(features, pixel_to_grid(uv, image_size))
 
 
-class PixelAlignedFeatures(nn.Module):
-    """Parameter-free module wrapper of :func:`pixel_aligned_features`."""
-
-    def forward(self, features: Sequence[torch.Tensor], points_cam: torch.Tensor, K: torch.Tensor,
-                image_size: int) -> torch.Tensor:
-        """``points_cam (B, N, 3)``, ``K (B, 3, 3)`` -> ``(B, N, sum_l C_l)``."""
-        return pixel_aligned_features(features, points_cam, K, image_size)
-
-
 def project_pyramid(features: Sequence[torch.Tensor], linear: nn.Linear) -> list[torch.Tensor]:
     """Apply a Linear layer over concatenated pyramid features *before* sampling: one 1x1 conv per level.
 

@@ -116,10 +116,3 @@ def _newton_step(points: torch.Tensor, center: torch.Tensor, scale: float, sdf_f
     with torch.no_grad():
         return moved, sdf_fn(moved / scale + center[:, None])
 
-
-def object_center(object_box: torch.Tensor, K: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
-    """(B, 3) camera point of the object box centre (B, 4) back-projected with K (B, 3, 3) at ``depth`` (B,)."""
-    uv1 = torch.stack([(object_box[:, 0] + object_box[:, 2]) / 2, (object_box[:, 1] + object_box[:, 3]) / 2,
-                       torch.ones_like(depth)], dim=1)
-    ray = torch.linalg.solve(K, uv1[..., None])[..., 0]
-    return ray * (depth / ray[:, 2])[:, None]
