@@ -59,9 +59,13 @@ def export(col: Collected, stores: list, out_dir: Path, ho3d_order=None, indexes
     """HPE file per store and, with ``ho3d_order``, pred.json/pred.zip of HO-3D stores.
 
     HPE ids are the records' rows in their store's index: the toolkit's sample index when the store holds
-    the whole split in the toolkit's order with no skipped frame (a warning is printed otherwise).
+    the whole split in the toolkit's order with no skipped frame (a warning is printed otherwise). Mirrored
+    records (DexYCB left hands seen as right ones) are mirrored back, so the file holds the toolkit's frame.
     """
     written, joints, verts = {}, col.get("joints"), col.get("verts")
+    mirrored = col.get("mirrored")
+    if mirrored is not None:
+        joints = np.where(mirrored.astype(bool)[:, None, None], joints * np.array([-1.0, 1.0, 1.0]), joints)
     store, ho3d = np.asarray(col.store), col.get("ho3d").astype(bool)
     order = None
     if ho3d_order:
@@ -91,8 +95,9 @@ def export(col: Collected, stores: list, out_dir: Path, ho3d_order=None, indexes
     return written
 
 
-def write_vis(col: Collected, objects: dict, mano, folder: Path) -> None:
-    """``folder/<key>.png``: result over the input image | query points coloured by predicted SDF."""
+def write_vis(col: Collected, meshes: list, mano, folder: Path) -> None:
+    """``folder/<key>.png``: result over the input image | query points coloured by predicted SDF; ``meshes``:
+    each sample's object mesh (``hoisdf.evaluate.sample_meshes``)."""
     from hoisdf.visualize import result_panel, save_grid
 
     a = {k: col.get(k) for k in ("joints", "gt_joints", "verts", "gt_verts", "obj_pose", "gt_obj_pose")}
@@ -101,6 +106,6 @@ def write_vis(col: Collected, objects: dict, mano, folder: Path) -> None:
         i = where[key]
         panels = result_panel(item["img"], item["K"], a["joints"][i], a["gt_joints"][i],
                               None if a["verts"] is None else a["verts"][i], a["gt_verts"][i], mano.faces,
-                              a["obj_pose"][i], a["gt_obj_pose"][i], objects[col.names[i]][0], item["points"],
+                              a["obj_pose"][i], a["gt_obj_pose"][i], meshes[i][0], item["points"],
                               item["sdf"])
         save_grid(panels, folder / f"{col.keys[i]}.png")

@@ -159,7 +159,8 @@ def infer(model, mano, config, stores: list, batch_size: int, device: torch.devi
             if missing:
                 raise DataError(store, missing[0], "record missing from the store index")
             r = np.array([rows[k] for k in batch["key"]])
-            col.add(**arrays, ho3d_tips=lab["tip_convention"][r] == "ho3d", ho3d=lab["dataset"][r] == "ho3d")
+            col.add(**arrays, ho3d_tips=lab["tip_convention"][r] == "ho3d", ho3d=lab["dataset"][r] == "ho3d",
+                    mirrored=lab["mirrored"][r])
             col.keys += batch["key"]
             col.store += [s] * n
             col.rows += r.tolist()
@@ -229,19 +230,33 @@ def mean_hand(store, mano, max_rows: int = BASELINE_ROWS, index=None) -> tuple[n
     return (joints - joints[:, :1]).mean(0), total / len(rows), len(rows)
 
 
-def plausibility_of(verts, poses, names: list[str], objects: dict, mano, progress: bool = True) -> dict:
-    """Penetration depth, intersection volume and contact ratio of closed hands (N, 778, 3) against the objects
-    posed by ``poses`` (N, 4, 4); see :func:`hoisdf.plausibility.plausibility_report`."""
+def sample_meshes(objects: dict, names: list[str], mirrored) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Each sample's object mesh (vertices, faces) in the frame its ``object_pose`` poses: a mirrored record
+    poses the x-mirrored model (``hoidata.records.mirror_frame``), so it gets the mirrored vertices with the
+    faces flipped to stay outward wound. Meshes are shared between samples, not copied."""
+    cache, out = {}, []
+    for name, flip in zip(names, np.asarray(mirrored, bool)):
+        if (name, flip) not in cache:
+            verts, faces = objects[name]
+            cache[name, flip] = (verts * np.array([-1.0, 1.0, 1.0]), faces[:, ::-1].copy()) if flip else (verts, faces)
+        out.append(cache[name, flip])
+    return out
+
+
+def plausibility_of(verts, poses, meshes: list, mano, progress: bool = True) -> dict:
+    """Penetration depth, intersection volume and contact ratio of closed hands (N, 778, 3) against the object
+    meshes (N (vertices, faces), see :func:`sample_meshes`) posed by ``poses`` (N, 4, 4); see
+    :func:`hoisdf.plausibility.plausibility_report`."""
     import trimesh
 
     if len(verts) == 0:
         return plausibility_report([])
     closed = mano.close(torch.as_tensor(verts, dtype=torch.float32)).cpu().numpy().astype(np.float64)
     faces = np.asarray(mano.closed_faces)
-    watertight = all(trimesh.Trimesh(*objects[n], process=False).is_watertight for n in set(names))
-    samples = ((closed[i], faces, objects[n][0] @ poses[i][:3, :3].T + poses[i][:3, 3], objects[n][1])
-               for i, n in enumerate(names))
-    samples = tqdm(samples, total=len(names), desc="plausibility", disable=not progress, leave=False)
+    unique = {id(m): m for m in meshes}.values()
+    watertight = all(trimesh.Trimesh(*m, process=False).is_watertight for m in unique)
+    samples = ((closed[i], faces, v @ poses[i][:3, :3].T + poses[i][:3, 3], f) for i, (v, f) in enumerate(meshes))
+    samples = tqdm(samples, total=len(meshes), desc="plausibility", disable=not progress, leave=False)
     return {**plausibility_report(samples, obj_watertight=watertight), "object_sign": "pseudonormal" if watertight
             else "winding number"}
 
@@ -256,12 +271,12 @@ def _baseline(col: Collected, mano, store, obj_verts: list, obj_valid, index=Non
                  pose, col.get("gt_obj_pose"), obj_verts, obj_valid)
 
 
-def _plausibility(col: Collected, objects: dict, mano, count: int, progress: bool) -> dict:
+def _plausibility(col: Collected, meshes: list, mano, count: int, progress: bool) -> dict:
     """Plausibility of the predicted hand/object and, for reference, of the ground truth, first ``count`` samples."""
     verts, k = col.get("verts"), min(count, len(col.keys))
     if verts is None or k == 0:
         return {"skipped": "no predicted hand mesh" if verts is None else "--plausibility 0"}
-    return {name: plausibility_of(col.get(v)[:k], col.get(p)[:k], col.names[:k], objects, mano, progress)
+    return {name: plausibility_of(col.get(v)[:k], col.get(p)[:k], meshes[:k], mano, progress)
             for name, v, p in (("model", "verts", "obj_pose"), ("ground_truth", "gt_verts", "gt_obj_pose"))}
 
 
@@ -297,7 +312,8 @@ def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=No
         raise DataError(stores[0], "objects", f"no mesh in the store index for {missing}")
     names = np.asarray(col.names)
     obj_valid = ~(col.get("ho3d").astype(bool) & (names == UNSEEN_HO3D))
-    obj_verts = [objects[n][0] for n in col.names]
+    meshes = sample_meshes(objects, col.names, col.get("mirrored"))
+    obj_verts = [v for v, _ in meshes]
     per_sample = score(col.get("joints"), col.get("gt_joints"), col.get("verts"), col.get("gt_verts"),
                        col.get("obj_pose"), col.get("gt_obj_pose"), obj_verts, obj_valid)
     summary = M.summarize(per_sample, names)
@@ -313,7 +329,7 @@ def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=No
                                "identity rotation", "mean_pose_from": str(base_src), "rows_max": BASELINE_ROWS,
                      "peeks_at_evaluated_labels": base_src.resolve() in [s.resolve() for s in stores],
                      "overall": base_summary},
-        "plausibility": _plausibility(col, objects, mano, plausibility, progress),
+        "plausibility": _plausibility(col, meshes, mano, plausibility, progress),
         "units": "mm for lengths, ratios for AUC and F-scores",
     }
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -321,7 +337,7 @@ def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=No
     write_per_object(out_dir / "per_object.csv", summary, counts)
     (out_dir / "metrics.json").write_text(json.dumps(json_safe(result), indent=2))
     if vis:
-        write_vis(col, objects, mano, out_dir / "vis")
+        write_vis(col, meshes, mano, out_dir / "vis")
     rows = {"HOISDF (this run)": summary["all"], "mean-pose baseline": base_summary}
     return {**result, "table": format_table(rows, col.get("verts") is not None, bool(col.get("ho3d").any()))}
 

@@ -85,9 +85,13 @@ def test_hpe_file_reads_back_to_the_predicted_joints(evaluated, run_dir, tiny_st
     model, config, _ = load_for_eval(run_dir, mano, torch.device("cpu"))
     col = infer(model, mano, config, [tiny_store], 4, torch.device("cpu"), progress=False)
     assert ids.tolist() == list(range(_store_size(tiny_store)))
-    np.testing.assert_allclose(joints, col.get("joints"), atol=1e-8)  # metres; the file is mm with 6 decimals
+    # mirrored records (left hands) go back to the toolkit's frame: x negated
+    mirrored = col.get("mirrored").astype(bool)
+    assert 0 < mirrored.sum() < len(mirrored)
+    sign = np.where(mirrored[:, None, None], np.array([-1.0, 1.0, 1.0]), 1.0)
+    np.testing.assert_allclose(joints, col.get("joints") * sign, atol=1e-8)  # metres; the file is mm, 6 decimals
     # camera frame: the joints sit near the GT wrist, not at the origin
-    assert np.linalg.norm(joints[:, 0] - col.get("gt_joints")[:, 0], axis=-1).max() < 1e-6
+    assert np.linalg.norm(joints[:, 0] - (col.get("gt_joints") * sign)[:, 0], axis=-1).max() < 1e-6
 
 
 def test_vis_writes_non_blank_pictures(evaluated):
@@ -128,6 +132,34 @@ def test_oracle_predictions_score_zero_and_the_baseline_does_not(run_dir, tiny_s
         assert base[name] > 1.0, (name, base[name])
     assert result["baseline"]["peeks_at_evaluated_labels"] is True
     assert result["plausibility"] == {"skipped": "--plausibility 0"}
+    # the HPE file holds the dataset's own labels: left hands un-mirrored
+    from hoidata.store import read_index
+    from hoisdf.export import read_dexycb_hpe
+
+    lab = read_index(tiny_store).labels
+    ids, joints = read_dexycb_hpe(tmp_path / "dexycb_hpe.txt")
+    original = np.where(lab["mirrored"][ids][:, None, None], lab["joints_3d"][ids] * [-1, 1, 1], lab["joints_3d"][ids])
+    np.testing.assert_allclose(joints, original, atol=1e-6)
+
+
+def test_mirrored_records_get_the_mirrored_object_mesh():
+    """A mirrored record's pose [M R M | M t] applied to its sample mesh gives the mirror image M (R v + t) of the
+    original scene object, wound outward (positive volume)."""
+    import trimesh
+
+    from hoisdf.evaluate import sample_meshes
+    from hoisdf.model.rotation import axis_angle_to_matrix
+
+    box = trimesh.creation.box(extents=(0.05, 0.08, 0.1))
+    box.apply_translation((0.03, 0.01, -0.02))  # not symmetric in x
+    objects = {"box": (np.asarray(box.vertices), np.asarray(box.faces))}
+    R = axis_angle_to_matrix(torch.tensor([[0.4, -0.9, 0.3]]))[0].double().numpy()
+    t, M = np.array([0.05, -0.02, 0.6]), np.diag([-1.0, 1.0, 1.0])
+    (v0, f0), (v1, f1), (v2, _) = sample_meshes(objects, ["box", "box", "box"], [False, True, True])
+    assert v1 is v2 and v0 is objects["box"][0]  # shared, not copied per sample
+    posed = v1 @ (M @ R @ M).T + M @ t
+    np.testing.assert_allclose(posed, (objects["box"][0] @ R.T + t) @ M, atol=1e-12)
+    assert trimesh.Trimesh(v1, f1, process=False).volume > 0
 
 
 def test_cli_help_runs():
