@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from hoidata.errors import DataError
+from hoidata.geometry.mirror import mirror_points
 from hoidata.store import read_index
 from hoisdf.export import write_dexycb_hpe, write_ho3d_pred
 
@@ -65,7 +66,7 @@ def export(col: Collected, stores: list, out_dir: Path, ho3d_order=None, indexes
     written, joints, verts = {}, col.get("joints"), col.get("verts")
     mirrored = col.get("mirrored")
     if mirrored is not None:
-        joints = np.where(mirrored.astype(bool)[:, None, None], joints * np.array([-1.0, 1.0, 1.0]), joints)
+        joints = np.where(mirrored.astype(bool)[:, None, None], mirror_points(joints), joints)
     store, ho3d = np.asarray(col.store), col.get("ho3d").astype(bool)
     order = None
     if ho3d_order:
