@@ -155,7 +155,7 @@ def test_mirrored_records_get_the_mirrored_object_mesh():
     objects = {"box": (np.asarray(box.vertices), np.asarray(box.faces))}
     R = axis_angle_to_matrix(torch.tensor([[0.4, -0.9, 0.3]]))[0].double().numpy()
     t, M = np.array([0.05, -0.02, 0.6]), np.diag([-1.0, 1.0, 1.0])
-    (v0, f0), (v1, f1), (v2, _) = sample_meshes(objects, ["box", "box", "box"], [False, True, True])
+    (v0, _), (v1, f1), (v2, _) = sample_meshes(objects, ["box", "box", "box"], [False, True, True])
     assert v1 is v2 and v0 is objects["box"][0]  # shared, not copied per sample
     posed = v1 @ (M @ R @ M).T + M @ t
     np.testing.assert_allclose(posed, (objects["box"][0] @ R.T + t) @ M, atol=1e-12)
