@@ -91,10 +91,17 @@ def posed_hand(frame: Frame, mano) -> np.ndarray:
         return mano.close(out.vertices)[0].double().numpy()
 
 
-def posed_object(frame: Frame, obj: ObjectAsset) -> np.ndarray:
-    """Object vertices (V, 3) under the frame's object pose, camera frame, metres."""
-    pose = frame.object_pose
-    return obj.vertices @ pose[:3, :3].T + pose[:3, 3]
+def posed_object(frame: Frame, obj: ObjectAsset) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(vertices (V, 3), faces (F, 3), box21 (21, 3)) of the object under the frame's pose, camera frame, metres.
+
+    A mirrored frame's ``object_pose`` poses the x-mirrored model (see :func:`mirror_frame`), so its object is
+    the mirror image of the scene's, as in the flipped image (faces flipped to stay outward wound).
+    """
+    verts, faces, box21 = obj.vertices, obj.faces, obj.box21
+    if frame.mirror:
+        verts, faces, box21 = mirror_points(verts), np.ascontiguousarray(faces[:, ::-1]), mirror_points(box21)
+    R, t = frame.object_pose[:3, :3], frame.object_pose[:3, 3]
+    return verts @ R.T + t, faces, box21 @ R.T + t
 
 
 def build_record(frame: Frame, mano, obj: ObjectAsset, renderer, key: str, settings: RecordSettings) -> dict:
@@ -113,17 +120,15 @@ def build_record(frame: Frame, mano, obj: ObjectAsset, renderer, key: str, setti
     if frame.mirror:
         frame, image = mirror_frame(frame), np.ascontiguousarray(image[:, ::-1])
         hand, faces = mirror_points(hand), np.ascontiguousarray(faces[:, ::-1])  # reflection flips the winding
-    obj_verts = posed_object(frame, obj)
-    pose = frame.object_pose
-    box = crop_ops.square_crop_box(frame.joints_2d, project(obj.box21 @ pose[:3, :3].T + pose[:3, 3], frame.K),
-                                   settings.context)
+    obj_verts, obj_faces, obj_box21 = posed_object(frame, obj)
+    box = crop_ops.square_crop_box(frame.joints_2d, project(obj_box21, frame.K), settings.context)
     size, half = settings.crop_size, settings.crop_size // 2
     to_crop = crop_ops.crop_affine(box, size)
     K_crop = to_crop @ frame.K
     K_mask = crop_ops.resize_affine(size, half) @ K_crop
-    meshes = [RenderMesh(vertices=hand, faces=faces, label=1), RenderMesh(vertices=obj_verts, faces=obj.faces, label=2)]
+    meshes = [RenderMesh(vertices=hand, faces=faces, label=1), RenderMesh(vertices=obj_verts, faces=obj_faces, label=2)]
     labels, amodal = renderer.masks(K_mask, meshes)
-    sdf, counts = build_sdf_record(hand, faces, mano.closed_face_parts, obj_verts, obj.faces, obj.watertight,
+    sdf, counts = build_sdf_record(hand, faces, mano.closed_face_parts, obj_verts, obj_faces, obj.watertight,
                                    frame.root_3d, np.random.default_rng(frame_seed(key)), settings.n_hand,
                                    settings.n_object, settings.uniform_fraction, settings.cube, settings.sigmas,
                                    settings.part_radius)

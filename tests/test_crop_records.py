@@ -75,3 +75,30 @@ def test_mirrored_frame_matches_the_flipped_image():
     flipped = cv2.flip(img, 1)
     mu, mv = np.round(m.joints_2d[0]).astype(int)
     assert flipped[mv, mu] == 1
+
+
+def test_mirrored_frame_poses_the_mirror_image_of_the_object():
+    """A mirrored frame's object (masks, SDF, box) is the mirror image of the scene's object, as the flipped image
+    shows it: the x-mirrored model under [M R M | M t], wound outward. The plain model under that pose is not."""
+    import trimesh
+
+    from hoidata.geometry.mirror import mirror_points
+    from hoidata.records import ObjectAsset, posed_object
+
+    box = trimesh.creation.box(extents=(0.04, 0.07, 0.1))
+    box.apply_translation((0.03, -0.01, 0.02))  # not symmetric in x
+    obj = ObjectAsset("box", np.asarray(box.vertices), np.asarray(box.faces), True, np.asarray(box.vertices)[:8])
+    K = np.array([[600.0, 0, 300.0], [0, 600, 240], [0, 0, 1]])
+    joints = np.random.default_rng(0).normal([0, 0, 0.5], 0.03, size=(21, 3))
+    pose = np.eye(4)
+    pose[:3, :3] = cv2.Rodrigues(np.array([0.3, -0.8, 0.5]))[0]
+    pose[:3, 3] = [0.01, 0.02, 0.5]
+    frame = Frame("dexycb", "train", "f", None, (640, 480), K, "left", joints[0], "box", 14, pose,
+                  np.zeros(48), np.zeros(10), np.zeros(3), joints, project(joints, K), mirror=True)
+    scene = obj.vertices @ pose[:3, :3].T + pose[:3, 3]
+    verts, faces, box21 = posed_object(mirror_frame(frame), obj)
+    np.testing.assert_allclose(verts, mirror_points(scene), atol=1e-12)
+    np.testing.assert_allclose(box21, mirror_points(obj.box21 @ pose[:3, :3].T + pose[:3, 3]), atol=1e-12)
+    assert trimesh.Trimesh(verts, faces, process=False).volume > 0
+    plain = obj.vertices @ mirror_frame(frame).object_pose[:3, :3].T + mirror_frame(frame).object_pose[:3, 3]
+    assert np.abs(plain - mirror_points(scene)).max() > 0.01

@@ -121,8 +121,11 @@ def test_records_hold_exact_sdf_and_consistent_masks(built, tiny_root):
         assert np.abs(ref_h - sdf_h[::8]).max() < 5e-5  # stored distances exact to 0.05 mm
         geo, _ = repair_mesh(load_object_mesh(object_mesh_path(tiny_root / "models", meta["object_name"])))
         pose = np.asarray(meta["object_pose"])
-        obj = np.asarray(geo.vertices) @ pose[:3, :3].T + pose[:3, 3]
-        ref_o = brute_force_signed_distance(points[::8], obj, np.asarray(geo.faces))[0]
+        model, model_faces = np.asarray(geo.vertices), np.asarray(geo.faces)
+        if meta["mirrored"]:  # the pose of a mirrored record poses the x-mirrored model (the flipped image's)
+            model, model_faces = mirror_points(model), model_faces[:, ::-1]
+        obj = model @ pose[:3, :3].T + pose[:3, 3]
+        ref_o = brute_force_signed_distance(points[::8], obj, model_faces)[0]
         assert np.abs(ref_o - sdf_o[::8]).max() < 5e-5
         seg = rec[schema.SEG]
         for visible, amodal in ((schema.SEG_HAND_VISIBLE, schema.SEG_HAND_AMODAL),
