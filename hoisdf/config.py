@@ -25,6 +25,7 @@ class ModelSettings:
     weights: str = ""  # backbone init: "" random, "imagenet" (torch hub cache, never downloaded) or a .pth path
     normalize_input: bool = True  # ImageNet mean/std inside the model (the reference feeds raw [0, 1])
     freeze_bn_affine: bool = True
+    channels_last: bool = True  # NHWC convolutions (faster on oneDNN and cuDNN; same numbers as NCHW)
     image_size: int = 256
     sdf_scale: float = 3.1
     sdf_clamp: float = 0.15  # scaled units
@@ -39,6 +40,7 @@ class ModelSettings:
     sdf_features: int = 256  # width of the pixel-aligned feature entering the SDF decoders
     sdf_hidden: int = 512  # must exceed sdf_features + 33 (DeepSDF skip connection)
     sdf_dropout: float = 0.2
+    token_hidden: tuple[int, ...] = (1024, 512, 256)  # hidden widths of the pixel feature -> token MLP
     n_hand: int = 600
     n_object: int = 200
     grid_resolution: int = 64

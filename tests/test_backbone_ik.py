@@ -134,6 +134,25 @@ def test_gradients_reach_decoder_and_backbone():
     assert net.backbone.bn1.weight.grad is None
 
 
+def test_channels_last_computes_the_same_numbers_as_nchw():
+    """The NHWC layout changes memory order only: same state dict keys and values, same outputs and gradients."""
+    torch.manual_seed(0)
+    nhwc, nchw = ResNetUNet(depth=18), ResNetUNet(depth=18, channels_last=False)
+    nchw.load_state_dict(nhwc.state_dict())
+    assert nhwc.backbone.conv1.weight.is_contiguous(memory_format=torch.channels_last)
+    assert nchw.backbone.conv1.weight.is_contiguous()
+    img = torch.rand(2, 3, 64, 64)
+    outs = []
+    for net in (nhwc, nchw):
+        pyramid, maps = net(img)
+        (sum(f.square().mean() for f in pyramid) + maps.square().mean()).backward()
+        outs.append((pyramid, maps, net.backbone.layer2[0].conv1.weight.grad))
+    (p1, m1, g1), (p2, m2, g2) = outs
+    assert p1[0].is_contiguous(memory_format=torch.channels_last) and p2[0].is_contiguous()
+    for a, b in zip([*p1, m1, g1], [*p2, m2, g2]):
+        torch.testing.assert_close(a, b, rtol=1e-3, atol=1e-4)  # float summation order differs
+
+
 def test_bad_input_shape():
     net = ResNetUNet(depth=18)
     with pytest.raises(ValueError):

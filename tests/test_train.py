@@ -21,9 +21,10 @@ from hoisdf.model.sampling import field_guided_points, grid_points, inside_box
 from hoisdf.trainer import Trainer
 
 TINY = ["model.depth=18", "model.image_size=64", "model.d_model=64", "model.ff=128", "model.hand_layers=2",
-        "model.decoder_layers=2", "model.object_layers=1", "model.sdf_features=32", "model.sdf_hidden=96", "model.n_hand=32",
-        "model.n_object=16", "model.grid_resolution=16", "model.chunk=2048", "train.batch_size=2",
-        "train.workers=0", "train.lr=1e-3", "train.log_every=1", "train.shuffle_buffer=4", "train.val_every=0"]
+        "model.decoder_layers=2", "model.object_layers=1", "model.sdf_features=32", "model.sdf_hidden=96",
+        "model.token_hidden=[48]", "model.n_hand=32", "model.n_object=16", "model.grid_resolution=16",
+        "model.chunk=2048", "train.batch_size=2", "train.workers=0", "train.lr=1e-3", "train.log_every=1",
+        "train.shuffle_buffer=4", "train.val_every=0"]
 NO_AUGMENT = ["augment.rotation=\"none\"", "augment.center_jitter=0.0", "augment.scale_sigma=0.0",
               "augment.color=false", "augment.blur_max=0.0"]
 
@@ -78,6 +79,8 @@ def test_forward_backward_shapes_and_gradients(tiny_store, mano, regressor):
                 grads[g] += float(p.grad.abs().sum())
     assert all(v > 0 for v in grads.values()), grads
     assert model.hand_beta.grad is not None and model.hand_beta.grad.abs() > 0  # the density is learned
+    widths = [layer.out_features for layer in model.token_in.layers if isinstance(layer, torch.nn.Linear)]
+    assert widths == [48, 64 - 33]  # model.token_hidden, then d_model minus the point code
 
 
 def test_ablation_switches_run(tiny_store, mano):
@@ -86,7 +89,8 @@ def test_ablation_switches_run(tiny_store, mano):
                    'model.feature_augmentation="none"', 'model.feature_augmentation="density_concat"',
                    'model.feature_augmentation="distance_concat"', 'model.cross_field="none"',
                    'model.cross_field="image"', 'model.cross_field="target"', 'model.density_sign="code"',
-                   'model.object_rotation="axis_angle"', 'model.test_boxes="predicted"', "model.sheared_grid=true"]:
+                   'model.object_rotation="axis_angle"', 'model.test_boxes="predicted"', "model.sheared_grid=true",
+                   "model.channels_last=false"]:
         cfg = load_train_config(None, TINY + [switch])
         model = build_model(cfg.model, mano).eval()
         with torch.no_grad():

@@ -163,13 +163,15 @@ class ResNetUNet(nn.Module):
         freeze_bn_affine: set ``requires_grad=False`` on the backbone's BatchNorm weights/biases except the
             ``downsample`` BNs (upstream ``freeze_stages`` quirk, §1.2); running statistics still update.
         normalize_input: subtract the ImageNet mean / divide by the std inside ``forward``.
+        channels_last: NHWC weights and activations (oneDNN and cuDNN convolutions are faster on them:
+            ``bench/bench_train.py --layouts``); the numbers are the same as with NCHW (``False``).
 
     Attributes:
         channels: pyramid channel counts, stride2..stride32 (sum = per-point feature dim C).
     """
 
     def __init__(self, depth: int = 50, decoder: str = "small", weights: str | os.PathLike | None = None,
-                 freeze_bn_affine: bool = True, normalize_input: bool = True):
+                 freeze_bn_affine: bool = True, normalize_input: bool = True, channels_last: bool = True):
         super().__init__()
         skip_channels = resnet_channels(depth)
         self.depth = depth
@@ -198,6 +200,8 @@ class ResNetUNet(nn.Module):
         if freeze_bn_affine:
             for p in frozen_bn_parameters(self.backbone):
                 p.requires_grad_(False)
+        self.memory_format = torch.channels_last if channels_last else torch.contiguous_format
+        self.to(memory_format=self.memory_format)
 
     @property
     def feature_dim(self) -> int:
@@ -242,6 +246,7 @@ class ResNetUNet(nn.Module):
             raise ValueError(f"expected an image batch (B, 3, S, S) with S a multiple of 32, got {tuple(img.shape)}")
         if self.normalize_input:
             img = (img - self.mean) / self.std
+        img = img.contiguous(memory_format=self.memory_format)
         pyramid = self.decoder(self.encode(img))
         top = pyramid[0]
         maps = torch.cat([self.heatmap_head(top), self.hand_mask_head(top), self.obj_mask_head(top)], dim=1)

@@ -57,12 +57,12 @@ class HOISDF(nn.Module):
     """
 
     def __init__(self, mano, depth=50, decoder="small", weights="", normalize_input=True, freeze_bn_affine=True,
-                 image_size=256, sdf_scale=3.1, sdf_clamp=0.15, n_freq=5, d_model=256, heads=4, ff=1024, dropout=0.1,
-                 hand_layers=6, decoder_layers=4, object_layers=3, sdf_features=256, sdf_hidden=512, sdf_dropout=0.2, n_hand=600,
-                 n_object=200, grid_resolution=64, sheared_grid=False, sampling="absolute",
-                 feature_augmentation="density", cross_field="sdf", pose_regressor="mano", density_sign="paper",
-                 beta_init=0.1, beta_min=2e-3, object_rotation="chordal", test_boxes="gt", mask_threshold=0.5,
-                 chunk=32768, cls_dist=0.04):
+                 channels_last=True, image_size=256, sdf_scale=3.1, sdf_clamp=0.15, n_freq=5, d_model=256, heads=4,
+                 ff=1024, dropout=0.1, hand_layers=6, decoder_layers=4, object_layers=3, sdf_features=256,
+                 sdf_hidden=512, sdf_dropout=0.2, token_hidden=(1024, 512, 256), n_hand=600, n_object=200,
+                 grid_resolution=64, sheared_grid=False, sampling="absolute", feature_augmentation="density",
+                 cross_field="sdf", pose_regressor="mano", density_sign="paper", beta_init=0.1, beta_min=2e-3,
+                 object_rotation="chordal", test_boxes="gt", mask_threshold=0.5, chunk=32768, cls_dist=0.04):
         super().__init__()
         for name, value in (("sampling", sampling), ("feature_augmentation", feature_augmentation),
                             ("cross_field", cross_field), ("pose_regressor", pose_regressor),
@@ -82,14 +82,14 @@ class HOISDF(nn.Module):
         self.project_grid = False  # set below: grid SDFs through project_pyramid (exact) when it samples fewer channels
         self.register_buffer("grid", grid_points(grid_resolution, sheared_grid), persistent=False)
 
-        self.backbone = ResNetUNet(depth, decoder, weights or None, freeze_bn_affine, normalize_input)
+        self.backbone = ResNetUNet(depth, decoder, weights or None, freeze_bn_affine, normalize_input, channels_last)
         feat = sum(self.backbone.channels)
         self.sdf_in = MLP(feat, [2 * sdf_features], sdf_features, relu_last=True)
         # sampling the projected maps reads levels x width channels instead of sum(C): a gain for the big decoder
         # (3968 vs 5 x 512; 2x faster on the CPU, bench/bench_grid_features.py), a loss for the small one (992)
         self.project_grid = feat > len(self.backbone.channels) * 2 * sdf_features
         concat = feature_augmentation in ("density_concat", "distance_concat")
-        self.token_in = MLP(feat, [1024, 512, 256], d_model - POINT_DIM - int(concat), relu_last=True)
+        self.token_in = MLP(feat, token_hidden, d_model - POINT_DIM - int(concat), relu_last=True)
         pe = 6 * n_freq
         self.hand_sdf = SDFDecoder(sdf_features, pe, sdf_hidden, dropout=sdf_dropout)
         self.obj_sdf = SDFDecoder(sdf_features, pe, sdf_hidden, dropout=sdf_dropout)
