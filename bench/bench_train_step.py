@@ -5,11 +5,12 @@ Usage: python bench/bench_train_step.py [--config toy] [--store STORE] [--mano D
 
 Variants (everything else from ``--config``): ``nchw``: NCHW convolutions (``model.channels_last=false``)
 with the paper's token MLP (1024-512-256), i.e. the model before these options existed; ``nhwc``: NHWC
-convolutions; ``nhwc+token``: NHWC and the config's own ``model.token_hidden``. Each variant gets its own
+convolutions; ``token``: NCHW with the config's own ``model.token_hidden``; ``nhwc+token``: both. Each variant gets its own
 Trainer on the same loader batches (same seed, so the same initial weights up to layout) and runs both
 query-point paths ("gt" and "field"). The variants are timed in turns, ``--rounds`` times over, each turn
 ``--steps`` steps after one untimed warm-up step; the table holds the median ms/step over the rounds, so
-load from other jobs hits every variant alike.
+load from other jobs hits every variant alike. A second table times the backbone alone (forward + backward
+of the ResNet-U-Net on the batch's images) in both layouts, the same way.
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ PAPER_TOKEN = "[1024, 512, 256]"
 def variants(config_token: list[int]) -> dict[str, list[str]]:
     return {"nchw": ["model.channels_last=false", f"model.token_hidden={PAPER_TOKEN}"],
             "nhwc": ["model.channels_last=true", f"model.token_hidden={PAPER_TOKEN}"],
+            "token": ["model.channels_last=false", f"model.token_hidden={config_token}"],
             "nhwc+token": ["model.channels_last=true", f"model.token_hidden={config_token}"]}
 
 
@@ -48,6 +50,18 @@ def time_steps(trainer: Trainer, batches: list[dict], points: str, steps: int) -
         trainer.train_step(batches[(1 + i) % len(batches)], points, NOISE)
     sync(trainer.device)
     return (time.perf_counter() - start) / steps * 1e3
+
+
+def time_backbone(backbone: torch.nn.Module, img: torch.Tensor, steps: int) -> float:
+    """ms per forward + backward of the backbone alone, after one warm-up pass."""
+    times = []
+    for i in range(1 + steps):
+        start = time.perf_counter()
+        pyramid, maps = backbone(img)
+        (sum(f.float().mean() for f in pyramid) + maps.float().mean()).backward()
+        sync(img.device)
+        times.append(time.perf_counter() - start)
+    return sum(times[1:]) / steps * 1e3
 
 
 def main(argv=None) -> int:
@@ -75,9 +89,15 @@ def main(argv=None) -> int:
     loader = iter(trainers["nchw"].loader)
     batches = [next(loader) for _ in range(1 + args.steps)]
     times = {(n, pts): [] for n in trainers for pts in ("gt", "field")}
+    times.update({(n, "backbone"): [] for n in ("nchw", "nhwc")})
+    img = batches[0]["img"][:, :, :trainers["nchw"].config.model.image_size, :trainers["nchw"].config.model.image_size]
+    img = img.to(device)
     for r in range(args.rounds):
         for (name, points), values in times.items():
-            values.append(time_steps(trainers[name], batches, points, args.steps))
+            if points == "backbone":
+                values.append(time_backbone(trainers[name].model.backbone, img, args.steps))
+            else:
+                values.append(time_steps(trainers[name], batches, points, args.steps))
         print(f"round {r + 1}/{args.rounds} done", flush=True)
     rows = {f"{n}/{pts}": statistics.median(v) for (n, pts), v in times.items()}
     print(f"\n{args.config} config, batch {args.batch_size}, device {device}, torch {torch.__version__}, "
@@ -86,6 +106,8 @@ def main(argv=None) -> int:
     for name in trainers:
         gt, field = rows[f"{name}/gt"], rows[f"{name}/field"]
         print(f"{name:<12} {gt:8.0f} {field:9.0f} {rows['nchw/gt'] / gt:6.2f} {rows['nchw/field'] / field:8.2f}")
+    print(f"\nbackbone alone (forward + backward, {tuple(img.shape)}): NCHW {rows['nchw/backbone']:.0f} ms, "
+          f"NHWC {rows['nhwc/backbone']:.0f} ms, x{rows['nchw/backbone'] / rows['nhwc/backbone']:.2f}")
     if args.json:
         args.json.write_text(json.dumps({"config": args.config, "device": str(device), "batch": args.batch_size,
                                          "token_hidden": token, "ms_per_step": rows,

@@ -25,7 +25,7 @@ class ModelSettings:
     weights: str = ""  # backbone init: "" random, "imagenet" (torch hub cache, never downloaded) or a .pth path
     normalize_input: bool = True  # ImageNet mean/std inside the model (the reference feeds raw [0, 1])
     freeze_bn_affine: bool = True
-    channels_last: bool = True  # NHWC convolutions (faster on oneDNN and cuDNN; same numbers as NCHW)
+    channels_last: bool = False  # NHWC convolution layout (same numbers; see bench/bench_train_step.py)
     image_size: int = 256
     sdf_scale: float = 3.1
     sdf_clamp: float = 0.15  # scaled units

@@ -137,7 +137,7 @@ def test_gradients_reach_decoder_and_backbone():
 def test_channels_last_computes_the_same_numbers_as_nchw():
     """The NHWC layout changes memory order only: same state dict keys and values, same outputs and gradients."""
     torch.manual_seed(0)
-    nhwc, nchw = ResNetUNet(depth=18), ResNetUNet(depth=18, channels_last=False)
+    nhwc, nchw = ResNetUNet(depth=18, channels_last=True), ResNetUNet(depth=18)
     nchw.load_state_dict(nhwc.state_dict())
     assert nhwc.backbone.conv1.weight.is_contiguous(memory_format=torch.channels_last)
     assert nchw.backbone.conv1.weight.is_contiguous()

@@ -90,7 +90,7 @@ def test_ablation_switches_run(tiny_store, mano):
                    'model.feature_augmentation="distance_concat"', 'model.cross_field="none"',
                    'model.cross_field="image"', 'model.cross_field="target"', 'model.density_sign="code"',
                    'model.object_rotation="axis_angle"', 'model.test_boxes="predicted"', "model.sheared_grid=true",
-                   "model.channels_last=false"]:
+                   "model.channels_last=true"]:
         cfg = load_train_config(None, TINY + [switch])
         model = build_model(cfg.model, mano).eval()
         with torch.no_grad():

@@ -163,15 +163,16 @@ class ResNetUNet(nn.Module):
         freeze_bn_affine: set ``requires_grad=False`` on the backbone's BatchNorm weights/biases except the
             ``downsample`` BNs (upstream ``freeze_stages`` quirk, §1.2); running statistics still update.
         normalize_input: subtract the ImageNet mean / divide by the std inside ``forward``.
-        channels_last: NHWC weights and activations (oneDNN and cuDNN convolutions are faster on them:
-            ``bench/bench_train.py --layouts``); the numbers are the same as with NCHW (``False``).
+        channels_last: NHWC weights and activations; the numbers are the same as with NCHW (``False``). On 2 CPU
+            cores a toy training step was 0.97-1.14x as fast as with NCHW over three runs of
+            ``bench/bench_train_step.py``, within a shared machine's noise; GPUs not measured.
 
     Attributes:
         channels: pyramid channel counts, stride2..stride32 (sum = per-point feature dim C).
     """
 
     def __init__(self, depth: int = 50, decoder: str = "small", weights: str | os.PathLike | None = None,
-                 freeze_bn_affine: bool = True, normalize_input: bool = True, channels_last: bool = True):
+                 freeze_bn_affine: bool = True, normalize_input: bool = True, channels_last: bool = False):
         super().__init__()
         skip_channels = resnet_channels(depth)
         self.depth = depth

@@ -57,7 +57,7 @@ class HOISDF(nn.Module):
     """
 
     def __init__(self, mano, depth=50, decoder="small", weights="", normalize_input=True, freeze_bn_affine=True,
-                 channels_last=True, image_size=256, sdf_scale=3.1, sdf_clamp=0.15, n_freq=5, d_model=256, heads=4,
+                 channels_last=False, image_size=256, sdf_scale=3.1, sdf_clamp=0.15, n_freq=5, d_model=256, heads=4,
                  ff=1024, dropout=0.1, hand_layers=6, decoder_layers=4, object_layers=3, sdf_features=256,
                  sdf_hidden=512, sdf_dropout=0.2, token_hidden=(1024, 512, 256), n_hand=600, n_object=200,
                  grid_resolution=64, sheared_grid=False, sampling="absolute", feature_augmentation="density",
