@@ -164,7 +164,7 @@ class ResNetUNet(nn.Module):
             ``downsample`` BNs (upstream ``freeze_stages`` quirk, §1.2); running statistics still update.
         normalize_input: subtract the ImageNet mean / divide by the std inside ``forward``.
         channels_last: NHWC weights and activations; the numbers are the same as with NCHW (``False``). On 2 CPU
-            cores a toy training step was 0.97-1.14x as fast as with NCHW over three runs of
+            cores a toy training step was 0.97-1.14x as fast as with NCHW over four runs of
             ``bench/bench_train_step.py``, within a shared machine's noise; GPUs not measured.
 
     Attributes:
