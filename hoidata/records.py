@@ -15,7 +15,14 @@ import torch
 from hoidata import schema
 from hoidata.datasets.frame import Frame, box_from_points, project
 from hoidata.geometry import crop as crop_ops
-from hoidata.geometry.mirror import mirror_axis_angle, mirror_intrinsics, mirror_pixels, mirror_points, mirror_transform
+from hoidata.geometry.mirror import (
+    mirror_axis_angle,
+    mirror_intrinsics,
+    mirror_mesh,
+    mirror_pixels,
+    mirror_points,
+    mirror_transform,
+)
 
 
 @dataclass(frozen=True)
@@ -99,7 +106,7 @@ def posed_object(frame: Frame, obj: ObjectAsset) -> tuple[np.ndarray, np.ndarray
     """
     verts, faces, box21 = obj.vertices, obj.faces, obj.box21
     if frame.mirror:
-        verts, faces, box21 = mirror_points(verts), np.ascontiguousarray(faces[:, ::-1]), mirror_points(box21)
+        (verts, faces), box21 = mirror_mesh(verts, faces), mirror_points(box21)
     R, t = frame.object_pose[:3, :3], frame.object_pose[:3, 3]
     return verts @ R.T + t, faces, box21 @ R.T + t
 
@@ -119,7 +126,7 @@ def build_record(frame: Frame, mano, obj: ObjectAsset, renderer, key: str, setti
     hand, faces = posed_hand(frame, mano), mano.closed_faces
     if frame.mirror:
         frame, image = mirror_frame(frame), np.ascontiguousarray(image[:, ::-1])
-        hand, faces = mirror_points(hand), np.ascontiguousarray(faces[:, ::-1])  # reflection flips the winding
+        hand, faces = mirror_mesh(hand, faces)
     obj_verts, obj_faces, obj_box21 = posed_object(frame, obj)
     box = crop_ops.square_crop_box(frame.joints_2d, project(obj_box21, frame.K), settings.context)
     size, half = settings.crop_size, settings.crop_size // 2

@@ -27,7 +27,7 @@ import torch
 from tqdm import tqdm
 
 from hoidata.errors import DataError
-from hoidata.geometry.mirror import mirror_points
+from hoidata.geometry.mirror import mirror_mesh
 from hoidata.store import read_index
 from hoisdf import metrics as M
 from hoisdf.augment import augment_batch
@@ -238,8 +238,7 @@ def sample_meshes(objects: dict, names: list[str], mirrored) -> list[tuple[np.nd
     cache, out = {}, []
     for name, flip in zip(names, np.asarray(mirrored, bool)):
         if (name, flip) not in cache:
-            verts, faces = objects[name]
-            cache[name, flip] = (mirror_points(verts), faces[:, ::-1].copy()) if flip else (verts, faces)
+            cache[name, flip] = mirror_mesh(*objects[name]) if flip else objects[name]
         out.append(cache[name, flip])
     return out
 

@@ -7,7 +7,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from hoidata.geometry.mirror import mirror_axis_angle, mirror_points, mirror_rotation, mirror_transform
+from hoidata.geometry.mirror import mirror_axis_angle, mirror_mesh, mirror_points, mirror_rotation, mirror_transform
 from hoidata.hand import load_mano
 
 
@@ -23,6 +23,24 @@ def test_mirroring_twice_is_identity_numpy_and_torch():
         t = torch.as_tensor(x)
         assert torch.equal(f(f(t)), t)
         np.testing.assert_array_equal(f(t).numpy(), f(x))
+
+
+def test_mirrored_mesh_stays_outward_wound_numpy_and_torch():
+    import trimesh
+
+    box = trimesh.creation.box(extents=(0.04, 0.07, 0.1))
+    box.apply_translation((0.03, -0.01, 0.02))
+    verts, faces = np.asarray(box.vertices), np.asarray(box.faces)
+    mv, mf = mirror_mesh(verts, faces)
+    np.testing.assert_array_equal(mv, mirror_points(verts))
+    assert trimesh.Trimesh(mv, mf, process=False).volume == pytest.approx(box.volume)  # positive: outward
+    assert mf.flags.c_contiguous
+    twice = mirror_mesh(mv, mf)
+    np.testing.assert_array_equal(twice[0], verts)
+    np.testing.assert_array_equal(twice[1], faces)
+    tv, tf = mirror_mesh(torch.as_tensor(verts), torch.as_tensor(faces))
+    np.testing.assert_array_equal(tv.numpy(), mv)
+    np.testing.assert_array_equal(tf.numpy(), mf)
 
 
 def test_axis_angle_mirror_agrees_with_rotation_mirror():

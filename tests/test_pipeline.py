@@ -98,7 +98,7 @@ def test_records_hold_exact_sdf_and_consistent_masks(built, tiny_root):
     from hoidata.objects import load_object_mesh, object_mesh_path, repair_mesh
 
     out, _ = built
-    from hoidata.geometry.mirror import mirror_axis_angle, mirror_points
+    from hoidata.geometry.mirror import mirror_axis_angle, mirror_mesh, mirror_points
 
     right = load_mano(tiny_root / "mano", dtype=torch.float64)
     left = load_mano(tiny_root / "mano", side="left", fix_left_shapedirs=False, dtype=torch.float64)
@@ -112,7 +112,7 @@ def test_records_hold_exact_sdf_and_consistent_masks(built, tiny_root):
         if meta["mirrored"]:  # the left hand as DexYCB annotated it (MANO_LEFT unfixed), reflected
             posed = left(torch.as_tensor(mirror_axis_angle(pose))[None], torch.as_tensor(meta["mano_betas"])[None],
                          torch.as_tensor(mirror_points(transl))[None])
-            hand, faces = mirror_points(left.close(posed.vertices)[0].numpy()), left.closed_faces[:, ::-1]
+            hand, faces = mirror_mesh(left.close(posed.vertices)[0].numpy(), np.asarray(left.closed_faces))
         else:
             posed = right(torch.as_tensor(pose)[None], torch.as_tensor(meta["mano_betas"])[None],
                           torch.as_tensor(transl)[None])
@@ -123,7 +123,7 @@ def test_records_hold_exact_sdf_and_consistent_masks(built, tiny_root):
         pose = np.asarray(meta["object_pose"])
         model, model_faces = np.asarray(geo.vertices), np.asarray(geo.faces)
         if meta["mirrored"]:  # the pose of a mirrored record poses the x-mirrored model (the flipped image's)
-            model, model_faces = mirror_points(model), model_faces[:, ::-1]
+            model, model_faces = mirror_mesh(model, model_faces)
         obj = model @ pose[:3, :3].T + pose[:3, 3]
         ref_o = brute_force_signed_distance(points[::8], obj, model_faces)[0]
         assert np.abs(ref_o - sdf_o[::8]).max() < 5e-5

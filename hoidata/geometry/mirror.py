@@ -10,7 +10,9 @@ What each quantity becomes under M:
 - rotation matrices R: M R M;
 - axis-angle vectors r (axial vectors): det(M) M r = (r_x, -r_y, -r_z), so a MANO pose (48 values) is
   mirrored joint by joint, and the same holds for PCA hand-pose bases expressed in axis-angle;
-- rigid transforms [R | t]: [M R M | M t].
+- rigid transforms [R | t]: [M R M | M t];
+- triangle meshes: vertices mirrored, each face's vertex order reversed (a reflection turns an outward
+  winding inward).
 
 Every function is its own inverse and works on numpy arrays and torch tensors.
 """
@@ -32,6 +34,12 @@ def _sign(x, pattern):
 def mirror_points(points):
     """Points (..., 3) in metres -> mirrored points (..., 3)."""
     return points * _sign(points, (-1.0, 1.0, 1.0))
+
+
+def mirror_mesh(vertices, faces):
+    """(vertices (V, 3), faces (F, 3)) -> the mirror-image mesh, faces reversed so they stay outward wound."""
+    flipped = faces.flip(-1) if hasattr(faces, "flip") else faces[:, ::-1].copy()
+    return mirror_points(vertices), flipped
 
 
 def mirror_axis_angle(pose):
