@@ -52,12 +52,43 @@ class BuildConfig:
         return asdict(self)
 
 
+_SCALARS = {"bool": (bool,), "int": (int,), "float": (int, float), "str": (str,)}
+_WORDS = {"bool": "true or false", "int": "an integer", "float": "a number", "str": "a string"}
+
+
+def value_problem(annotation: str, value) -> str | None:
+    """Why ``value`` does not fit a settings field annotated ``annotation`` (None when it fits).
+
+    Understands the annotations the settings dataclasses use: bool, int, float (an int is accepted), str, and
+    tuples of them, either ``tuple[T, ...]`` or a fixed ``tuple[T, T]``; others are not checked. A bool is
+    not an int here.
+    """
+    if annotation in _SCALARS:
+        ok = isinstance(value, _SCALARS[annotation]) and (annotation == "bool" or not isinstance(value, bool))
+        return None if ok else f"must be {_WORDS[annotation]}, got {value!r}"
+    if annotation.startswith("tuple[") and annotation.endswith("]"):
+        items = [a.strip() for a in annotation[6:-1].split(",")]
+        if not isinstance(value, (list, tuple)):
+            return f"must be a list ({annotation}), got {value!r}"
+        if items[-1] != "..." and len(value) != len(items):
+            return f"must hold {len(items)} values ({annotation}), got {len(value)}"
+        for v in value:
+            problem = value_problem(items[0], v)
+            if problem:
+                return f"every item {problem}"
+    return None
+
+
 def section(cls, values: dict, path: Path, name: str):
+    """``cls(**values)`` after checking every key is a field of ``cls`` and every value fits its annotation."""
     known = {f.name: f for f in fields(cls)}
     kwargs = {}
     for key, value in values.items():
         if key not in known:
             raise DataError(path, f"{name}.{key}", f"unknown setting; expected one of {sorted(known)}")
+        problem = value_problem(known[key].type, value)
+        if problem:
+            raise DataError(path, f"{name}.{key}", problem)
         kwargs[key] = tuple(value) if isinstance(value, list) else value
     return cls(**kwargs)
 

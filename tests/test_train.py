@@ -281,6 +281,7 @@ def test_projected_grid_features_equal_direct_sampling(tiny_store, mano):
 
 
 def test_bad_settings_and_files_give_clear_errors(tmp_path, mano_dir, capsys):
+    from hoidata.build_config import load_build_config
     from hoidata.errors import DataError
     from hoisdf.checkpoint import load_checkpoint
     from hoisdf.train import main
@@ -291,6 +292,19 @@ def test_bad_settings_and_files_give_clear_errors(tmp_path, mano_dir, capsys):
         load_train_config(None, ["model.image_size=128", "augment.input_size=256"])
     with pytest.raises(ValueError, match="model.sampling"):
         build_model(load_train_config(None, TINY + ['model.sampling="nearest"']).model, None)
+    # values are checked against the settings' types, naming the key
+    for item, message in (('model.channels_last="yes"', "true or false"), ("train.bf16=1", "true or false"),
+                          ("train.batch_size=2.5", "an integer"), ("model.token_hidden=256", "must be a list"),
+                          ('model.token_hidden=[64, "wide"]', "every item must be an integer"),
+                          ("train.lr=\"fast\"", "a number")):
+        with pytest.raises(DataError, match=message) as info:
+            load_train_config(None, [item])
+        assert item.split("=")[0] in str(info.value)
+    assert load_train_config(None, ["train.lr=1"]).train.lr == 1  # an integer is a number
+    with pytest.raises(ValueError, match="model.token_hidden"):
+        build_model(load_train_config(None, TINY + ["model.token_hidden=[32, 0]"]).model, None)
+    with pytest.raises(DataError, match="record.sigmas.*2 values"):
+        load_build_config("toy", ["record.sigmas=[0.01]"])
     bad = tmp_path / "run" / "checkpoints" / "last.pt"
     bad.parent.mkdir(parents=True)
     bad.write_bytes(b"not a checkpoint")

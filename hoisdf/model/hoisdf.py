@@ -70,6 +70,8 @@ class HOISDF(nn.Module):
                             ("test_boxes", test_boxes)):
             if value not in CHOICES[name]:
                 raise ValueError(f"model.{name} must be one of {CHOICES[name]}, got {value!r}")
+        if not all(int(w) > 0 for w in token_hidden):
+            raise ValueError(f"model.token_hidden must be positive layer widths, got {list(token_hidden)}")
         if 6 * n_freq + 3 != POINT_DIM:
             raise ValueError(f"model.n_freq must be 5 (tokens carry a {POINT_DIM}-dim point code), got {n_freq}")
         self._mano = [mano]  # a list: not a registered submodule, so not in state_dict()
