@@ -76,17 +76,28 @@ def run(out: Path, steps: int, workers: int, seed: int, sequences: int | None, f
     return 0
 
 
+def positive_int(text: str) -> int:
+    """argparse type: an integer >= 1 (0 would mean "the default" to make-toy and "no limit" to the trainer)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {value}")
+    return value
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m hoisdf.toy", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, default=Path("toy_run"), help="output folder")
-    p.add_argument("--steps", type=int, default=700, help="training steps (batch 8)")
-    p.add_argument("--workers", type=int, default=2, help="worker processes for the data build")
+    p.add_argument("--steps", type=positive_int, default=700, help="training steps (batch 8)")
+    p.add_argument("--workers", type=positive_int, default=2, help="worker processes for the data build")
     p.add_argument("--seed", type=int, default=0)
     # twice make-toy's default sequences at half its frames: the same 600 DexYCB images with twice the grasps,
     # which the object's depth needs to generalise (README, "The main job")
-    p.add_argument("--sequences", type=int, default=10, help="toy size: sequences per subject (see hoidata make-toy)")
-    p.add_argument("--frames", type=int, default=5, help="toy size: frames per sequence and camera")
+    p.add_argument("--sequences", type=positive_int, default=10, help="toy size: sequences per subject (see hoidata make-toy)")
+    p.add_argument("--frames", type=positive_int, default=5, help="toy size: frames per sequence and camera")
     p.add_argument("--vis", type=int, default=8, help="result pictures to write")
     p.add_argument("overrides", nargs="*", metavar="section.key=value", help="training overrides")
     args = p.parse_args(argv)

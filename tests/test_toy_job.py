@@ -34,3 +34,15 @@ def test_beats_baseline_compares_lower_is_better():
     model = {"rr_mje": 10.0, "pa_mje": 5.0, "oce": 30.0}
     baseline = {"rr_mje": 12.0, "pa_mje": 4.0, "oce": 31.0, "add_s": 9.0}
     assert beats_baseline(model, baseline) == {"rr_mje": True, "pa_mje": False, "oce": True}
+
+
+def test_sizes_and_steps_must_be_positive(tmp_path, capsys):
+    """0 would silently mean make-toy's default size or an unlimited training run: refused before anything runs."""
+    import pytest
+
+    for flag, value in (("--steps", "0"), ("--sequences", "-1"), ("--frames", "two")):
+        with pytest.raises(SystemExit) as exit_info:
+            main(["--out", str(tmp_path / "run"), flag, value])
+        assert exit_info.value.code == 2
+        assert f"argument {flag}: expected a whole number >= 1" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()
