@@ -24,7 +24,7 @@ import time
 from pathlib import Path
 
 import torch
-from bench_train import NOISE, resolve_device, store_and_mano, sync
+from bench_train import NOISE, resolve_device, store_and_mano, sync, test_inputs
 
 from hoidata.hand import load_mano
 from hoisdf.config import load_train_config
@@ -90,8 +90,7 @@ def main(argv=None) -> int:
     batches = [next(loader) for _ in range(1 + args.steps)]
     times = {(n, pts): [] for n in trainers for pts in ("gt", "field")}
     times.update({(n, "backbone"): [] for n in ("nchw", "nhwc")})
-    img = batches[0]["img"][:, :, :trainers["nchw"].config.model.image_size, :trainers["nchw"].config.model.image_size]
-    img = img.to(device)
+    img = test_inputs(batches[0], trainers["nchw"].config, device)["img"]  # the network's input crop
     for r in range(args.rounds):
         for (name, points), values in times.items():
             if points == "backbone":
