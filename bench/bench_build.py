@@ -20,10 +20,10 @@ from pathlib import Path
 import numpy as np
 
 from hoidata import schema, store
-from hoidata.build_config import load_build_config
 from hoidata.datasets.toy import write_assets
 from hoidata.datasets.toy_dexycb import ToyDexYCBSize, write_toy_dexycb
-from hoidata.pipeline import build_store
+from hoidata.pipeline.runner import build_store
+from hoidata.pipeline.settings import load_build_config
 
 ALIGNSDF_BYTES = 2 * 20_000 * 6 * 4  # two files (hand, object) of 20k float32 rows of 6 columns, per frame
 

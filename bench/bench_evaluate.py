@@ -5,7 +5,7 @@ Usage: python bench/bench_evaluate.py [--config toy] [--store STORE] [--mano DIR
 
 Model: the paper's full-size HOISDF by default (``--config toy`` for the small one), randomly
 initialised and saved as a checkpoint payload ``{"model", "config", "progress"}`` with
-``hoisdf.checkpoint.save_checkpoint`` into a temporary run folder. Data: a toy DexYCB store with 512 px
+``hoisdf.training.checkpoint.save_checkpoint`` into a temporary run folder. Data: a toy DexYCB store with 512 px
 crops built in a temporary folder (as bench_train.py), unless ``--store``. Defaults depend on the device
 (CUDA: 352 frames at batch 22; CPU: 16 frames at batch 4, a minute or two on 2 cores).
 
@@ -15,7 +15,7 @@ Measured, in one run, on the first ``--frames`` records of the store:
 2. infer: ``hoisdf.evaluate.infer`` (loader workers decode, test-time crop, batched forward with
    field-guided points, no_grad, bf16 autocast on CUDA, ground-truth MANO of every frame), after a
    warm-up ``infer`` of one batch: frames/s;
-3. metrics, apart from inference: ``score`` + ``hoisdf.metrics.summarize`` (overall and per object),
+3. metrics, apart from inference: ``score`` + ``hoisdf.evaluation.metrics.summarize`` (overall and per object),
    and the mean-pose baseline (``mean_hand`` + ``score``) that evaluate prints beside it;
 4. end to end: ``evaluate(..., plausibility=0)`` (all of the above plus the result files), frames/s.
    The plausibility report (off here) is separate and per sample.
@@ -35,11 +35,13 @@ import numpy as np
 import torch
 from bench_train import resolve_device, store_and_mano, sync
 
-from hoisdf import metrics as M
-from hoisdf.checkpoint import CHECKPOINTS, LAST, save_checkpoint
 from hoisdf.config import load_train_config
-from hoisdf.evaluate import evaluate, infer, load_for_eval, mean_hand, score
+from hoisdf.evaluate import evaluate
+from hoisdf.evaluation import metrics as M
+from hoisdf.evaluation.inference import infer, load_for_eval
+from hoisdf.evaluation.scoring import mean_hand, score
 from hoisdf.model import build_model
+from hoisdf.training.checkpoint import CHECKPOINTS, LAST, save_checkpoint
 
 PAPER_FPS = 30.7  # HOISDF paper, TITAN RTX
 

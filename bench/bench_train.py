@@ -43,11 +43,11 @@ from pathlib import Path
 
 import torch
 
-from hoisdf.augment import augment_batch
 from hoisdf.config import load_train_config
 from hoisdf.data import StoreSpec, build_dataset, make_loader
+from hoisdf.data.augment import augment_batch
 from hoisdf.model import build_model
-from hoisdf.trainer import Trainer, to_device
+from hoisdf.training.trainer import Trainer, to_device
 
 PAPER_FPS = 30.7  # HOISDF paper, TITAN RTX
 NOISE = 0.03  # half-width of the "gt" query-point jitter (scaled units), the schedule's first value
@@ -70,10 +70,10 @@ def autocast(device: torch.device):
 
 def toy_store(work: Path, records: int = 32, workers: int = 1) -> tuple[Path, Path]:
     """Build a toy DexYCB train store (512 px crops) of about ``records`` records; returns (store, mano dir)."""
-    from hoidata.build_config import load_build_config
     from hoidata.datasets.toy import write_assets
     from hoidata.datasets.toy_dexycb import ToyDexYCBSize, write_toy_dexycb
-    from hoidata.pipeline import build_store
+    from hoidata.pipeline.runner import build_store
+    from hoidata.pipeline.settings import load_build_config
 
     root = work / "data"
     mano, models = write_assets(root)

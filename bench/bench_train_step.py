@@ -29,7 +29,7 @@ from bench_train import NOISE, resolve_device, store_and_mano, sync, test_inputs
 from hoidata.hand import load_mano
 from hoisdf.config import load_train_config
 from hoisdf.data import StoreSpec
-from hoisdf.trainer import Trainer
+from hoisdf.training.trainer import Trainer
 
 PAPER_TOKEN = "[1024, 512, 256]"
 

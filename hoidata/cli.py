@@ -17,7 +17,7 @@ from hoidata.errors import DataError
 def cmd_make_toy(args: argparse.Namespace) -> int:
     """Write the procedural hand, objects and toy datasets in the real layouts, then check them."""
     from hoidata.datasets.toy import make_toy, split_rows
-    from hoidata.summary import format_rows, mano_rows, object_rows
+    from hoidata.pipeline.inputs import format_rows, mano_rows, object_rows
 
     out = Path(args.out)
     layouts = ("dexycb", "ho3d") if args.layout == "all" else (args.layout,)
@@ -34,7 +34,7 @@ def cmd_make_toy(args: argparse.Namespace) -> int:
 
 def cmd_check_mano(args: argparse.Namespace) -> int:
     """Load MANO_RIGHT.pkl / MANO_LEFT.pkl from a folder and report what the pipelines will see."""
-    from hoidata.summary import format_rows, mano_rows
+    from hoidata.pipeline.inputs import format_rows, mano_rows
 
     rows = mano_rows(args.mano_dir)
     print(format_rows(rows))
@@ -43,7 +43,7 @@ def cmd_check_mano(args: argparse.Namespace) -> int:
 
 def cmd_check_objects(args: argparse.Namespace) -> int:
     """Load, repair and simplify every object of a YCB-layout models folder, and report."""
-    from hoidata.summary import format_rows, object_rows
+    from hoidata.pipeline.inputs import format_rows, object_rows
 
     rows = object_rows(args.models_dir, n_vertices=args.vertices, cache_dir=args.cache_dir)
     print(format_rows(rows))
@@ -62,8 +62,8 @@ def _part(text: str) -> tuple[int, int]:
 
 def cmd_build_sdf(args: argparse.Namespace) -> int:
     """Build (or resume) a training store from a dataset, as pipelines/<dataset>.toml says."""
-    from hoidata.build_config import load_build_config
-    from hoidata.pipeline import build_store, estimate_build
+    from hoidata.pipeline.runner import build_store, estimate_build
+    from hoidata.pipeline.settings import load_build_config
 
     cfg = load_build_config(args.dataset, args.overrides)
     root = Path(args.root)
@@ -83,7 +83,7 @@ def cmd_build_sdf(args: argparse.Namespace) -> int:
 
 def cmd_render_synthetic(args: argparse.Namespace) -> int:
     """Render perturbed grasps of a store or dataset from new views into a training store."""
-    from hoidata.records import RecordSettings
+    from hoidata.pipeline.records import RecordSettings
     from hoidata.synth.render_synthetic import render_synthetic
 
     source = Path(args.source)
@@ -110,7 +110,7 @@ def cmd_verify(args: argparse.Namespace) -> int:
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
-    from hoidata.inspect import inspect_store
+    from hoidata.store.inspect import inspect_store
 
     print(f"wrote {inspect_store(args.store, n=args.n, out=args.out)}")
     return 0

@@ -10,10 +10,10 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
-from hoidata.build_config import apply_overrides, read_pipeline, section
 from hoidata.errors import DataError
-from hoisdf.augment import AugmentSettings
-from hoisdf.losses import LossWeights
+from hoidata.pipeline.settings import apply_overrides, read_pipeline, section
+from hoisdf.data.augment import AugmentSettings
+from hoisdf.training.losses import LossWeights
 
 
 @dataclass(frozen=True)

@@ -19,10 +19,10 @@ from pathlib import Path
 
 from hoidata.cli import main as hoidata_main
 from hoidata.errors import DataError
-from hoisdf.checkpoint import CHECKPOINTS, LAST
 from hoisdf.evaluate import evaluate
+from hoisdf.evaluation.visualize import plot_training_curve
 from hoisdf.train import main as train_main
-from hoisdf.visualize import plot_training_curve
+from hoisdf.training.checkpoint import CHECKPOINTS, LAST
 
 COMPARED = ("rr_mje", "pa_mje", "oce", "add_s")  # the verdict: the model must beat the baseline on these
 

@@ -15,13 +15,13 @@ from pathlib import Path
 
 import torch
 
-from hoidata.build_config import apply_overrides
 from hoidata.errors import DataError
-from hoidata.pipeline import git_commit
-from hoisdf.checkpoint import CHECKPOINTS, LAST, load_checkpoint
+from hoidata.pipeline.runner import git_commit
+from hoidata.pipeline.settings import apply_overrides
 from hoisdf.config import TrainConfig, config_from_dict, load_train_config
 from hoisdf.data import StoreSpec
-from hoisdf.trainer import Trainer
+from hoisdf.training.checkpoint import CHECKPOINTS, LAST, load_checkpoint
+from hoisdf.training.trainer import Trainer
 
 
 def parse_store(text: str) -> StoreSpec:

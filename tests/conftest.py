@@ -55,8 +55,8 @@ def tiny_store(tiny_dexycb, tmp_path_factory):
 
     Right and left (mirrored) hands; for model, augmentation and trainer tests.
     """
-    from hoidata.build_config import load_build_config
-    from hoidata.pipeline import build_store
+    from hoidata.pipeline.runner import build_store
+    from hoidata.pipeline.settings import load_build_config
 
     out = tmp_path_factory.mktemp("tiny_store") / "store"
     overrides = ['dataset.splits=["train"]', "record.crop_size=128", "record.n_hand=256", "record.n_object=128",

@@ -9,7 +9,8 @@ import pytest
 import torch
 import trimesh
 
-from hoisdf.augment import (
+from hoisdf.data import StoreSpec, build_dataset
+from hoisdf.data.augment import (
     AugmentSettings,
     adjust_hue,
     augment_batch,
@@ -17,7 +18,6 @@ from hoisdf.augment import (
     gaussian_blur,
     rotation_z,
 )
-from hoisdf.data import StoreSpec, build_dataset
 from hoisdf.model.encoding import project_points
 from hoisdf.model.rotation import matrix_to_axis_angle
 

@@ -9,11 +9,11 @@ import pytest
 import torch
 
 from hoidata import schema, store
-from hoidata.build_config import load_build_config
 from hoidata.datasets.toy import write_assets
 from hoidata.datasets.toy_ho3d import ToyHO3DSize, write_toy_ho3d
-from hoidata.pipeline import build_store
-from hoidata.records import RecordSettings
+from hoidata.pipeline.records import RecordSettings
+from hoidata.pipeline.runner import build_store
+from hoidata.pipeline.settings import load_build_config
 from hoidata.synth.render_synthetic import render_synthetic
 from hoisdf.data import StoreSpec, build_dataset, make_loader
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from hoidata.datasets.dexycb import split_members
+from hoidata.datasets.dexycb_layout import split_members
 
 
 def _cells(setup, split):

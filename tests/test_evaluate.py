@@ -23,9 +23,9 @@ TINY = ["model.depth=18", "model.image_size=64", "model.n_hand=32", "model.n_obj
 def run_dir(tmp_path_factory, mano_dir):
     """A run folder with an untrained tiny model's checkpoint."""
     from hoidata.hand import load_mano
-    from hoisdf.checkpoint import save_checkpoint
     from hoisdf.config import load_train_config
     from hoisdf.model import build_model
+    from hoisdf.training.checkpoint import save_checkpoint
 
     cfg = load_train_config(None, TINY)
     torch.manual_seed(0)
@@ -76,8 +76,8 @@ def test_evaluate_writes_finite_metrics_for_every_sample(evaluated, tiny_store):
 
 def test_hpe_file_reads_back_to_the_predicted_joints(evaluated, run_dir, tiny_store, mano_dir):
     from hoidata.hand import load_mano
-    from hoisdf.evaluate import infer, load_for_eval
-    from hoisdf.export import read_dexycb_hpe
+    from hoisdf.evaluation.inference import infer, load_for_eval
+    from hoisdf.evaluation.submissions import read_dexycb_hpe
 
     out, _ = evaluated
     ids, joints = read_dexycb_hpe(out / "dexycb_hpe.txt")
@@ -106,7 +106,7 @@ def test_vis_writes_non_blank_pictures(evaluated):
 
 def _oracle_forward(self, batch, points="field", **_):
     """Ground truth in the model's output format (hand relative to the root, object pose model -> camera)."""
-    from hoisdf.losses import hand_targets, mirrored_shape_mano
+    from hoisdf.training.losses import hand_targets, mirrored_shape_mano
 
     gt = hand_targets(self.mano, mirrored_shape_mano(self.mano), batch)
     b = len(batch["key"])
@@ -134,7 +134,7 @@ def test_oracle_predictions_score_zero_and_the_baseline_does_not(run_dir, tiny_s
     assert result["plausibility"] == {"skipped": "--plausibility 0"}
     # the HPE file holds the dataset's own labels: left hands un-mirrored
     from hoidata.store import read_index
-    from hoisdf.export import read_dexycb_hpe
+    from hoisdf.evaluation.submissions import read_dexycb_hpe
 
     lab = read_index(tiny_store).labels
     ids, joints = read_dexycb_hpe(tmp_path / "dexycb_hpe.txt")
@@ -147,7 +147,7 @@ def test_mirrored_records_get_the_mirrored_object_mesh():
     original scene object, wound outward (positive volume)."""
     import trimesh
 
-    from hoisdf.evaluate import sample_meshes
+    from hoisdf.evaluation.scoring import sample_meshes
     from hoisdf.model.rotation import axis_angle_to_matrix
 
     box = trimesh.creation.box(extents=(0.05, 0.08, 0.1))
@@ -183,9 +183,9 @@ def test_cli_default_out_limit_and_ho3d_skip(run_dir, tiny_store, mano_dir, tmp_
 
 
 def test_ho3d_export_follows_the_evaluation_list(tiny_store, tmp_path):
-    from hoisdf.eval_outputs import export
-    from hoisdf.evaluate import Collected
-    from hoisdf.export import read_dexycb_hpe, read_ho3d_pred
+    from hoisdf.evaluation.inference import Collected
+    from hoisdf.evaluation.outputs import export
+    from hoisdf.evaluation.submissions import read_dexycb_hpe, read_ho3d_pred
 
     rng = np.random.default_rng(0)
     joints = rng.normal(size=(3, 21, 3)) * 0.05 + [0, 0, 0.6]
@@ -217,7 +217,7 @@ def test_missing_checkpoint_is_a_data_error_naming_it(tiny_store, mano_dir, tmp_
 
 
 def test_training_curve_plot(tmp_path):
-    from hoisdf.visualize import plot_training_curve, read_curve
+    from hoisdf.evaluation.visualize import plot_training_curve, read_curve
 
     path = tmp_path / "metrics.csv"
     rows = [["split", "epoch", "step", "name", "value"]]
@@ -238,7 +238,13 @@ def test_training_curve_plot(tmp_path):
 
 
 def test_draw_result_marks_projected_joints_and_query_points_get_a_colour_bar():
-    from hoisdf.visualize import GT_COLOR, PRED_COLOR, draw_query_points, draw_result, project
+    from hoisdf.evaluation.visualize import (
+        GT_COLOR,
+        PRED_COLOR,
+        draw_query_points,
+        draw_result,
+        project,
+    )
 
     K = np.array([[100.0, 0, 50], [0, 100, 50], [0, 0, 1]])
     joints = np.zeros((21, 3)) + [0.0, 0.0, 0.5]

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from hoidata.errors import DataError
-from hoisdf import export as E
+from hoisdf.evaluation import submissions as E
 
 
 @pytest.fixture

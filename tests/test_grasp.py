@@ -13,8 +13,19 @@ import torch
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from hoidata.objects import TOY_OBJECTS, load_object_mesh, repair_mesh, write_toy_objects
-from hoidata.synth import Grasp, HandObjectCollision, penetration_depth, signed_distance, synthesize_grasp
+from hoidata.objects import (
+    TOY_OBJECTS,
+    load_object_mesh,
+    repair_mesh,
+    write_toy_objects,
+)
+from hoidata.synth import (
+    Grasp,
+    HandObjectCollision,
+    penetration_depth,
+    signed_distance,
+    synthesize_grasp,
+)
 
 MAX_PENETRATION = 0.002  # metres
 SEED = 7

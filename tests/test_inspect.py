@@ -7,15 +7,6 @@ import numpy as np
 import pytest
 
 from hoidata.errors import DataError
-from hoidata.inspect import (
-    CAPTION_HEIGHT,
-    HAND_COLOUR,
-    TILE,
-    TINT_ALPHA,
-    grid_size,
-    inspect_store,
-    pick_rows,
-)
 from hoidata.schema import (
     META_FIELDS,
     SCHEMA_VERSION,
@@ -26,6 +17,15 @@ from hoidata.schema import (
     SEG_OBJECT_VISIBLE,
 )
 from hoidata.store import encode_record, write_shard
+from hoidata.store.inspect import (
+    CAPTION_HEIGHT,
+    HAND_COLOUR,
+    TILE,
+    TINT_ALPHA,
+    grid_size,
+    inspect_store,
+    pick_rows,
+)
 
 CROP = 64
 GREY = 100

@@ -7,7 +7,7 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from hoisdf import metrics as M
+from hoisdf.evaluation import metrics as M
 
 
 @pytest.fixture
@@ -182,7 +182,7 @@ def test_per_group_mean_and_summarize():
         M.per_group_mean([1.0], ["a", "b"])
 
 
-# ---------------------------------------------------------------- physical plausibility (hoisdf.plausibility)
+# ---------------------------------------------------------------- physical plausibility (hoisdf.evaluation.plausibility)
 
 def _box(extents, centre):
     mesh = trimesh.creation.box(extents=extents)
@@ -195,7 +195,7 @@ def _sphere(radius, centre):
 
 
 def test_penetration_depth_of_sphere_pushed_into_box():
-    from hoisdf.plausibility import contact, penetration_depth
+    from hoisdf.evaluation.plausibility import contact, penetration_depth
 
     box_v, box_f = _box((0.1, 0.1, 0.1), (0, 0, 0))  # top face at z = 0.05
     # The sphere's lowest vertex (a pole of the icosphere) sits 7 mm below the top face.
@@ -205,7 +205,7 @@ def test_penetration_depth_of_sphere_pushed_into_box():
 
 
 def test_intersection_volume_of_overlapping_boxes():
-    from hoisdf.plausibility import intersection_volume
+    from hoisdf.evaluation.plausibility import intersection_volume
 
     a_v, a_f = _box((0.1, 0.1, 0.1), (0, 0, 0))
     b_v, b_f = _box((0.1, 0.08, 0.06), (0.0637, 0.013, -0.021))  # overlap 36.3 x 80 x 60 mm (x, y, z)
@@ -218,7 +218,12 @@ def test_intersection_volume_of_overlapping_boxes():
 
 
 def test_separated_and_touching_meshes():
-    from hoisdf.plausibility import contact, intersection_volume, penetration_depth, plausibility_report
+    from hoisdf.evaluation.plausibility import (
+        contact,
+        intersection_volume,
+        penetration_depth,
+        plausibility_report,
+    )
 
     box_v, box_f = _box((0.1, 0.1, 0.1), (0, 0, 0))
     far_v, far_f = _sphere(0.02, (0, 0, 0.05 + 0.02 + 0.02))  # 2 cm gap
@@ -240,7 +245,7 @@ def test_separated_and_touching_meshes():
 
 
 def test_intersection_volume_converges_to_exact_boolean():
-    from hoisdf.plausibility import intersection_volume
+    from hoisdf.evaluation.plausibility import intersection_volume
 
     box = trimesh.creation.box(extents=(0.1, 0.1, 0.1))
     ball = trimesh.creation.icosphere(subdivisions=3, radius=0.02)

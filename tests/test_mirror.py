@@ -7,7 +7,13 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from hoidata.geometry.mirror import mirror_axis_angle, mirror_mesh, mirror_points, mirror_rotation, mirror_transform
+from hoidata.geometry.mirror import (
+    mirror_axis_angle,
+    mirror_mesh,
+    mirror_points,
+    mirror_rotation,
+    mirror_transform,
+)
 from hoidata.hand import load_mano
 
 

@@ -11,7 +11,7 @@ from hoidata import schema, store
 from hoidata.datasets.toy import write_assets
 from hoidata.datasets.toy_ho3d import ToyHO3DSize, write_toy_ho3d
 from hoidata.errors import DataError
-from hoidata.records import RecordSettings
+from hoidata.pipeline.records import RecordSettings
 from hoidata.synth import views
 from hoidata.synth.render_synthetic import render_synthetic
 
@@ -110,7 +110,7 @@ def test_masks_and_joints_agree_with_the_render(synth_store):
 
 
 def test_inspect_a_synthetic_store(synth_store, tmp_path):
-    from hoidata.inspect import inspect_store
+    from hoidata.store.inspect import inspect_store
 
     out, _ = synth_store
     png = inspect_store(out, n=4, out=tmp_path / "grid.png")

@@ -12,12 +12,24 @@ import numpy as np
 import pytest
 import torch
 
-from hoidata.datasets.dexycb import SETTINGS, DexYCBReader, read_labels
+from hoidata.datasets.dexycb import SETTINGS, DexYCBReader
+from hoidata.datasets.dexycb_layout import read_labels
 from hoidata.datasets.frame import project
 from hoidata.datasets.ho3d import HO3DReader
 from hoidata.datasets.toy import write_assets
-from hoidata.datasets.toy_dexycb import INVALID_FRAME, ToyDexYCBSize, sequence_side, write_toy_dexycb
-from hoidata.datasets.toy_ho3d import DEPTH_SCALE, ToyHO3DSize, pack_depth, unpack_depth, write_toy_ho3d
+from hoidata.datasets.toy_dexycb import (
+    INVALID_FRAME,
+    ToyDexYCBSize,
+    sequence_side,
+    write_toy_dexycb,
+)
+from hoidata.datasets.toy_ho3d import (
+    DEPTH_SCALE,
+    ToyHO3DSize,
+    pack_depth,
+    unpack_depth,
+    write_toy_ho3d,
+)
 from hoidata.errors import DataError
 from hoidata.hand import load_mano
 from hoidata.objects import load_object_mesh, object_mesh_path, repair_mesh

@@ -10,7 +10,12 @@ import trimesh
 
 from hoidata.errors import DataError
 from hoidata.hand import load_mano, read_mano_file
-from hoidata.hand.toy import build_toy_mano, mirror_to_left, write_mano_pickle, write_toy_mano
+from hoidata.hand.toy import (
+    build_toy_mano,
+    mirror_to_left,
+    write_mano_pickle,
+    write_toy_mano,
+)
 from hoidata.safe_pickle import load_pickle
 
 REAL_LAYOUT = {  # key: (shape, dtype kind) of MANO_RIGHT.pkl v1.2 (reference/datasets.md section 5.1)

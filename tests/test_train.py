@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 import torch
 
-from hoisdf.augment import augment_batch
 from hoisdf.config import load_train_config
 from hoisdf.data import StoreSpec, build_dataset
-from hoisdf.losses import HOISDFLoss, hand_targets, mirrored_shape_mano
+from hoisdf.data.augment import augment_batch
 from hoisdf.model import build_model
 from hoisdf.model.sampling import field_guided_points, grid_points, inside_box
-from hoisdf.trainer import Trainer
+from hoisdf.training.losses import HOISDFLoss, hand_targets, mirrored_shape_mano
+from hoisdf.training.trainer import Trainer
 
 TINY = ["model.depth=18", "model.image_size=64", "model.d_model=64", "model.ff=128", "model.hand_layers=2",
         "model.decoder_layers=2", "model.object_layers=1", "model.sdf_features=32", "model.sdf_hidden=96",
@@ -204,7 +204,7 @@ def test_resume_two_plus_two_steps_equals_four(tiny_store, mano, tmp_path):
 def test_mixed_real_and_synthetic_training_reads_the_requested_ratio(tiny_store, mano, tmp_path):
     from hoidata.datasets.toy import write_assets
     from hoidata.datasets.toy_ho3d import ToyHO3DSize, write_toy_ho3d
-    from hoidata.records import RecordSettings
+    from hoidata.pipeline.records import RecordSettings
     from hoidata.synth.render_synthetic import render_synthetic
 
     mano_dir, models_dir = write_assets(tmp_path)
@@ -222,8 +222,8 @@ def test_mixed_real_and_synthetic_training_reads_the_requested_ratio(tiny_store,
 
 
 def test_ddp_two_processes_gloo_see_disjoint_samples(tiny_dexycb, mano_dir, tmp_path):
-    from hoidata.build_config import load_build_config
-    from hoidata.pipeline import build_store
+    from hoidata.pipeline.runner import build_store
+    from hoidata.pipeline.settings import load_build_config
 
     store = tmp_path / "store"
     overrides = ['dataset.splits=["train"]', "record.crop_size=128", "record.n_hand=256", "record.n_object=128",
@@ -281,10 +281,10 @@ def test_projected_grid_features_equal_direct_sampling(tiny_store, mano):
 
 
 def test_bad_settings_and_files_give_clear_errors(tmp_path, mano_dir, capsys):
-    from hoidata.build_config import load_build_config
     from hoidata.errors import DataError
-    from hoisdf.checkpoint import load_checkpoint
+    from hoidata.pipeline.settings import load_build_config
     from hoisdf.train import main
+    from hoisdf.training.checkpoint import load_checkpoint
 
     with pytest.raises(DataError, match="model.widht"):
         load_train_config(None, ["model.widht=3"])

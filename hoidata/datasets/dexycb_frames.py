@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from hoidata.datasets.dexycb import (
+from hoidata.datasets.dexycb_layout import (
     IMAGE_SIZE,
     SERIALS,
     SUBJECTS,

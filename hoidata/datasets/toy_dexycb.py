@@ -23,7 +23,7 @@ from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
 from hoidata.datasets import toy_scenes
-from hoidata.datasets.dexycb import SERIALS, SUBJECTS
+from hoidata.datasets.dexycb_layout import SERIALS, SUBJECTS
 from hoidata.datasets.frame import project
 from hoidata.hand.pose import axis_angle_to_pca
 from hoidata.render import skin_tone

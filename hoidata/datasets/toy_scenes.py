@@ -29,7 +29,13 @@ class ToyObject:
 
 def load_toy_objects(models_dir) -> dict[str, ToyObject]:
     """Every object of a YCB-layout folder, with its repaired geometry."""
-    from hoidata.objects import class_id, list_objects, load_object_mesh, object_mesh_path, repair_mesh
+    from hoidata.objects import (
+        class_id,
+        list_objects,
+        load_object_mesh,
+        object_mesh_path,
+        repair_mesh,
+    )
 
     out = {}
     for name in list_objects(models_dir):

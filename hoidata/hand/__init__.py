@@ -14,12 +14,18 @@ from hoidata.hand.model import (
     MANO_PARENTS,
     MANO_TO_DEXYCB,
     TIP_VERTICES,
-    MANOOutput,
     ManoData,
+    MANOOutput,
     load_mano,
     read_mano_file,
 )
-from hoidata.hand.pose import axis_angle_to_pca, change_frame, flat_to_mean_relative, mean_relative_to_flat, pca_to_axis_angle
+from hoidata.hand.pose import (
+    axis_angle_to_pca,
+    change_frame,
+    flat_to_mean_relative,
+    mean_relative_to_flat,
+    pca_to_axis_angle,
+)
 
 __all__ = [
     "MANO", "MANOOutput", "ManoData", "load_mano", "read_mano_file", "MANO_PARENTS", "MANO_TO_DEXYCB",

@@ -35,7 +35,13 @@ import scipy.sparse
 
 from hoidata.geometry.mirror import mirror_axis_angle
 from hoidata.hand.model import MANO_PARENTS, NUM_JOINTS, TIP_VERTICES
-from hoidata.hand.toy_mesh import BACK_AXIS, LENGTH_AXIS, WIDTH_AXIS, HandMesh, build_hand_mesh
+from hoidata.hand.toy_mesh import (
+    BACK_AXIS,
+    LENGTH_AXIS,
+    WIDTH_AXIS,
+    HandMesh,
+    build_hand_mesh,
+)
 
 # MANO joint ids of each finger's three joints.
 FINGER_JOINTS = {"index": (1, 2, 3), "middle": (4, 5, 6), "pinky": (7, 8, 9), "ring": (10, 11, 12), "thumb": (13, 14, 15)}

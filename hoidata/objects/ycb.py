@@ -21,7 +21,13 @@ import numpy as np
 import trimesh
 
 from hoidata.errors import DataError
-from hoidata.objects.meshops import MeshReport, check_mesh, repair_mesh, simplify_mesh, surface_error
+from hoidata.objects.meshops import (
+    MeshReport,
+    check_mesh,
+    repair_mesh,
+    simplify_mesh,
+    surface_error,
+)
 
 __all__ = [
     "YCB_CLASSES", "UnknownObjectError", "class_id", "class_name", "MESH_FILE", "POINTS_FILE",

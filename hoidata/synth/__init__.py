@@ -8,9 +8,21 @@ Public entry points::
                torch.as_tensor(grasp.transl)[None])   # the hand in the object's frame, metres
 """
 
-from hoidata.synth.closing import CONTACT_JOINTS, FINGER_JOINTS, FINGERS, close_fingers, finger_basis
-from hoidata.synth.contact import (HandObjectCollision, mesh_bvh, object_in_hand_depth, penetration_depth,
-                                   signed_distance, surface_samples)
+from hoidata.synth.closing import (
+                                   CONTACT_JOINTS,
+                                   FINGER_JOINTS,
+                                   FINGERS,
+                                   close_fingers,
+                                   finger_basis,
+)
+from hoidata.synth.contact import (
+                                   HandObjectCollision,
+                                   mesh_bvh,
+                                   object_in_hand_depth,
+                                   penetration_depth,
+                                   signed_distance,
+                                   surface_samples,
+)
 from hoidata.synth.grasp import Grasp, evaluate_grasp, palm_frame, synthesize_grasp
 
 __all__ = [

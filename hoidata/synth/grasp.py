@@ -27,9 +27,21 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-from hoidata.synth.closing import (CONTACT_JOINTS, FINGERS, OPEN_SCALES, close_fingers, finger_basis,
-                                   finger_min_distance, finger_samples, hand_forward)
-from hoidata.synth.contact import CONTACT_DISTANCE, HandObjectCollision, object_in_hand_depth
+from hoidata.synth.closing import (
+    CONTACT_JOINTS,
+    FINGERS,
+    OPEN_SCALES,
+    close_fingers,
+    finger_basis,
+    finger_min_distance,
+    finger_samples,
+    hand_forward,
+)
+from hoidata.synth.contact import (
+    CONTACT_DISTANCE,
+    HandObjectCollision,
+    object_in_hand_depth,
+)
 
 WRIST, INDEX_MCP, MIDDLE_MCP, RING_MCP, PINKY_MCP = 0, 1, 4, 10, 7  # MANO-order joint ids
 PALM_GAP = 0.004  # the open hand stops this far from the surface (m)

@@ -19,11 +19,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from hoidata import pipeline, schema
+from hoidata import schema
 from hoidata.datasets.frame import Frame, Skip, project
 from hoidata.errors import DataError
 from hoidata.hand.pose import change_frame
-from hoidata.records import RecordSettings
+from hoidata.pipeline import runner
+from hoidata.pipeline.records import RecordSettings
 from hoidata.synth import views
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp")
@@ -53,7 +54,7 @@ def _init(mano_dir: Path, models_dir: Path, source: Path, backgrounds: list[str]
     from hoidata.render import Renderer
     from hoidata.synth.source import load_grasps
 
-    pipeline._init_worker(mano_dir, models_dir, crop_size)
+    runner._init_worker(mano_dir, models_dir, crop_size)
     _W.update(mano=load_mano(mano_dir, side="right", tips="ho3d", dtype=torch.float64), textured={}, collision={},
               backgrounds=backgrounds, rgb=Renderer(*views.HO3D_SIZE))
     _W["grasps"] = load_grasps(source, _W["mano"])
@@ -64,10 +65,10 @@ def _object(name: str):
     from hoidata.objects import load_object_mesh, object_mesh_path
     from hoidata.synth.contact import HandObjectCollision
 
-    objects = pipeline._WORKER["objects"]
+    objects = runner._WORKER["objects"]
     if name not in objects:
-        objects[name] = pipeline.object_asset(pipeline._WORKER["models_dir"], name)
-        _W["textured"][name] = load_object_mesh(object_mesh_path(pipeline._WORKER["models_dir"], name))
+        objects[name] = runner.object_asset(runner._WORKER["models_dir"], name)
+        _W["textured"][name] = load_object_mesh(object_mesh_path(runner._WORKER["models_dir"], name))
         _W["collision"][name] = HandObjectCollision(objects[name].vertices, objects[name].faces)
     return objects[name], _W["textured"][name], _W["collision"][name]
 
@@ -105,7 +106,13 @@ def _finish_image(rgb: np.ndarray, rng, s: SynthSettings) -> np.ndarray:
 
 def make_sample(index: int, seed: int, s: SynthSettings) -> tuple[Frame, int]:
     """Sample `index` of run `seed` as a Frame holding its rendered image, and the attempts it took."""
-    from hoidata.render import RenderMesh, load_background, procedural_background, random_lighting, skin_tone
+    from hoidata.render import (
+        RenderMesh,
+        load_background,
+        procedural_background,
+        random_lighting,
+        skin_tone,
+    )
 
     rng = np.random.default_rng([seed, index])
     grasp = _W["grasps"][int(rng.integers(len(_W["grasps"])))]
@@ -149,9 +156,9 @@ def _synth_shard(job):
         except Rejected as e:
             attempts += s.max_tries
             rejected.append({"frame_id": f"{seed}_{index:08d}", "reason": str(e), "path": ""})
-    pipeline._write_json(Path(out) / f"shard-{number:06d}.synth.json",
+    runner._write_json(Path(out) / f"shard-{number:06d}.synth.json",
                          {"attempts": attempts, "accepted": len(frames), "rejected_samples": rejected})
-    result = pipeline._build_shard((number, frames, kept, record, out))
+    result = runner._build_shard((number, frames, kept, record, out))
     return result[0], result[1], result[2] + rejected
 
 
@@ -171,7 +178,7 @@ def list_backgrounds(folder: Path | None) -> list[str]:
 def render_synthetic(source: Path, out: Path, count: int, mano_dir: Path, models_dir: Path, seed: int = 0,
                      backgrounds: Path | None = None, workers: int = 1, part: tuple[int, int] = (0, 1),
                      settings: SynthSettings = SynthSettings(), record: RecordSettings = RecordSettings(),
-                     records_per_shard: int = 256, progress: bool = True) -> pipeline.BuildSummary:
+                     records_per_shard: int = 256, progress: bool = True) -> runner.BuildSummary:
     """Render `count` synthetic samples from the grasps of `source` into the store `out`."""
     import time
 
@@ -187,7 +194,7 @@ def render_synthetic(source: Path, out: Path, count: int, mano_dir: Path, models
     keys = [schema.record_key("synthetic", "train", f"{seed}_{i:08d}") for i in range(count)]
     config = {"synthetic": asdict(settings), "record": asdict(record), "source": str(source), "count": count,
               "seed": seed, "backgrounds": [Path(f).name for f in files], "records_per_shard": records_per_shard}
-    pipeline._check_build_file(out, json.loads(json.dumps(config)), keys)
+    runner._check_build_file(out, json.loads(json.dumps(config)), keys)
     per = records_per_shard
 
     def make_job(n):
@@ -195,7 +202,7 @@ def render_synthetic(source: Path, out: Path, count: int, mano_dir: Path, models
         return n, idx, [keys[i] for i in idx], seed, settings, record, out
 
     init = (Path(mano_dir), Path(models_dir), source, files, record.crop_size)
-    summary, numbers, done = pipeline.run_shards(out, count, per, make_job, _synth_shard, _init, init, workers,
+    summary, numbers, done = runner.run_shards(out, count, per, make_job, _synth_shard, _init, init, workers,
                                                  part, progress, "render-synthetic")
     if done:
         stats = [json.loads((out / f"shard-{n:06d}.synth.json").read_text()) for n in numbers]
@@ -204,7 +211,7 @@ def render_synthetic(source: Path, out: Path, count: int, mano_dir: Path, models
         synth = {"source_grasps": n_grasps, "attempts": attempts, "accepted": accepted,
                  "rejection_rate": round(1.0 - accepted / attempts, 4) if attempts else 0.0}
         rejected = [Skip(r["frame_id"], r["reason"], r["path"]) for st in stats for r in st["rejected_samples"]]
-        pipeline.write_store_index(out, config, Path(models_dir), numbers, rejected, provenance={"synthetic": synth})
+        runner.write_store_index(out, config, Path(models_dir), numbers, rejected, provenance={"synthetic": synth})
         summary.index_written = True
     summary.seconds = time.perf_counter() - start
     return summary

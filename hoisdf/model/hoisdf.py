@@ -35,7 +35,13 @@ from hoisdf.model.ik import solve_ik
 from hoisdf.model.layers import MLP
 from hoisdf.model.sampling import field_guided_points, grid_points, jitter
 from hoisdf.model.sdf_decoder import SDFDecoder
-from hoisdf.model.transformer import QueryDecoder, TokenEncoder, init_transformer_weights, mano_query_mask, memory_mask
+from hoisdf.model.transformer import (
+    QueryDecoder,
+    TokenEncoder,
+    init_transformer_weights,
+    mano_query_mask,
+    memory_mask,
+)
 
 CHOICES = {
     "sampling": ("absolute", "signed", "random", "gradient"),
@@ -196,7 +202,7 @@ class HOISDF(nn.Module):
     # --- forward ------------------------------------------------------------------------------------------
     def forward(self, batch: dict, points: str = "field", noise: float = 0.0,
                 generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
-        """Run the model on an augmented batch (see :mod:`hoisdf.augment`).
+        """Run the model on an augmented batch (see :mod:`hoisdf.data.augment`).
 
         Uses ``img``, ``K``, ``hand_root``, ``obj_center``, boxes; with ``points="gt"`` also the near rows
         ``hand_near_points`` / ``obj_near_points`` (+ uniform noise of half-width ``noise``, scaled units);

@@ -158,7 +158,7 @@ def dataset_masks(frame: Frame) -> tuple[np.ndarray, np.ndarray] | None:
     if path is None:
         return None
     if frame.dataset == "dexycb":
-        from hoidata.datasets.dexycb import read_labels
+        from hoidata.datasets.dexycb_layout import read_labels
 
         seg = read_labels(path, int(frame.source["num_objects"]))["seg"]
         return seg == 255, seg == frame.object_id

@@ -23,20 +23,12 @@ import os
 from dataclasses import dataclass
 
 import numpy as np
+
 # Loading torch's compiler stack after an EGL context exists segfaults (CUDA bindings vs Mesa), so load it
 # first: any later `import torchvision` (the model) in a process that rendered (tests, the main job) then works.
 import torch._dynamo  # noqa: F401
 
-from hoidata.appearance import (  # noqa: F401  (re-exported: one import for rendering callers)
-    DirectionalLight,
-    Lighting,
-    PointLight,
-    default_lighting,
-    load_background,
-    procedural_background,
-    random_lighting,
-    skin_tone,
-)
+from hoidata.render.appearance import Lighting, default_lighting
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")  # before any pyrender / OpenGL import
 

@@ -20,13 +20,19 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from hoisdf.augment import augment_batch
-from hoisdf.checkpoint import CHECKPOINTS, LAST, rng_state, save_checkpoint, set_rng_state
 from hoisdf.config import TrainConfig
 from hoisdf.data import StoreSpec, build_dataset, make_loader
-from hoisdf.losses import HOISDFLoss
+from hoisdf.data.augment import augment_batch
 from hoisdf.model import build_model
 from hoisdf.model.sampling import noise_scale
+from hoisdf.training.checkpoint import (
+    CHECKPOINTS,
+    LAST,
+    rng_state,
+    save_checkpoint,
+    set_rng_state,
+)
+from hoisdf.training.losses import HOISDFLoss
 
 CURVE = "metrics.csv"
 

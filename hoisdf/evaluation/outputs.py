@@ -5,17 +5,14 @@ from __future__ import annotations
 
 import csv
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from hoidata.errors import DataError
 from hoidata.geometry.mirror import mirror_points
 from hoidata.store import read_index
-from hoisdf.export import write_dexycb_hpe, write_ho3d_pred
-
-if TYPE_CHECKING:
-    from hoisdf.evaluate import Collected
+from hoisdf.evaluation.inference import Collected
+from hoisdf.evaluation.submissions import write_dexycb_hpe, write_ho3d_pred
 
 TABLE = (("MJE", "rr_mje"), ("PA-MJE", "pa_mje"), ("OCE", "oce"), ("MCE", "mce"), ("ADD-S", "add_s"))
 MESH_TABLE = (("MME", "mme"), ("PA-MME", "pa_mme"), ("F@5", "f5"), ("F@15", "f15"))
@@ -99,7 +96,7 @@ def export(col: Collected, stores: list, out_dir: Path, ho3d_order=None, indexes
 def write_vis(col: Collected, meshes: list, mano, folder: Path) -> None:
     """``folder/<key>.png``: result over the input image | query points coloured by predicted SDF; ``meshes``:
     each sample's object mesh (``hoisdf.evaluate.sample_meshes``)."""
-    from hoisdf.visualize import result_panel, save_grid
+    from hoisdf.evaluation.visualize import result_panel, save_grid
 
     a = {k: col.get(k) for k in ("joints", "gt_joints", "verts", "gt_verts", "obj_pose", "gt_obj_pose")}
     where = {key: i for i, key in enumerate(col.keys)}

@@ -35,7 +35,9 @@ from hoidata.schema import (
     SEG_OBJECT_VISIBLE,
     dequantize_sdf,
 )
-from hoidata.store import KEY, iter_records, read_shard_members, read_sidecar
+from hoidata.store.codec import KEY
+from hoidata.store.shards import iter_records, read_shard_members
+from hoidata.store.verify import read_sidecar
 
 TILE = 256  # panel side, px
 COLUMNS = 4  # record cells per grid row

@@ -12,14 +12,9 @@ import numpy as np
 
 from hoidata.errors import DataError
 from hoidata.schema import META, META_FIELDS
-from hoidata.store import (
-    KEY,
-    ShardInfo,
-    StoreIndex,
-    iter_records,
-    read_index,
-    sidecar_name,
-)
+from hoidata.store.codec import KEY
+from hoidata.store.index import ShardInfo, StoreIndex, read_index
+from hoidata.store.shards import iter_records, sidecar_name
 
 
 def file_digest(path) -> tuple[int, str]:

@@ -6,15 +6,16 @@ these dataclasses and passes explicit values on.
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
+import tomllib
+
 from hoidata.datasets.dexycb import DexYCBSetting
 from hoidata.errors import DataError
-from hoidata.records import RecordSettings
+from hoidata.pipeline.records import RecordSettings
 
-PIPELINES_DIR = Path(__file__).resolve().parent.parent / "pipelines"
+PIPELINES_DIR = Path(__file__).resolve().parents[2] / "pipelines"
 
 
 @dataclass(frozen=True)

@@ -18,9 +18,10 @@ from pathlib import Path
 from tqdm import tqdm
 
 from hoidata import schema, store
-from hoidata.build_config import BuildConfig
 from hoidata.datasets.frame import Skip
 from hoidata.errors import DataError
+from hoidata.pipeline.settings import BuildConfig
+from hoidata.store.shards import write_json_atomic
 
 BUILD_FILE = "build.json"
 
@@ -96,7 +97,7 @@ def object_asset(models_dir: Path, name: str):
     import numpy as np
 
     from hoidata.objects import box21, load_object_mesh, object_mesh_path, repair_mesh
-    from hoidata.records import ObjectAsset
+    from hoidata.pipeline.records import ObjectAsset
 
     geo, report = repair_mesh(load_object_mesh(object_mesh_path(models_dir, name)))
     return ObjectAsset(name, np.asarray(geo.vertices), np.asarray(geo.faces), bool(report.watertight),
@@ -104,7 +105,7 @@ def object_asset(models_dir: Path, name: str):
 
 
 def _build_one(frame, key: str, settings):
-    from hoidata.records import build_record
+    from hoidata.pipeline.records import build_record
 
     objects = _WORKER["objects"]
     if frame.object_name not in objects:
@@ -134,7 +135,7 @@ def _build_shard(job) -> tuple[int, int, list]:
 
 
 def _write_json(path: Path, value) -> None:
-    store._write_json_atomic(path, value)
+    write_json_atomic(path, value)
 
 
 def _shard_done(out: Path, number: int, complete: set[int]) -> bool:

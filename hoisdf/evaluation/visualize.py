@@ -16,7 +16,7 @@ import numpy as np
 
 from hoidata.errors import DataError
 from hoidata.objects import BOX_EDGES, box_corners
-from hoisdf.export import write_atomic
+from hoisdf.evaluation.submissions import write_atomic
 
 PRED_COLOR = (255, 80, 40)  # predictions: orange-red
 GT_COLOR = (40, 220, 80)  # ground truth: green

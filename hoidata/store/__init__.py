@@ -1,0 +1,50 @@
+"""The store: records as WebDataset tar shards plus a zarr v3 index, written and read by one schema.
+
+- :mod:`hoidata.store.codec`: one record's members <-> bytes (``encode_record``, ``decode_record``)
+- :mod:`hoidata.store.shards`: deterministic tar shards, written atomically (``write_shard``,
+  ``ShardWriter``) and read strictly (``read_shard_members``, ``iter_records``)
+- :mod:`hoidata.store.index`: the zarr index (``write_index``, ``read_index``)
+- :mod:`hoidata.store.verify`: integrity (``verify_store``) and the shards a resumed build keeps
+- :mod:`hoidata.store.inspect`: a PNG contact sheet of a store
+
+The names most callers need are re-exported here.
+"""
+
+from hoidata.store.codec import (
+    KEY,
+    MAX_IMAGE_SIDE,
+    MAX_MEMBER_BYTES,
+    decode_record,
+    encode_record,
+)
+from hoidata.store.index import (
+    INDEX_NAME,
+    ShardInfo,
+    StoreIndex,
+    index_labels,
+    read_index,
+    shard_name,
+    to_jsonable,
+    write_index,
+)
+from hoidata.store.shards import (
+    ShardWriter,
+    iter_records,
+    read_shard_members,
+    sidecar_name,
+    write_shard,
+)
+from hoidata.store.verify import (
+    VerifyReport,
+    completed_shards,
+    file_digest,
+    read_sidecar,
+    verify_store,
+)
+
+__all__ = [
+    "INDEX_NAME", "KEY", "MAX_IMAGE_SIDE", "MAX_MEMBER_BYTES", "ShardInfo", "ShardWriter", "StoreIndex",
+    "VerifyReport", "completed_shards", "decode_record", "encode_record", "file_digest", "index_labels",
+    "iter_records", "read_index", "read_shard_members", "read_sidecar", "shard_name", "sidecar_name",
+    "to_jsonable", "verify_store", "write_index", "write_shard",
+]

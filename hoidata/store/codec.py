@@ -1,0 +1,227 @@
+"""The record codec: one record's members <-> bytes, every field checked against :mod:`hoidata.schema`.
+
+:func:`encode_record` turns arrays and a meta dict into the member bytes a shard stores (pinned JPEG and
+PNG settings, so equal records give equal bytes); :func:`decode_record` turns member bytes back into
+arrays, trusting nothing: member names, sizes, image headers, decoded shapes and dtypes and every meta
+field are checked, and a problem is a :class:`~hoidata.errors.DataError` naming the shard and the key.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+
+import cv2
+import numpy as np
+
+from hoidata.errors import DataError
+from hoidata.schema import (
+    HEATMAP,
+    IMG,
+    MEMBERS,
+    META,
+    META_FIELDS,
+    META_TYPES,
+    NO_PART,
+    SCHEMA_VERSION,
+    SDF,
+    SDF_COLUMNS,
+    SDF_DTYPE,
+    SEG,
+    check_key,
+)
+from hoidata.store.index import to_jsonable
+
+JPEG_QUALITY = 95
+PNG_COMPRESSION = 3  # pinned so the bytes do not depend on OpenCV's default
+MAX_MEMBER_BYTES = 64 << 20  # refuse absurd members before reading them into memory
+MAX_IMAGE_SIDE = 4096  # refuse absurd image headers before decoding (decompression bombs)
+KEY = "__key__"  # the record key in decoded records, as WebDataset names it
+N_PARTS = 16  # hand part labels 0..15 in sdf.npy's last column
+_PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+# --------------------------------------------------------------------------------------------------
+# records
+
+
+def _check_key(key, where) -> None:
+    """schema.check_key, as a DataError naming ``where`` and the field "key"."""
+    try:
+        check_key(key)
+    except ValueError as exc:
+        raise DataError(where, "key", str(exc)) from None
+
+
+def _is_key(key) -> bool:
+    """Whether ``key`` passes schema.check_key."""
+    try:
+        check_key(key)
+    except ValueError:
+        return False
+    return True
+
+
+def _check_images(where, key, img, seg, hm) -> None:
+    """img (S, S, 3) uint8; seg and hm (S // 2, S // 2) uint8."""
+    if not (isinstance(img, np.ndarray) and img.dtype == np.uint8 and img.ndim == 3
+            and img.shape[2] == 3 and img.shape[0] == img.shape[1] >= 2):
+        raise DataError(where, _field(key, IMG), f"expected square (S, S, 3) uint8, got {_describe(img)}")
+    half = img.shape[0] // 2
+    for member, arr in ((SEG, seg), (HEATMAP, hm)):
+        if not (isinstance(arr, np.ndarray) and arr.dtype == np.uint8 and arr.shape == (half, half)):
+            raise DataError(where, _field(key, member), f"expected ({half}, {half}) uint8, got {_describe(arr)}")
+
+
+def _check_sdf(where, key, sdf) -> None:
+    """int16 (N, 6) with part labels in -1..15."""
+    width = len(SDF_COLUMNS)
+    if not (isinstance(sdf, np.ndarray) and sdf.dtype == SDF_DTYPE and sdf.ndim == 2 and sdf.shape[1] == width):
+        want = f"{np.dtype(SDF_DTYPE).name} (N, {width})"
+        raise DataError(where, _field(key, SDF), f"expected {want}, got {_describe(sdf)}")
+    part = sdf[:, -1]
+    if part.size and (part.min() < NO_PART or part.max() >= N_PARTS):
+        raise DataError(where, _field(key, SDF), f"part labels must lie in {NO_PART}..{N_PARTS - 1}")
+
+
+def _field(key, member: str) -> str:
+    """The tar member name ``<key>.<member>`` an error refers to (just the member when the key is unknown)."""
+    return member if key is None else f"{key}.{member}"
+
+
+def _describe(arr) -> str:
+    return f"{arr.dtype} {arr.shape}" if isinstance(arr, np.ndarray) else type(arr).__name__
+
+
+def _check_meta(meta, where, key, n_sdf: int) -> dict:
+    """Check a JSON-level meta dict against META_FIELDS; return it with shaped fields as numpy arrays."""
+    name = _field(key, META)
+    if not isinstance(meta, dict):
+        raise DataError(where, name, f"expected a JSON object, got {type(meta).__name__}")
+    # the version first: a record of another schema version differs in its fields too
+    version = meta.get("schema_version")
+    if version != SCHEMA_VERSION or isinstance(version, bool):
+        raise DataError(where, name, f"'schema_version': {version!r}, this reader knows {SCHEMA_VERSION}")
+    missing, extra = sorted(set(META_FIELDS) - set(meta)), sorted(set(meta) - set(META_FIELDS))
+    if missing or extra:
+        raise DataError(where, name, f"missing fields {missing}, unexpected fields {extra}")
+    out = {}
+    for field_name, (shape, _) in META_FIELDS.items():
+        value = meta[field_name]
+        if shape is None:
+            want = META_TYPES.get(field_name)
+            # bool is an int in Python; a flag where a number belongs (or back) is still wrong
+            if want is not None and (not isinstance(value, want) or (want is int and isinstance(value, bool))):
+                raise DataError(where, name, f"{field_name!r}: expected {want.__name__}, got {type(value).__name__}")
+            out[field_name] = value
+            continue
+        try:
+            arr = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise DataError(where, name, f"{field_name!r}: expected numbers of shape {shape}") from None
+        if arr.shape != shape or not np.isfinite(arr).all():
+            raise DataError(where, name, f"{field_name!r}: expected finite numbers of shape {shape}, got {arr.shape}")
+        out[field_name] = arr
+    if key is not None and out["key"] != key:
+        raise DataError(where, name, f"'key': {out['key']!r} differs from the record key")
+    counts = out["sdf_counts"]
+    if (counts < 0).any() or (counts != np.round(counts)).any() or counts.sum() != n_sdf:
+        raise DataError(where, name, f"'sdf_counts': {counts.tolist()} must be counts summing to {n_sdf} rows")
+    out["sdf_counts"] = counts.astype(np.int64)
+    return out
+
+
+def encode_record(key: str, img: np.ndarray, seg: np.ndarray, heatmap: np.ndarray, sdf: np.ndarray,
+                  meta: dict) -> dict[str, bytes]:
+    """Arrays and labels -> {member name: bytes}; the same inputs always give the same bytes.
+
+    img is RGB. meta must hold every META_FIELDS field (numpy values allowed); it is checked exactly as a
+    reader would check it, so a record that encodes also decodes.
+    """
+    _check_key(key, None)
+    _check_images(None, key, img, seg, heatmap)
+    _check_sdf(None, key, sdf)
+    plain = to_jsonable(meta, None, _field(key, META))
+    _check_meta(plain, None, key, len(sdf))
+    members = {IMG: _imencode(".jpg", np.ascontiguousarray(img[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])}
+    for member, arr in ((SEG, seg), (HEATMAP, heatmap)):
+        members[member] = _imencode(".png", np.ascontiguousarray(arr), [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION])
+    buf = io.BytesIO()
+    np.save(buf, np.ascontiguousarray(sdf), allow_pickle=False)  # C order, so the header is always the same
+    members[SDF] = buf.getvalue()
+    # sorted keys and fixed separators: byte-identical JSON for equal labels
+    text = json.dumps(plain, sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False)
+    members[META] = text.encode()
+    return {member: members[member] for member in MEMBERS}
+
+
+def _imencode(ext: str, arr: np.ndarray, params: list[int]) -> bytes:
+    ok, buf = cv2.imencode(ext, arr, params)
+    if not ok:
+        raise RuntimeError(f"OpenCV could not encode a {arr.shape} {arr.dtype} image as {ext}")
+    return buf.tobytes()
+
+
+def _image_size(data: bytes, member: str) -> tuple[int, int] | None:
+    """(width, height) from a PNG's IHDR or a JPEG's SOF header without decoding; None if not found."""
+    if member != IMG:
+        if data[:8] == _PNG_MAGIC and data[12:16] == b"IHDR" and len(data) >= 24:
+            return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+        return None
+    pos = 2 if data[:2] == b"\xff\xd8" else len(data)
+    while pos + 9 <= len(data) and data[pos] == 0xFF:
+        marker, length = data[pos + 1], int.from_bytes(data[pos + 2:pos + 4], "big")
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):  # start of frame, not DHT/JPG/DAC
+            return int.from_bytes(data[pos + 7:pos + 9], "big"), int.from_bytes(data[pos + 5:pos + 7], "big")
+        pos += 2 + length
+    return None
+
+
+def _decode_image(data: bytes, where, key, member: str) -> np.ndarray:
+    """JPEG -> RGB (H, W, 3) uint8, PNG -> (H, W) uint8; the header is checked before decoding."""
+    size = _image_size(data, member)
+    kind = "JPEG" if member == IMG else "8-bit grey PNG"
+    if size is None or not 0 < max(size) <= MAX_IMAGE_SIDE:
+        raise DataError(where, _field(key, member), f"not a {kind} of at most {MAX_IMAGE_SIDE} px (header: {size})")
+    flag = cv2.IMREAD_COLOR if member == IMG else cv2.IMREAD_UNCHANGED
+    arr = cv2.imdecode(np.frombuffer(data, np.uint8), flag)
+    if arr is None:
+        raise DataError(where, _field(key, member), f"OpenCV cannot decode this {kind}")
+    return np.ascontiguousarray(arr[..., ::-1]) if member == IMG else arr
+
+
+def _decode_sdf(data: bytes, where, key) -> np.ndarray:
+    try:
+        return np.load(io.BytesIO(data), allow_pickle=False)
+    except (ValueError, OSError, EOFError) as exc:  # allow_pickle=False: an object array is refused here
+        raise DataError(where, _field(key, SDF), f"not a readable .npy array ({exc})") from None
+
+
+def decode_record(members: dict[str, bytes], where: str) -> dict:
+    """{member name: bytes} (plus an optional ``__key__``, as WebDataset samples have) -> decoded record.
+
+    Returns {"__key__": key, IMG: RGB uint8, SEG: uint8, HEATMAP: uint8, SDF: int16 (N, 6), META: dict}
+    with META's shaped fields as numpy arrays. Other ``__*__`` entries (``__url__``...) are ignored.
+    Any deviation from the schema raises DataError naming ``where`` (the shard) and the key/member.
+    """
+    key = members.get(KEY)
+    if key is not None and not isinstance(key, str):
+        raise DataError(where, KEY, f"expected a string, got {type(key).__name__}")
+    given = {name for name in members if not (name.startswith("__") and name.endswith("__"))}
+    if given != set(MEMBERS):
+        raise DataError(where, key, f"members {sorted(given)}, expected exactly {list(MEMBERS)}")
+    for name in MEMBERS:
+        if not isinstance(members[name], (bytes, bytearray, memoryview)) or len(members[name]) > MAX_MEMBER_BYTES:
+            raise DataError(where, _field(key, name), f"expected at most {MAX_MEMBER_BYTES} bytes")
+    img = _decode_image(members[IMG], where, key, IMG)
+    seg = _decode_image(members[SEG], where, key, SEG)
+    hm = _decode_image(members[HEATMAP], where, key, HEATMAP)
+    _check_images(where, key, img, seg, hm)
+    sdf = _decode_sdf(members[SDF], where, key)
+    _check_sdf(where, key, sdf)
+    try:
+        plain = json.loads(bytes(members[META]).decode("utf-8"))
+    except (UnicodeDecodeError, ValueError, RecursionError) as exc:  # RecursionError: absurdly nested JSON
+        raise DataError(where, _field(key, META), f"not UTF-8 JSON ({type(exc).__name__})") from None
+    meta = _check_meta(plain, where, key, len(sdf))
+    return {KEY: meta["key"], IMG: img, SEG: seg, HEATMAP: hm, SDF: sdf, META: meta}

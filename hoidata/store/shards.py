@@ -1,0 +1,250 @@
+"""Shards: records as deterministic WebDataset tar files, written atomically, read back strictly.
+
+A store folder holds::
+
+    shard-000000.tar   records in order, each record's members in schema order (see hoidata.schema)
+    shard-000000.json  sidecar: the shard's ShardInfo, written right after the shard appears (resume)
+    ...
+    index.zarr/        zarr v3 group (:mod:`hoidata.store.index`): labels, shard list, meshes, provenance
+
+A build plans its records as fixed runs of ``records_per_shard``; after an interruption it asks
+:func:`hoidata.store.verify.completed_shards` which shards are already good, rewrites only the others
+with :func:`write_shard` (or streams a straight run through :class:`ShardWriter`) and ends with
+:func:`hoidata.store.index.write_index`. Nothing half-written ever carries a final name: shards are
+written to ``<name>.tmp`` and renamed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import tarfile
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+
+from hoidata.errors import DataError
+from hoidata.schema import MEMBERS
+from hoidata.store.codec import (
+    KEY,
+    MAX_MEMBER_BYTES,
+    _check_key,
+    _is_key,
+    decode_record,
+)
+from hoidata.store.index import INDEX_NAME, ShardInfo, _open_index, shard_name
+
+# --------------------------------------------------------------------------------------------------
+# shards
+
+
+def sidecar_name(number: int) -> str:
+    """File name of shard ``number``'s sidecar: ``shard-%06d.json``."""
+    return f"shard-{number:06d}.json"
+
+
+class _HashingWriter:
+    """File wrapper that hashes and counts what tarfile writes, so a shard is never read back to hash it."""
+
+    def __init__(self, file):
+        self._file, self.sha256, self.size = file, hashlib.sha256(), 0
+
+    def write(self, data) -> int:
+        self._file.write(data)
+        self.sha256.update(data)
+        self.size += len(data)
+        return len(data)
+
+    def tell(self) -> int:
+        return self.size
+
+
+class _OpenShard:
+    """One shard being written under ``<name>.tmp``; ``finish`` renames it into place and writes the sidecar.
+
+    tarfile is used directly, not webdataset's TarWriter: that one stamps the current time (a float,
+    which forces an extra PAX header per member) and a "bigdata" owner unless told otherwise, and sorts
+    members alphabetically rather than in schema order. Here every header field is pinned (mtime 0,
+    uid/gid 0, empty owner names, mode 0o644), so equal records give byte-identical shards.
+    """
+
+    def __init__(self, store_dir: Path, number: int):
+        self.number, self.path = number, store_dir / shard_name(number)
+        self.tmp = self.path.with_name(self.path.name + ".tmp")
+        self._file = open(self.tmp, "wb")
+        self._hash = _HashingWriter(self._file)
+        self._tar = tarfile.open(fileobj=self._hash, mode="w", format=tarfile.PAX_FORMAT)
+        self.keys: list[str] = []
+
+    def add(self, key: str, members: dict[str, bytes]) -> None:
+        _check_members_to_write(key, members)
+        for member in MEMBERS:  # schema order, whatever order the dict has
+            data = bytes(members[member])
+            info = tarfile.TarInfo(f"{key}.{member}")
+            info.size, info.mtime, info.mode, info.type = len(data), 0, 0o644, tarfile.REGTYPE
+            info.uid = info.gid = 0
+            info.uname = info.gname = ""
+            self._tar.addfile(info, io.BytesIO(data))
+        self.keys.append(key)
+
+    def finish(self) -> ShardInfo:
+        self._tar.close()  # end-of-archive blocks and padding to the 10 KiB record size
+        self._file.flush()
+        os.fsync(self._file.fileno())  # the content is on disk before the name says "complete"
+        self._file.close()
+        os.replace(self.tmp, self.path)
+        info = ShardInfo(self.number, self.path.name, len(self.keys), self._hash.sha256.hexdigest(),
+                         self._hash.size, self.keys[0], self.keys[-1])
+        write_json_atomic(self.path.with_name(sidecar_name(self.number)), info.to_dict())
+        return info
+
+    def abort(self) -> None:
+        self._file.close()
+        self.tmp.unlink(missing_ok=True)
+
+
+def _check_members_to_write(key: str, members: dict[str, bytes]) -> None:
+    """A record to write: a valid key and bytes for exactly the schema's members."""
+    _check_key(key, None)
+    if set(members) != set(MEMBERS) or not all(isinstance(v, (bytes, bytearray, memoryview)) for v in members.values()):
+        raise DataError(None, key, f"expected bytes for exactly {list(MEMBERS)}, got {sorted(members)}")
+
+
+def write_json_atomic(path: Path, value) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(value, sort_keys=True, indent=1) + "\n")
+    os.replace(tmp, path)
+
+
+def write_shard(store_dir, number: int, records: Iterable[tuple[str, dict[str, bytes]]]) -> ShardInfo:
+    """Write one complete shard from (key, members) pairs: the unit of work of a resumable build."""
+    store_dir = Path(store_dir)
+    store_dir.mkdir(parents=True, exist_ok=True)
+    shard = _OpenShard(store_dir, number)
+    try:
+        for key, members in records:
+            shard.add(key, members)
+        if not shard.keys:
+            raise ValueError(f"shard {number}: no records")
+        return shard.finish()
+    except BaseException:
+        shard.abort()
+        raise
+
+
+class ShardWriter:
+    """Streams records, in order, into shards of ``records_per_shard`` records each.
+
+    ``add`` returns the ShardInfo of a shard it just completed (else None); ``close`` finishes the last,
+    partial shard and returns every shard written. Used as a context manager, an exception discards the
+    unfinished shard instead of completing it.
+    """
+
+    def __init__(self, store_dir, records_per_shard: int, first_shard: int = 0):
+        if records_per_shard < 1:
+            raise ValueError(f"records_per_shard must be >= 1, got {records_per_shard}")
+        self.store_dir = Path(store_dir)
+        self.store_dir.mkdir(parents=True, exist_ok=True)
+        self.records_per_shard, self.next_shard = records_per_shard, first_shard
+        self.shards: list[ShardInfo] = []
+        self._open: _OpenShard | None = None
+
+    def add(self, key: str, members: dict[str, bytes]) -> ShardInfo | None:
+        if self._open is None:
+            self._open = _OpenShard(self.store_dir, self.next_shard)
+        self._open.add(key, members)
+        return self._finish() if len(self._open.keys) == self.records_per_shard else None
+
+    def _finish(self) -> ShardInfo:
+        shard, self._open = self._open, None
+        info = shard.finish()
+        self.shards.append(info)
+        self.next_shard += 1
+        return info
+
+    def close(self) -> list[ShardInfo]:
+        if self._open is not None and self._open.keys:
+            self._finish()
+        self.abort()  # an opened shard whose first record was refused
+        return list(self.shards)
+
+    def abort(self) -> None:
+        """Drop the unfinished shard (its .tmp file); completed shards stay."""
+        if self._open is not None:
+            self._open.abort()
+            self._open = None
+
+    def __enter__(self) -> ShardWriter:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+# --------------------------------------------------------------------------------------------------
+# reading, verification, resume
+
+
+def _check_tar_end(file, offset: int, path) -> None:
+    """tarfile stops silently at a damaged header: only zeros (>= 2 blocks) may follow the last member."""
+    size = os.fstat(file.fileno()).st_size
+    file.seek(offset)
+    clean = size - offset >= 2 * tarfile.BLOCKSIZE
+    while clean and (chunk := file.read(1 << 20)):
+        clean = not chunk.strip(b"\0")
+    if not clean:
+        raise DataError(path, None, f"the tar stream breaks off at byte {offset} of {size}: truncated or corrupt")
+
+
+def read_shard_members(path) -> Iterator[dict[str, bytes]]:
+    """Raw records of one shard, in order: {"__key__": key, member name: bytes}, names not yet checked."""
+    with open(path, "rb") as file:
+        try:
+            tar = tarfile.open(fileobj=file, mode="r:")  # "r:" -- never a compressed stream
+        except tarfile.TarError as exc:
+            raise DataError(path, None, f"not a tar file ({exc})") from None
+        record, seen = None, set()
+        try:
+            for info in tar:
+                key, _, member = info.name.partition(".")
+                if not info.isreg() or not _is_key(key) or not member or info.size > MAX_MEMBER_BYTES:
+                    raise DataError(path, info.name, f"not a <key>.<member> file of at most {MAX_MEMBER_BYTES} bytes")
+                if record is None or key != record[KEY]:
+                    if record is not None:
+                        yield record
+                    if key in seen:
+                        raise DataError(path, key, "the key appears twice (records must be unique and contiguous)")
+                    seen.add(key)
+                    record = {KEY: key}
+                if member in record:
+                    raise DataError(path, info.name, "the member appears twice")
+                record[member] = tar.extractfile(info).read()
+        except (tarfile.TarError, EOFError) as exc:
+            key = None if record is None else record[KEY]
+            raise DataError(path, key, f"truncated or corrupt tar ({exc})") from None
+        _check_tar_end(file, tar.offset, path)
+        if record is not None:
+            yield record
+
+
+def _shard_paths(source) -> list[Path]:
+    """A store folder (its index's shard list, else every shard-*.tar), one shard file, or a list of them."""
+    if isinstance(source, (str, os.PathLike)):
+        source = Path(source)
+        if not source.is_dir():
+            return [source]
+        if (source / INDEX_NAME).exists():
+            return [source / s.name for s in _open_index(source)[2]]
+        return sorted(source.glob("shard-*.tar"))  # zero-padded numbers: name order is shard order
+    return [Path(p) for p in source]
+
+
+def iter_records(source) -> Iterator[dict]:
+    """Decode every record of a store folder or of the given shard files, in order (see decode_record)."""
+    for path in _shard_paths(source):
+        for members in read_shard_members(path):
+            yield decode_record(members, str(path))
