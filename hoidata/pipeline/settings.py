@@ -15,7 +15,17 @@ from hoidata.datasets.dexycb import DexYCBSetting
 from hoidata.errors import DataError
 from hoidata.pipeline.records import RecordSettings
 
-PIPELINES_DIR = Path(__file__).resolve().parents[2] / "pipelines"
+# A checkout's pipelines/ folder; an installed wheel carries the same files as the package hoidata.presets.
+CHECKOUT_PIPELINES = Path(__file__).resolve().parents[2] / "pipelines"
+
+
+def pipelines_dir() -> Path:
+    """Where the named pipelines live: the checkout's ``pipelines/`` when there is one, else the installed copy."""
+    if CHECKOUT_PIPELINES.is_dir():
+        return CHECKOUT_PIPELINES
+    from importlib.resources import files
+
+    return Path(str(files("hoidata.presets")))
 
 
 @dataclass(frozen=True)
@@ -98,7 +108,7 @@ def resolve_pipeline(name_or_path: str) -> Path:
     """'dexycb' -> pipelines/dexycb.toml; a path is used as it is."""
     path = Path(name_or_path)
     if path.suffix != ".toml":
-        path = PIPELINES_DIR / f"{name_or_path}.toml"
+        path = pipelines_dir() / f"{name_or_path}.toml"
     if not path.is_file():
         raise DataError(path, None, "pipeline config not found")
     return path
