@@ -20,5 +20,5 @@ PYTHON=${PYTHON:-python3}
 .venv/bin/python -m pip install -q --upgrade pip
 # torch first, pinned: pip finds these on local disk here; a looser spec would pull a newer CUDA build.
 .venv/bin/python -m pip install -q "torch==2.14.1" "torchvision==0.29.1"
-.venv/bin/python -m pip install -q -e ".[test]"
+.venv/bin/python -m pip install -q -e ".[test,docs]"
 echo "setup: done ($(.venv/bin/python -c 'import hoidata, torch; print("hoidata", hoidata.__version__, "torch", torch.__version__)'))"

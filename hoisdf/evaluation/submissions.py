@@ -211,9 +211,9 @@ def read_dexycb_hpe(path) -> tuple[np.ndarray, np.ndarray]:
         ids (N,) int64 and joints (N, 21, 3) metres, in file order.
 
     Raises:
-        DataError naming the file and the 1-based line for a line without exactly 64 comma-separated
-        fields (blank lines included, as the toolkit), a non-integer index, a non-numeric or non-finite
-        coordinate, or an index seen on an earlier line (the toolkit would silently keep the last one).
+        DataError: naming the file and the 1-based line, for a line without exactly 64 comma-separated
+            fields (blank lines included, as the toolkit), a non-integer index, a non-numeric or non-finite
+            coordinate, or an index seen on an earlier line (the toolkit would silently keep the last one).
     """
     path = Path(path)
     ids, rows, seen = [], [], {}
