@@ -26,7 +26,7 @@ import re
 
 import numpy as np
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: sample_index
 
 IMG = "img.jpg"
 SEG = "seg.png"
@@ -73,12 +73,15 @@ META_FIELDS = {
     "sdf_counts": ((3,), "hand, object and uniform sample counts in sdf.npy"),
     "seg_iou": ((2,), "IoU of our visible hand / object masks with the dataset's own segmentation "
                       "(a quality statistic); -1 where the dataset has none"),
+    "sample_index": (None, "DexYCB: the sample's index in the dex-ycb-toolkit's enumeration of its split (the id "
+                           "of HPE result files and of gSDF's frame lists); -1 for other datasets"),
     "source": (None, "provenance dict from the reader"),
 }
 
 # JSON types of the scalar meta fields; shaped fields are numeric arrays
 META_TYPES = {"schema_version": int, "key": str, "dataset": str, "split": str, "frame_id": str, "side": str,
-              "mirrored": bool, "tip_convention": str, "object_name": str, "object_id": int, "source": dict}
+              "mirrored": bool, "tip_convention": str, "object_name": str, "object_id": int, "sample_index": int,
+              "source": dict}
 
 _KEY_RE = re.compile(r"[A-Za-z0-9_\-]+")  # used with fullmatch: no dots, slashes or trailing newline
 

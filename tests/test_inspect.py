@@ -52,7 +52,8 @@ def make_record(i: int):
     sdf[:, 5] = rng.integers(-1, 16, n)
     meta = {"schema_version": SCHEMA_VERSION, "key": key, "dataset": "toy", "split": "train",
             "frame_id": f"f{i:04d}", "side": "right", "mirrored": False, "tip_convention": "manopth",
-            "object_name": "002_master_chef_can", "object_id": 1, "source": {"index": i}}
+            "object_name": "002_master_chef_can", "object_id": 1, "sample_index": i,
+            "source": {"index": i}}
     for name, (shape, _) in META_FIELDS.items():
         if shape is not None:
             meta[name] = rng.normal(size=shape)

@@ -21,9 +21,11 @@ from hoidata.datasets.dexycb_frames import sequence_frames
 from hoidata.datasets.dexycb_layout import (
     SEQUENCES_PER_SUBJECT,
     SUBJECTS,
+    ToolkitSplit,
     list_sequences,
     read_meta,
     split_members,
+    toolkit_split,
 )
 from hoidata.datasets.frame import Frame, Skip
 from hoidata.errors import DataError
@@ -73,6 +75,11 @@ class DexYCBReader:
         setting: a :class:`DexYCBSetting` (see SETTINGS).
         models_dir: YCB models folder, default ``root/models`` (proximity filter only).
         on_error: 'raise' stops at the first malformed file; 'skip' records it in ``skipped``.
+
+    Every frame carries ``sample_index``, its index in the toolkit's enumeration of the split
+    (:class:`~hoidata.datasets.dexycb_layout.ToolkitSplit`, in ``toolkit`` after :meth:`frames` started);
+    frames this setting leaves out still count. If a ``meta.yml`` cannot be read the ids are unknown:
+    ``toolkit`` is None and every frame gets -1 (in 'skip' mode; 'raise' stops).
     """
 
     root: Path
@@ -82,6 +89,7 @@ class DexYCBReader:
     models_dir: Path | None = None
     on_error: str = "raise"
     skipped: list[Skip] = field(default_factory=list)
+    toolkit: ToolkitSplit | None = field(default=None, init=False)
 
     def __post_init__(self):
         self.root, self.mano_dir = Path(self.root), Path(self.mano_dir)
@@ -105,6 +113,10 @@ class DexYCBReader:
                     yield s, i, seq_dir
 
     def frames(self) -> Iterator[Frame]:
+        try:
+            self.toolkit = toolkit_split(self.root, self.setting.setup, self.split)
+        except DataError as e:
+            self._fail(DataError(e.path, e.field, f"{e.problem}; the toolkit's sample ids are unknown"), "toolkit ids")
         for s, i, seq_dir in self.sequences():
             try:
                 meta = read_meta(seq_dir)

@@ -25,10 +25,15 @@ from hoidata.errors import DataError
 from hoidata.hand.pose import pca_to_axis_angle
 
 
+# The one marker the toolkit's own evaluators skip a sample for (hpe_eval: joint_3d all -1): a result file
+# that leaves out only such samples is complete.
+TOOLKIT_INVALID = "hand annotation missing (joint_3d is -1)"
+
+
 def invalid_reason(labels: dict, grasp: int) -> str | None:
     """Why a frame's annotation cannot be used, or None if it can (the toolkit's invalid markers)."""
     if np.all(labels["joint_3d"] == -1):
-        return "hand annotation missing (joint_3d is -1)"
+        return TOOLKIT_INVALID
     if not np.any(labels["pose_m"]):
         return "MANO pose missing (pose_m is all zeros)"
     if not np.any(labels["pose_y"][grasp]):
@@ -74,7 +79,8 @@ def sequence_frames(reader, s: int, seq_index: int, seq_dir: Path, meta: dict) -
                 continue
             reason = invalid_reason(labels, grasp)
             if reason:
-                reader.skipped.append(Skip(fid, reason, str(label_path(seq_dir, serial, f))))
+                sample = -1 if reader.toolkit is None else reader.toolkit.sample_index(subject, seq_dir.name, serial, f)
+                reader.skipped.append(Skip(fid, reason, str(label_path(seq_dir, serial, f)), sample))
                 continue
             kept.append((f, fid, labels))
         try:
@@ -95,11 +101,13 @@ def _frames_for_camera(reader, kept: list, ctx: dict) -> Iterator[Frame]:
     full = pca_to_axis_angle(pose_m[:, :48], mano.hands_components.double().numpy(), mano.hands_mean.double().numpy())
     transl = pose_m[:, 48:51]
     distances = _hand_object_distances(reader, mano, full, ctx, transl, kept)
-    limit = reader.setting.proximity_mm
+    limit, toolkit = reader.setting.proximity_mm, reader.toolkit
     for k, (f, fid, lab) in enumerate(kept):
         lpath = label_path(ctx["seq_dir"], ctx["serial"], f)
+        sample = -1 if toolkit is None else toolkit.sample_index(ctx["subject"], ctx["seq_dir"].name, ctx["serial"], f)
         if distances is not None and distances[k] * 1000.0 > limit:
-            reader.skipped.append(Skip(fid, f"hand-object distance {distances[k] * 1000:.1f} mm > {limit} mm", str(lpath)))
+            reader.skipped.append(Skip(fid, f"hand-object distance {distances[k] * 1000:.1f} mm > {limit} mm", str(lpath),
+                                       sample))
             continue
         pose = np.eye(4)
         pose[:3] = lab["pose_y"][ctx["grasp"]]
@@ -111,7 +119,7 @@ def _frames_for_camera(reader, kept: list, ctx: dict) -> Iterator[Frame]:
             mano_transl=transl[k], joints_3d=joints, joints_2d=lab["joint_2d"][0].astype(np.float64),
             tip_convention="manopth", mirror=reader.setting.mirror_left and ctx["side"] == "left",
             fix_left_shapedirs=reader.setting.fix_left_shapedirs,
-            segmentation_path=lpath,
+            segmentation_path=lpath, sample_index=sample,
             source={"labels": str(lpath), "subject": ctx["subject"], "sequence": ctx["seq_dir"].name,
                     "sequence_index": ctx["seq_index"], "serial": ctx["serial"], "frame": f,
                     "num_objects": len(lab["pose_y"])},

@@ -9,6 +9,7 @@ reads and raises :class:`~hoidata.errors.DataError` naming the file and the key.
 from __future__ import annotations
 
 import zipfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -62,6 +63,51 @@ def split_members(setup: str, split: str) -> tuple[list[int], list[int], callabl
     if setup not in table:
         raise ValueError(f"unknown DexYCB setup {setup!r}; expected one of {sorted(table)}")
     return table[setup][split]
+
+
+@dataclass(frozen=True)
+class ToolkitSplit:
+    """The dex-ycb-toolkit's sample enumeration of one split (``DexYCBDataset.__init__``, e.g. ``s0_train``).
+
+    The toolkit numbers the samples of a split sequence by sequence (subjects in order, each subject's sorted
+    sequence folders at the split's positions), then camera (the split's serials, in ``SERIALS`` order), then
+    frame: ``index = first[sequence] + c * num_frames + f``. Every selected camera and frame counts, whether
+    or not a reader later keeps it, so these are the ids of result files and published frame lists.
+    """
+
+    name: str  # '<setup>_<split>', the toolkit's get_dataset name
+    serials: tuple[str, ...]  # the split's cameras, toolkit order
+    first: dict  # '<subject>/<sequence folder>' -> (index of its first sample, num_frames)
+    size: int  # len(get_dataset(name))
+
+    def sample_index(self, subject: str, sequence: str, serial: str, frame: int) -> int:
+        """The toolkit's index of one sample; ValueError if the sequence, camera or frame is not in the split."""
+        start, frames = self.first.get(f"{subject}/{sequence}", (None, 0))
+        if start is None or serial not in self.serials or not 0 <= frame < frames:
+            raise ValueError(f"{subject}/{sequence}/{serial} frame {frame} is not a sample of {self.name}")
+        return start + self.serials.index(serial) * frames + frame
+
+
+def toolkit_split(root: Path, setup: str, split: str) -> ToolkitSplit:
+    """Enumerate a split as the toolkit does, from each selected sequence's ``meta.yml`` (``num_frames``).
+
+    A subject folder that is missing adds nothing (the toolkit would stop; the reader's
+    ``complete_subjects`` check reports it). Raises DataError naming an unreadable ``meta.yml``: every
+    later id depends on it.
+    """
+    subjects, cams, keep = split_members(setup, split)
+    first, total = {}, 0
+    for s in subjects:
+        for i, seq_dir in enumerate(list_sequences(Path(root), SUBJECTS[s])):
+            if not keep(i):
+                continue
+            path = seq_dir / "meta.yml"
+            frames = _read_yaml(path, ("num_frames",))["num_frames"]
+            if not isinstance(frames, int) or isinstance(frames, bool) or frames < 0:
+                raise DataError(path, "num_frames", f"expected a non-negative integer, got {frames!r}")
+            first[f"{SUBJECTS[s]}/{seq_dir.name}"] = (total, frames)
+            total += len(cams) * frames
+    return ToolkitSplit(f"{setup}_{split}", tuple(SERIALS[c] for c in cams), first, total)
 
 
 def _read_yaml(path: Path, required: tuple[str, ...]) -> dict:

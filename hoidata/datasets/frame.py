@@ -45,6 +45,7 @@ class Frame:
     mirror: bool = False  # True: a left hand that a "full" setting asks to mirror to a right hand
     fix_left_shapedirs: bool = True  # left hands: the MANO_LEFT shape convention the labels were made with
     segmentation_path: Path | None = None  # the dataset's own segmentation, if any
+    sample_index: int = -1  # DexYCB: index in the toolkit's enumeration of the split (result-file id); else -1
     source: dict = field(default_factory=dict)  # provenance: raw file paths and indices
     image: np.ndarray | None = None  # (H, W, 3) RGB already in memory (synthetic renders); else read image_path
     labels: np.ndarray | None = None  # (H, W) in-memory label map of the render that made `image`: 1 hand, 2 object
@@ -92,3 +93,4 @@ class Skip:
     frame_id: str
     reason: str
     path: str = ""
+    sample_index: int = -1  # DexYCB: the frame's id in the toolkit's enumeration of its split; else -1

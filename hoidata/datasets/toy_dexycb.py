@@ -38,6 +38,7 @@ class ToyDexYCBSize:
     sequences: int = 5  # per subject; the toolkit's i % 5 == 4 rule puts the last in val/test
     serials: tuple[int, ...] = (0, 6, 7)  # indices into SERIALS: s2 train / val / test
     frames: int = 10
+    invalid_frame: int = INVALID_FRAME  # marked invalid (every camera) in sequences 2, 5, 8, ...
 
 
 def sequence_side(seq: int) -> str:
@@ -94,7 +95,7 @@ def write_sequence(root, renderer, manos, objects, subject_pos, s, seq, size, ca
         "ycb_grasp_ind": 0, "mano_sides": [side], "mano_calib": [calib_name], "extrinsics": "20200702_151821"})
     _write_pose_npz(seq_dir, mano, sequence, other_pose)
     skin = skin_tone(rng)  # one skin tone per sequence, seen by every camera
-    invalid = INVALID_FRAME if seq % 3 == 2 and size.frames > INVALID_FRAME else None
+    invalid = size.invalid_frame if seq % 3 == 2 and size.frames > size.invalid_frame else None
     for serial in serials:
         (seq_dir / serial).mkdir(parents=True, exist_ok=True)
         look = toy_scenes.random_look(rng, renderer.width, renderer.height, skin)

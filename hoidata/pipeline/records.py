@@ -199,5 +199,6 @@ def record_meta(frame: Frame, key: str, box: np.ndarray, K_crop: np.ndarray, han
         "mano_pose": frame.mano_pose, "mano_betas": frame.mano_betas, "mano_transl": frame.mano_transl,
         "object_name": frame.object_name, "object_id": int(frame.object_id), "object_pose": frame.object_pose,
         "hand_box": box_from_points(project(hand, K_crop)), "object_box": box_from_points(project(obj_verts, K_crop)),
-        "sdf_counts": np.asarray(counts, dtype=np.int64), "source": frame.source,
+        "sdf_counts": np.asarray(counts, dtype=np.int64), "sample_index": int(frame.sample_index),
+        "source": frame.source,
     }

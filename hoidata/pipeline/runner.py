@@ -191,10 +191,27 @@ def build_store(cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path, 
     summary, numbers, done = run_shards(out, len(keys), per, make_job, _build_shard, _init_worker, init, workers,
                                         part, progress, "build-sdf")
     if done:
-        write_store_index(out, cfg.as_dict(), models_dir, numbers, reader_skips)
+        write_store_index(out, cfg.as_dict(), models_dir, numbers, reader_skips, toolkit_provenance(cfg, root))
         summary.index_written = True
     summary.seconds = time.perf_counter() - start
     return summary
+
+
+def toolkit_provenance(cfg: BuildConfig, root: Path) -> dict:
+    """DexYCB: ``{"toolkit_splits": {split: {"name": "s0_test", "size": N}}}``, the toolkit's enumeration the
+    records' ``sample_index`` refers to (result files must hold every valid id of it); else {}."""
+    if cfg.dataset.name != "dexycb":
+        return {}
+    from hoidata.datasets.dexycb_layout import toolkit_split
+
+    splits = {}
+    for split in cfg.dataset.splits:
+        try:
+            enum = toolkit_split(root, cfg.dataset.setup, split)
+            splits[split] = {"name": enum.name, "size": enum.size}
+        except DataError:  # the reader recorded the unreadable meta.yml; the ids are unknown
+            splits[split] = {"name": f"{cfg.dataset.setup}_{split}", "size": None}
+    return {"toolkit_splits": splits}
 
 
 def run_shards(out: Path, n_items: int, per: int, make_job, shard_fn, init, initargs, workers: int,
@@ -244,7 +261,7 @@ def write_store_index(out: Path, config: dict, models_dir: Path, numbers: list[i
     """Gather every shard's labels and skips and write index.zarr (config and provenance are recorded)."""
     from hoidata.objects import load_simplified
 
-    shards, metas, skipped = [], [], [{"frame_id": s.frame_id, "reason": s.reason, "path": s.path} for s in reader_skips]
+    shards, metas, skipped = [], [], list(reader_skips)  # Skips keep their toolkit sample_index
     for n in numbers:
         skipped += json.loads((out / _extra_name(n)).read_text())["skipped"]
         if (out / store.shard_name(n)).is_file():

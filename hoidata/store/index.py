@@ -38,6 +38,7 @@ LABEL_CHUNK_ROWS = 32768
 INDEX_LABELS = {name: np.float32 for name in ("joints_3d", "joints_2d", "K", "hand_root", "mano_pose", "mano_betas",
                                               "mano_transl", "object_pose", "hand_box", "object_box")}
 INDEX_LABELS["object_id"] = np.int16
+INDEX_LABELS["sample_index"] = np.int64  # the toolkit's id of a DexYCB sample (-1 elsewhere)
 _NODE_RE = re.compile(r"^(?!__)[A-Za-z0-9_\-.]+$")  # a zarr node name that is not "." or ".."
 
 
@@ -186,16 +187,22 @@ def _check_index_inputs(shards_info, labels: dict, where) -> tuple[list[ShardInf
 
 
 def _skip_entry(skip, where) -> dict:
-    """A Skip (hoidata.datasets.frame), a (frame_id, reason, path) tuple or a dict -> a plain dict."""
+    """A Skip (hoidata.datasets.frame), a (frame_id, reason, path) tuple or a dict -> a plain dict; a known
+    toolkit ``sample_index`` (>= 0) of the skipped frame is kept."""
     if isinstance(skip, dict):
         values = (skip.get("frame_id"), skip.get("reason"), skip.get("path", ""))
+        sample = skip.get("sample_index", -1)
     elif hasattr(skip, "frame_id"):
         values = (skip.frame_id, skip.reason, getattr(skip, "path", ""))
+        sample = getattr(skip, "sample_index", -1)
     else:
-        values = tuple(skip)
+        values, sample = tuple(skip), -1
     if len(values) != 3:
         raise DataError(where, "skipped", f"expected (frame_id, reason, path), got {skip!r}")
-    return {"frame_id": str(values[0]), "reason": str(values[1]), "path": os.fspath(values[2] or "")}
+    if not isinstance(sample, (int, np.integer)) or isinstance(sample, bool):
+        raise DataError(where, "skipped", f"sample_index must be an integer, got {sample!r}")
+    entry = {"frame_id": str(values[0]), "reason": str(values[1]), "path": os.fspath(values[2] or "")}
+    return {**entry, "sample_index": int(sample)} if sample >= 0 else entry
 
 
 def _write_meshes(group, object_meshes: dict, where) -> None:
