@@ -10,9 +10,11 @@ Definitions (``reference/upstream_hoisdf.md`` section 5, ``reference/datasets.md
   17-20 little); hand vertices (N, 778, 3);
 - MJE: mean over joints of the L2 error (absolute, or root-relative: each set minus its own wrist, the
   zero wrist term included in the 21-joint mean, as HOISDF and the DexYCB toolkit do);
-- PA-MJE: per-sample similarity Procrustes (Umeyama, reflections excluded as in HOISDF's
-  ``rigid_transform_3D``; FreiHAND/HO-3D ``align_w_scale`` uses ``orthogonal_procrustes``, which would
-  allow one; the two agree whenever the best alignment is a proper rotation);
+- PA-MJE: per-sample similarity Procrustes as the official evaluators align (FreiHAND/HO-3D ``align_w_scale``,
+  which dex-ycb-toolkit's ``hpe_eval`` imports): scipy's ``orthogonal_procrustes``, the plain SVD solution, so a
+  reflection (det R = -1) is admitted when it fits better. ``*_no_reflection`` metrics restrict the alignment to
+  proper rotations (Umeyama with the sign fix, as HOISDF's own ``rigid_align``); the two differ only where the best
+  fit is a mirror image (e.g. near-flat hands of an early model);
 - ST-MJE: HO-3D's ``align_sc_tr``: scale the prediction so its wrist-to-middle-MCP length matches the GT
   one (HO-3D joint 4 = our joint 9), then move its wrist onto the GT wrist; no rotation;
 - AUC: PCK (fraction of errors <= t, FreiHAND ``EvalUtil``) at ``steps`` thresholds linearly spaced in
@@ -53,32 +55,35 @@ def _pair(pred, gt) -> tuple[np.ndarray, np.ndarray]:
 
 # ---------------------------------------------------------------- alignment
 
-def procrustes_align(pred, gt, scale: bool = True) -> np.ndarray:
-    """Align each predicted point set onto its GT by a similarity (or rigid) transform, Umeyama 1991.
+PROCRUSTES_EPS = 1e-8  # align_w_scale adds this to both Frobenius norms
+
+
+def procrustes_align(pred, gt, scale: bool = True, reflection: bool = True) -> np.ndarray:
+    """Align each predicted point set onto its GT by a similarity (or rigid) transform.
 
     Args:
-        pred, gt: (N, K, 3) or (K, 3) corresponding points, metres.
+        pred, gt: (N, K, 3) or (K, 3) corresponding points (any unit; the evaluators' 1e-8 is in that unit).
         scale: True for a similarity (rotation, translation, scale), False for a rigid transform.
+        reflection: True (the official definition, ``align_w_scale``): R = U V^T from the SVD of
+            gt_c^T pred_c, an improper rotation when that fits better; scale = sum of the singular values over
+            (|pred_c|_F + 1e-8)^2. False: proper rotations only (det R = +1; Umeyama 1991), so a mirror image
+            keeps its error.
 
     Returns:
-        (N, K, 3) aligned prediction ``c R p + t`` minimising sum |c R p + t - g|^2 over proper
-        rotations (det R = +1: a mirror image is not aligned away). A degenerate prediction (all
-        points equal) maps onto the GT centroid.
+        (N, K, 3) aligned prediction ``c R p + t``. A degenerate prediction (all points equal) maps onto the
+        GT centroid.
     """
     pred, gt = _pair(pred, gt)
     mu_p, mu_g = pred.mean(1, keepdims=True), gt.mean(1, keepdims=True)
     x, y = pred - mu_p, gt - mu_g
-    cov = np.einsum("nki,nkj->nij", y, x) / x.shape[1]  # (N, 3, 3): gt x pred
-    u, s, vt = np.linalg.svd(cov)
+    u, s, vt = np.linalg.svd(np.einsum("nki,nkj->nij", y, x))  # (N, 3, 3): gt x pred
     d = np.ones_like(s)
-    d[:, -1] = np.sign(np.linalg.det(u) * np.linalg.det(vt))
-    d[d == 0] = 1.0
+    if not reflection:
+        d[:, -1] = np.sign(np.linalg.det(u) * np.linalg.det(vt))
+        d[d == 0] = 1.0
     rot = np.einsum("nij,nj,njk->nik", u, d, vt)
-    if scale:
-        var_p = np.sum(x * x, axis=(1, 2)) / x.shape[1]
-        c = np.divide(np.sum(s * d, axis=1), var_p, out=np.zeros_like(var_p), where=var_p > 0)
-    else:
-        c = np.ones(len(pred))
+    norm_p = np.sqrt(np.sum(x * x, axis=(1, 2))) + PROCRUSTES_EPS
+    c = np.sum(s * d, axis=1) / norm_p ** 2 if scale else np.ones(len(pred))
     return c[:, None, None] * np.einsum("nij,nkj->nki", rot, x) + mu_g
 
 
@@ -112,9 +117,9 @@ def mje(pred, gt, root_relative: bool = False, root: int = WRIST) -> np.ndarray:
     return point_errors(pred, gt).mean(1)
 
 
-def pa_mje(pred, gt) -> np.ndarray:
-    """(N,) mean joint error after per-sample similarity Procrustes alignment, metres."""
-    return point_errors(procrustes_align(pred, gt), gt).mean(1)
+def pa_mje(pred, gt, reflection: bool = True) -> np.ndarray:
+    """(N,) mean joint error after per-sample similarity Procrustes alignment (:func:`procrustes_align`), metres."""
+    return point_errors(procrustes_align(pred, gt, reflection=reflection), gt).mean(1)
 
 
 def st_mje(pred, gt, wrist: int = WRIST, middle_mcp: int = MIDDLE_MCP) -> np.ndarray:
@@ -285,24 +290,26 @@ ome = add  # HO-3D tables call the ADD-like vertex error "OME" (upstream variabl
 # ---------------------------------------------------------------- per-sample bundles
 
 def joint_metrics(pred, gt, root: int = WRIST, middle_mcp: int = MIDDLE_MCP) -> dict[str, np.ndarray]:
-    """Per-sample joint metrics of (N, 21, 3) sets: mje (absolute), rr_mje, pa_mje, st_mje (metres)
-    and the AUCs rr_auc, pa_auc (0-50 mm)."""
+    """Per-sample joint metrics of (N, 21, 3) sets: mje (absolute), rr_mje, pa_mje (official alignment),
+    pa_mje_no_reflection, st_mje (metres) and the AUCs auc (absolute), rr_auc, pa_auc (0-50 mm)."""
     pred, gt = _pair(pred, gt)
     rr_p, rr_g = pred - pred[:, root:root + 1], gt - gt[:, root:root + 1]
     pa = procrustes_align(pred, gt)
     return {
         "mje": mje(pred, gt), "rr_mje": mje(pred, gt, root_relative=True, root=root), "pa_mje": mje(pa, gt),
-        "st_mje": st_mje(pred, gt, root, middle_mcp),
-        "rr_auc": auc_per_sample(point_errors(rr_p, rr_g)), "pa_auc": auc_per_sample(point_errors(pa, gt)),
+        "pa_mje_no_reflection": pa_mje(pred, gt, reflection=False), "st_mje": st_mje(pred, gt, root, middle_mcp),
+        "auc": auc_per_sample(point_errors(pred, gt)), "rr_auc": auc_per_sample(point_errors(rr_p, rr_g)),
+        "pa_auc": auc_per_sample(point_errors(pa, gt)),
     }
 
 
 def mesh_metrics(pred_verts, gt_verts, thresholds: Sequence[float] = F_THRESHOLDS) -> dict[str, np.ndarray]:
-    """Per-sample hand mesh metrics of (N, V, 3) sets: mme, pa_mme (metres), vauc, pa_vauc and the
+    """Per-sample hand mesh metrics of (N, V, 3) sets: mme, pa_mme, pa_mme_no_reflection (metres), vauc, pa_vauc and the
     F-scores ``f<mm>`` / ``pa_f<mm>`` (e.g. f5, f15) at ``thresholds`` metres."""
     pred, gt = _pair(pred_verts, gt_verts)
     pa = procrustes_align(pred, gt)
-    out = {"mme": mme(pred, gt), "pa_mme": mme(pa, gt), "vauc": vauc(pred, gt), "pa_vauc": vauc(pa, gt)}
+    out = {"mme": mme(pred, gt), "pa_mme": mme(pa, gt), "vauc": vauc(pred, gt), "pa_vauc": vauc(pa, gt),
+           "pa_mme_no_reflection": mme(procrustes_align(pred, gt, reflection=False), gt)}
     for thr in thresholds:
         tag = f"{thr * 1000:g}"
         out[f"f{tag}"] = f_scores(pred, gt, thr)
