@@ -2,9 +2,11 @@
 
 Runs a trained HOISDF on stores (batched, no gradients, bf16 autocast on CUDA), scores it with the published
 protocols (:mod:`hoisdf.evaluation.metrics`), prints the paper's table layout beside a mean-pose baseline, and writes
-``OUT/metrics.json``, ``OUT/per_object.csv``, the DexYCB HPE result file ``dexycb_hpe.txt``, with
-``--ho3d-order evaluation.txt`` HO-3D's ``pred.json`` / ``pred.zip``, and with ``--vis N`` result pictures
-``OUT/vis/<key>.png``. ``OUT`` defaults to ``RUN/eval-<store name>``.
+``OUT/metrics.json``, ``OUT/per_object.csv``, per DexYCB split the HPE result file ``dexycb_hpe_<split>.txt`` with
+the toolkit's sample ids (``dexycb_hpe_<split>_subset.txt`` when it lacks some of the split's valid samples, which
+the toolkit's evaluator refuses), with ``--ho3d-order evaluation.txt`` HO-3D's ``pred.json`` / ``pred.zip``, and
+with ``--vis N`` result pictures ``OUT/vis/<key>.png``. ``OUT`` defaults to ``RUN/eval-<store name>``.
+``metrics.json["dexycb_hpe"]`` holds the toolkit's numbers for each HPE file (:mod:`hoisdf.evaluation.official`).
 
 Protocol: the network sees the deterministic central crop; hand outputs are wrist-relative and placed with the
 ground-truth wrist (as HOISDF; so MJE and root-relative MJE coincide up to the predicted wrist, which is 0).
@@ -98,7 +100,7 @@ def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=No
         "units": "mm for lengths, ratios for AUC and F-scores",
     }
     out_dir.mkdir(parents=True, exist_ok=True)
-    result["files"] = export(col, stores, out_dir, ho3d_order, indexes)
+    result["files"], result["dexycb_hpe"] = export(col, stores, out_dir, ho3d_order, indexes)
     write_per_object(out_dir / "per_object.csv", summary, counts)
     (out_dir / "metrics.json").write_text(json.dumps(json_safe(result), indent=2))
     if vis:

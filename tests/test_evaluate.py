@@ -80,11 +80,13 @@ def test_hpe_file_reads_back_to_the_predicted_joints(evaluated, run_dir, tiny_st
     from hoisdf.evaluation.submissions import read_dexycb_hpe
 
     out, _ = evaluated
-    ids, joints = read_dexycb_hpe(out / "dexycb_hpe.txt")
+    from hoidata.store import read_index
+
+    ids, joints = read_dexycb_hpe(out / "dexycb_hpe_s0_train_subset.txt")  # 1 camera of the toolkit's 8: a subset
     mano = load_mano(mano_dir, side="right")
     model, config, _ = load_for_eval(run_dir, mano, torch.device("cpu"))
     col = infer(model, mano, config, [tiny_store], 4, torch.device("cpu"), progress=False)
-    assert ids.tolist() == list(range(_store_size(tiny_store)))
+    assert ids.tolist() == read_index(tiny_store).labels["sample_index"].tolist()  # the toolkit's ids, store order
     # mirrored records (left hands) go back to the toolkit's frame: x negated
     mirrored = col.get("mirrored").astype(bool)
     assert 0 < mirrored.sum() < len(mirrored)
@@ -137,8 +139,9 @@ def test_oracle_predictions_score_zero_and_the_baseline_does_not(run_dir, tiny_s
     from hoisdf.evaluation.submissions import read_dexycb_hpe
 
     lab = read_index(tiny_store).labels
-    ids, joints = read_dexycb_hpe(tmp_path / "dexycb_hpe.txt")
-    original = np.where(lab["mirrored"][ids][:, None, None], lab["joints_3d"][ids] * [-1, 1, 1], lab["joints_3d"][ids])
+    ids, joints = read_dexycb_hpe(tmp_path / "dexycb_hpe_s0_train_subset.txt")
+    rows = [lab["sample_index"].tolist().index(i) for i in ids]
+    original = np.where(lab["mirrored"][rows][:, None, None], lab["joints_3d"][rows] * [-1, 1, 1], lab["joints_3d"][rows])
     np.testing.assert_allclose(joints, original, atol=1e-6)
 
 
@@ -179,7 +182,8 @@ def test_cli_default_out_limit_and_ho3d_skip(run_dir, tiny_store, mano_dir, tmp_
     assert rc == 0 and "mean-pose baseline" in printed and "not an HO-3D store" in printed
     out = run_dir / f"eval-{tiny_store.name}"
     assert json.loads((out / "metrics.json").read_text())["samples"] == 3
-    assert len((out / "dexycb_hpe.txt").read_text().splitlines()) == 3 and not (out / "pred.json").exists()
+    assert len((out / "dexycb_hpe_s0_train_subset.txt").read_text().splitlines()) == 3
+    assert not (out / "pred.json").exists() and "dexycb_hpe_s0_train_subset.txt: a subset of s0_train" in printed
 
 
 def test_ho3d_export_follows_the_evaluation_list(tiny_store, tmp_path):
@@ -192,19 +196,22 @@ def test_ho3d_export_follows_the_evaluation_list(tiny_store, tmp_path):
     verts = rng.normal(size=(3, 778, 3)) * 0.05 + [0, 0, 0.6]
     col = Collected(keys=["a", "b", "c"], store=[0, 0, 0], rows=[4, 5, 7], names=["x"] * 3,
                     frame_ids=["SM1_0001", "SM1_0000", "MPM10_0003"])
-    col.add(joints=joints, verts=verts, ho3d=np.ones(3))
+    col.add(joints=joints, verts=verts, gt_joints=joints, ho3d=np.ones(3))
     order = tmp_path / "evaluation.txt"
     order.write_text("SM1/0000\nMPM10/0003\nSM1/0001\n")
-    files = export(col, [tiny_store], tmp_path, order)
-    assert sorted(Path(f).name for f in files.values()) == ["dexycb_hpe.txt", "pred.json", "pred.zip"]
+    files, _ = export(col, [tiny_store], tmp_path, order)
+    assert sorted(Path(f).name for f in files.values()) == ["dexycb_hpe_s0_train_subset.txt", "pred.json", "pred.zip"]
     back_j, back_v = read_ho3d_pred(tmp_path / "pred.zip")
     np.testing.assert_allclose(back_j, joints[[1, 2, 0]], atol=1e-12)
     np.testing.assert_allclose(back_v, verts[[1, 2, 0]], atol=1e-12)
-    ids, hpe = read_dexycb_hpe(tmp_path / "dexycb_hpe.txt")
-    assert ids.tolist() == [4, 5, 7] and np.allclose(hpe, joints, atol=1e-8)
+    from hoidata.store import read_index
+
+    ids, hpe = read_dexycb_hpe(tmp_path / "dexycb_hpe_s0_train_subset.txt")
+    assert ids.tolist() == read_index(tiny_store).labels["sample_index"][[4, 5, 7]].tolist()
+    assert np.allclose(hpe, joints, atol=1e-8)
     order.write_text("SM1/0000\nSM1/0009\n")  # a frame without prediction: reported, nothing written
     (tmp_path / "pred.json").unlink()
-    assert not any(k.startswith("ho3d") for k in export(col, [tiny_store], tmp_path, order))
+    assert not any(k.startswith("ho3d") for k in export(col, [tiny_store], tmp_path, order)[0])
     assert not (tmp_path / "pred.json").exists()
 
 

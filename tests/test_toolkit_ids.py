@@ -100,3 +100,116 @@ def _skip_source(frame_id: str) -> tuple:
     subject, rest = frame_id[:19], frame_id[20:]
     date, time, serial, frame = rest.split("_")
     return subject, f"{date}_{time}", serial, int(frame)
+
+
+# ---------------------------------------------------------------- the HPE result file, as hpe_eval.py takes it
+
+def hpe_eval(root, split: str, res_file) -> dict:
+    """dex-ycb-toolkit's ``HPEEvaluator(f's0_{split}').evaluate(res_file)``, restated (dex_ycb_toolkit/hpe_eval.py with
+    FreiHAND's EvalUtil and align_w_scale): ground truth from every sample's label file, skipping joint_3d all -1;
+    the result file parsed line by line; every ground-truth id must be in it."""
+    import numpy as np
+    from scipy.linalg import orthogonal_procrustes
+
+    gt = {}
+    for (subject, seq, serial, f), i in sorted(reference_ids(root, split).items(), key=lambda kv: kv[1]):
+        label = np.load(root / subject / seq / serial / f"labels_{f:06d}.npz")
+        joint_3d = label["joint_3d"].reshape(21, 3)
+        if np.all(joint_3d == -1):
+            continue
+        joint_3d *= 1000  # float32, in place, as the toolkit
+        gt[i] = joint_3d.astype(np.float64)
+    res = {}
+    with open(res_file) as f:
+        for line in f:
+            elems = line.split(",")
+            if len(elems) != 64:
+                raise ValueError(f"a line does not have 64 comma-seperated elements: {line}")
+            res[int(elems[0])] = np.array(elems[1:], dtype=np.float64).reshape(21, 3)
+
+    def align_w_scale(mtx1, mtx2):
+        t1, t2 = mtx1.mean(0), mtx2.mean(0)
+        a, b = mtx1 - t1, mtx2 - t2
+        s1, s2 = np.linalg.norm(a) + 1e-8, np.linalg.norm(b) + 1e-8
+        r, s = orthogonal_procrustes(a / s1, b / s2)
+        return np.dot(b / s2, r.T) * s * s1 + t1
+
+    dists = {"absolute": [], "root-relative": [], "procrustes": []}  # per sample: (21,) distances
+    for i, kpt_gt in gt.items():
+        assert i in res, f"missing image id in result file: {i}"
+        pred = res[i]
+        dists["absolute"].append(np.linalg.norm(kpt_gt - pred, axis=1))
+        dists["root-relative"].append(np.linalg.norm((kpt_gt - kpt_gt[0]) - (pred - pred[0]), axis=1))
+        dists["procrustes"].append(np.linalg.norm(kpt_gt - align_w_scale(kpt_gt, pred), axis=1))
+    thresholds = np.linspace(0.0, 50.0, 100)
+    out = {}
+    for name, d in dists.items():
+        per_kp = np.stack(d).T  # (21, N): EvalUtil's per-keypoint lists
+        pck = (per_kp[:, :, None] <= thresholds).mean(1)
+        aucs = np.trapezoid(pck, thresholds, axis=1) / np.trapezoid(np.ones_like(thresholds), thresholds)
+        out[name] = {"mpjpe": float(per_kp.mean(1).mean()), "auc": float(aucs.mean())}
+    return out
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory, mano_dir):
+    """A run folder with an untrained tiny model's checkpoint."""
+    import torch
+
+    from hoidata.hand import load_mano
+    from hoisdf.config import load_train_config
+    from hoisdf.model import build_model
+    from hoisdf.training.checkpoint import save_checkpoint
+
+    cfg = load_train_config(None, ["model.depth=18", "model.image_size=64", "model.n_hand=32", "model.n_object=16",
+                                   "model.grid_resolution=16", "model.hand_layers=1", "model.decoder_layers=1",
+                                   "model.object_layers=1"])
+    torch.manual_seed(0)
+    run = tmp_path_factory.mktemp("run")
+    save_checkpoint(run / "checkpoints" / "last.pt", {"model": build_model(cfg.model, load_mano(mano_dir)).state_dict(),
+                                                      "config": cfg.as_dict(), "progress": {}})
+    return run
+
+
+@pytest.fixture(scope="module")
+def store_8cam(dexycb_8cam, tmp_path_factory):
+    """Every valid frame of the 8-camera toy's s0_train (dexycb_full selection), small records."""
+    from hoidata.pipeline.runner import build_store
+    from hoidata.pipeline.settings import load_build_config
+
+    out = tmp_path_factory.mktemp("store_8cam") / "store"
+    overrides = ['dataset.splits=["train"]', "record.crop_size=64", "record.n_hand=64", "record.n_object=32"]
+    build_store(load_build_config("toy", overrides), dexycb_8cam, dexycb_8cam / "mano", dexycb_8cam / "models", out,
+                progress=False)
+    return out
+
+
+def test_hpe_file_of_a_whole_split_is_accepted_by_the_toolkit(store_8cam, dexycb_8cam, tiny_run, mano_dir, tmp_path):
+    import json
+
+    from hoisdf.evaluate import evaluate
+
+    result = evaluate(tiny_run, [store_8cam], mano_dir, tmp_path, batch_size=16, plausibility=0, progress=False,
+                      workers=0)
+    assert [p.name for p in tmp_path.glob("dexycb_hpe*")] == ["dexycb_hpe_s0_train.txt"]  # complete: no "_subset"
+    official = hpe_eval(dexycb_8cam, "train", tmp_path / "dexycb_hpe_s0_train.txt")
+    ours = json.loads((tmp_path / "metrics.json").read_text())["dexycb_hpe"]["dexycb_hpe_s0_train.txt"]
+    assert ours["complete"] and ours["samples"] == result["samples"] == 3 * 8 * 3 - 8
+    for name, row in official.items():
+        assert ours[name]["mpjpe"] == pytest.approx(row["mpjpe"], rel=1e-12), name  # mm
+        assert ours[name]["auc"] == pytest.approx(row["auc"], rel=1e-12), name
+        assert 1.0 < row["mpjpe"] < 1000.0  # an untrained model: a real error, not a trivial 0
+    overall = result["overall"]
+    for name, key in (("absolute", "mje"), ("root-relative", "rr_mje"), ("procrustes", "pa_mje")):
+        assert overall[key] == pytest.approx(official[name]["mpjpe"], abs=1e-3), key
+
+
+def test_hpe_file_of_a_subset_says_so(store_8cam, dexycb_8cam, tiny_run, mano_dir, tmp_path, capsys):
+    from hoisdf.evaluate import evaluate
+
+    evaluate(tiny_run, [store_8cam], mano_dir, tmp_path, limit=10, plausibility=0, progress=False, workers=0)
+    printed = capsys.readouterr().out
+    assert [p.name for p in tmp_path.glob("dexycb_hpe*")] == ["dexycb_hpe_s0_train_subset.txt"]
+    assert printed.count("dexycb_hpe_s0_train_subset.txt: a subset of s0_train (54 of the split's 72") == 1
+    with pytest.raises(AssertionError, match="missing image id in result file"):
+        hpe_eval(dexycb_8cam, "train", tmp_path / "dexycb_hpe_s0_train_subset.txt")

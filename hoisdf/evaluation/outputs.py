@@ -12,7 +12,8 @@ from hoidata.errors import DataError
 from hoidata.geometry.mirror import mirror_points
 from hoidata.store import read_index
 from hoisdf.evaluation.inference import Collected
-from hoisdf.evaluation.submissions import write_dexycb_hpe, write_ho3d_pred
+from hoisdf.evaluation.official import dexycb_hpe_scores, toolkit_gt_mm
+from hoisdf.evaluation.submissions import hpe_missing_ids, read_dexycb_hpe, write_dexycb_hpe, write_ho3d_pred
 
 TABLE = (("MJE", "rr_mje"), ("PA-MJE", "pa_mje"), ("OCE", "oce"), ("MCE", "mce"), ("ADD-S", "add_s"))
 MESH_TABLE = (("MME", "mme"), ("PA-MME", "pa_mme"), ("F@5", "f5"), ("F@15", "f15"))
@@ -53,43 +54,85 @@ def write_per_object(path: Path, summary: dict, counts: dict[str, int]) -> None:
                              *(f"{summary[name][m]:.6g}" for m in metric_names)])
 
 
-def export(col: Collected, stores: list, out_dir: Path, ho3d_order=None, indexes: dict | None = None) -> dict[str, str]:
-    """HPE file per store and, with ``ho3d_order``, pred.json/pred.zip of HO-3D stores.
+def export(col: Collected, stores: list, out_dir: Path, ho3d_order=None,
+           indexes: dict | None = None) -> tuple[dict[str, str], dict]:
+    """The official result files: per DexYCB split of each store an HPE file, and with ``ho3d_order`` the
+    pred.json/pred.zip of HO-3D stores. Returns (files written, ``dexycb_hpe`` scores per HPE file).
 
-    HPE ids are the records' rows in their store's index: the toolkit's sample index when the store holds
-    the whole split in the toolkit's order with no skipped frame (a warning is printed otherwise). Mirrored
-    records (DexYCB left hands seen as right ones) are mirrored back, so the file holds the toolkit's frame.
+    Mirrored records (DexYCB left hands seen as right ones) are mirrored back, so the files hold the datasets'
+    own camera frames.
     """
-    written, joints, verts = {}, col.get("joints"), col.get("verts")
+    joints, gt = col.get("joints"), col.get("gt_joints")
     mirrored = col.get("mirrored")
     if mirrored is not None:
-        joints = np.where(mirrored.astype(bool)[:, None, None], mirror_points(joints), joints)
-    store, ho3d = np.asarray(col.store), col.get("ho3d").astype(bool)
-    order = None
-    if ho3d_order:
-        if not Path(ho3d_order).is_file():
-            raise DataError(ho3d_order, None, "HO-3D evaluation list not found")
-        order = [ln.strip() for ln in Path(ho3d_order).read_text().splitlines() if ln.strip()]
+        flip = mirrored.astype(bool)[:, None, None]
+        joints, gt = np.where(flip, mirror_points(joints), joints), np.where(flip, mirror_points(gt), gt)
+    written, scores = {}, {}
+    order = _read_order(ho3d_order) if ho3d_order else None
     for s, path in enumerate(stores):
-        sel = np.flatnonzero(store == s)
-        name = "dexycb_hpe.txt" if len(stores) == 1 else f"dexycb_hpe_{Path(path).name}.txt"
-        written[f"hpe:{path}"] = str(write_dexycb_hpe(out_dir / name, np.asarray(col.rows)[sel], joints[sel]))
-        if ((indexes or {}).get(path) or read_index(path)).skipped:
-            print(f"warning: {path} skipped frames at build time: {name}'s ids (index rows) are not the toolkit's")
-        if order is None:
-            continue
-        if not ho3d[sel].all():
-            print(f"--ho3d-order: {path} is not an HO-3D store; no pred.json written for it")
-            continue
-        ids = ["/".join(col.frame_ids[i].rsplit("_", 1)) for i in sel]  # SEQ_id -> SEQ/id
-        v = verts[sel] if verts is not None else np.zeros((len(sel), 0, 3))
-        stem = "pred" if len(stores) == 1 else f"pred_{Path(path).name}"
-        try:
-            for suffix in (".json", ".zip"):
-                written[f"ho3d{suffix}:{path}"] = str(write_ho3d_pred(out_dir / f"{stem}{suffix}", ids, joints[sel],
-                                                                      v, order=order))
-        except ValueError as err:
-            print(f"--ho3d-order: {path}: not written: {err}")
+        sel = np.flatnonzero(np.asarray(col.store) == s)
+        index = (indexes or {}).get(path) or read_index(path)
+        suffix = "" if len(stores) == 1 else f"_{Path(path).name}"
+        for name, file, score in _export_hpe(index, np.asarray(col.rows)[sel], joints[sel], gt[sel], out_dir, suffix):
+            written[f"hpe:{path}:{name}"], scores[Path(file).name] = file, score
+        if order is not None:
+            written.update(_export_ho3d(col, sel, joints, path, out_dir, order, suffix))
+    return written, scores
+
+
+def _export_hpe(index, rows: np.ndarray, joints: np.ndarray, gt: np.ndarray, out_dir: Path, suffix: str):
+    """Yield (toolkit split name, file, toolkit scores) for each DexYCB split among ``rows`` of a store.
+
+    The ids are the records' ``sample_index``. A file holding every sample the toolkit counts as valid is
+    ``dexycb_hpe_<split>.txt``; otherwise (a setting's subset, ``--limit``, frames the build skipped) it is
+    ``dexycb_hpe_<split>_subset.txt`` and one line says so: the toolkit's hpe_eval.py stops at the first missing id.
+    """
+    lab = index.labels
+    split_of = np.where(lab["dataset"][rows] == "dexycb", lab["split"][rows], "")
+    for split in sorted(set(split_of.tolist()) - {""}):
+        pick = np.flatnonzero(split_of == split)
+        ids = lab["sample_index"][rows[pick]].astype(np.int64)
+        info = index.provenance.get("toolkit_splits", {}).get(split) or {}
+        name = info.get("name") or f"unknown_{split}"
+        missing = hpe_missing_ids(ids, info.get("size"), index.skipped)
+        known = ids >= 0
+        complete = missing is not None and len(missing) == 0 and known.all()
+        file = out_dir / f"dexycb_hpe_{name}{suffix}{'' if complete else '_subset'}.txt"
+        write_dexycb_hpe(file, ids[known], joints[pick][known])
+        _, pred_mm = read_dexycb_hpe(file, unit="mm")  # the numbers as the toolkit reads them
+        score = {"split": name, "complete": bool(complete), "samples": int(known.sum()),
+                 **dexycb_hpe_scores(pred_mm, toolkit_gt_mm(gt[pick][known]))}
+        if not complete:
+            why = (f"{len(missing)} of the split's {info['size']} samples are neither in it nor marked invalid "
+                   "(joint_3d -1)" if missing is not None else "the store does not record the toolkit's split size")
+            score["missing"] = None if missing is None else int(len(missing))
+            print(f"{file.name}: a subset of {name} ({why}; the toolkit's hpe_eval.py refuses such a file, "
+                  f"metrics.json['dexycb_hpe'] has the toolkit's numbers for it)")
+        yield name, str(file), score
+
+
+def _read_order(path) -> list[str]:
+    if not Path(path).is_file():
+        raise DataError(path, None, "HO-3D evaluation list not found")
+    return [ln.strip() for ln in Path(path).read_text().splitlines() if ln.strip()]
+
+
+def _export_ho3d(col: Collected, sel: np.ndarray, joints: np.ndarray, path, out_dir: Path, order: list[str],
+                 suffix: str) -> dict[str, str]:
+    """pred.json and pred.zip of one HO-3D store in ``order`` (``evaluation.txt``); a problem is printed, not raised."""
+    if not col.get("ho3d").astype(bool)[sel].all():
+        print(f"--ho3d-order: {path} is not an HO-3D store; no pred.json written for it")
+        return {}
+    verts = col.get("verts")
+    ids = ["/".join(col.frame_ids[i].rsplit("_", 1)) for i in sel]  # SEQ_id -> SEQ/id
+    v = verts[sel] if verts is not None else np.zeros((len(sel), 0, 3))
+    written = {}
+    try:
+        for ext in (".json", ".zip"):
+            written[f"ho3d{ext}:{path}"] = str(write_ho3d_pred(out_dir / f"pred{suffix}{ext}", ids, joints[sel], v,
+                                                               order=order))
+    except ValueError as err:
+        print(f"--ho3d-order: {path}: not written: {err}")
     return written
 
 

@@ -146,11 +146,43 @@ def _as_point_list(items, path: Path, field: str, count: int | None) -> np.ndarr
         raise DataError(path, field, f"samples are not all (K, 3) lists of numbers: {err}") from None
     if len(items) == 0:
         return np.zeros((0, count or 0, 3))
+    if count is None and arr.shape == (len(items), 0):  # no mesh: every sample an empty list
+        arr = arr.reshape(len(items), 0, 3)
     if arr.ndim != 3 or arr.shape[2] != 3 or (count is not None and arr.shape[1] != count):
         raise DataError(path, field, f"expected shape (N, {count or 'V'}, 3), got {arr.shape}")
     if not np.isfinite(arr).all():
         raise DataError(path, field, "holds non-finite values")
     return arr
+
+
+def read_ho3d_lists(path) -> tuple[np.ndarray, np.ndarray]:
+    """A ``pred.json`` (or a ``pred.zip`` holding one, as the server unpacks it) as stored: xyz (N, 21, 3) and
+    verts (N, V, 3), metres, OpenGL frame, HO-3D joint order, in file order.
+
+    Checks what eval.py's ``main`` relies on: the top level is ``[xyz_list, verts_list]`` with one item per sample
+    in each, every item a (K, 3) list of finite numbers (V may be 0: no mesh). Raises
+    :class:`hoidata.errors.DataError` naming the file and the malformed part.
+    """
+    path = Path(path)
+    try:
+        if zipfile.is_zipfile(path):
+            with zipfile.ZipFile(path) as zf:
+                if "pred.json" not in zf.namelist():
+                    raise DataError(path, "pred.json", "the archive has no top-level member pred.json")
+                data = json.loads(zf.read("pred.json"))
+        else:
+            data = json.loads(path.read_bytes())
+    except json.JSONDecodeError as err:
+        raise DataError(path, None, f"not valid JSON: {err}") from None
+    except OSError as err:
+        raise DataError(path, None, f"cannot read: {err}") from None
+    if not isinstance(data, list) or len(data) != 2:
+        raise DataError(path, None, "expected the JSON list [xyz_list, verts_list]")
+    joints = _as_point_list(data[0], path, "xyz_list", NUM_JOINTS)
+    verts = _as_point_list(data[1], path, "verts_list", None)
+    if len(joints) != len(verts):
+        raise DataError(path, None, f"xyz_list has {len(joints)} samples but verts_list {len(verts)}")
+    return joints, verts
 
 
 def read_ho3d_pred(path) -> tuple[np.ndarray, np.ndarray]:
@@ -160,24 +192,7 @@ def read_ho3d_pred(path) -> tuple[np.ndarray, np.ndarray]:
         joints (N, 21, 3) and verts (N, V, 3): metres, OpenCV frame, DexYCB order, in file order.
         Raises :class:`hoidata.errors.DataError` naming the file and the part that is malformed.
     """
-    path = Path(path)
-    try:
-        if zipfile.is_zipfile(path):
-            with zipfile.ZipFile(path) as zf:
-                if "pred.json" not in zf.namelist():
-                    raise DataError(path, "pred.json", "the archive has no member pred.json")
-                data = json.loads(zf.read("pred.json"))
-        else:
-            data = json.loads(path.read_bytes())
-    except json.JSONDecodeError as err:
-        raise DataError(path, None, f"not valid JSON: {err}") from None
-    if not isinstance(data, list) or len(data) != 2:
-        raise DataError(path, None, "expected the JSON list [xyz_list, verts_list]")
-    joints = _as_point_list(data[0], path, "xyz_list", NUM_JOINTS)
-    verts = _as_point_list(data[1], path, "verts_list", None)
-    if len(joints) != len(verts):
-        raise DataError(path, None, f"xyz_list has {len(joints)} samples but verts_list {len(verts)}")
-    return from_ho3d(joints, verts)
+    return from_ho3d(*read_ho3d_lists(path))
 
 
 # ---------------------------------------------------------------- DexYCB HPE result file
@@ -204,11 +219,29 @@ def write_dexycb_hpe(path, ids: Sequence[int], joints, decimals: int = 6) -> Pat
     return path
 
 
-def read_dexycb_hpe(path) -> tuple[np.ndarray, np.ndarray]:
+def hpe_missing_ids(ids, size: int | None, skipped: Sequence[dict]) -> np.ndarray | None:
+    """The ids the toolkit's ``hpe_eval.py`` would stop at: samples 0..size-1 of the split that it counts as
+    valid (it drops only ``joint_3d`` all -1, which the reader's skips name with
+    :data:`~hoidata.datasets.dexycb_frames.TOOLKIT_INVALID`) and that ``ids`` lack. None if ``size`` is unknown.
+    """
+    from hoidata.datasets.dexycb_frames import TOOLKIT_INVALID
+
+    if size is None:
+        return None
+    invalid = {int(s["sample_index"]) for s in skipped if s.get("reason") == TOOLKIT_INVALID and "sample_index" in s}
+    present = np.zeros(size, bool)
+    ids = np.asarray(ids, np.int64)
+    present[ids[(ids >= 0) & (ids < size)]] = True
+    present[[i for i in invalid if 0 <= i < size]] = True
+    return np.flatnonzero(~present)
+
+
+def read_dexycb_hpe(path, unit: str = "m") -> tuple[np.ndarray, np.ndarray]:
     """Parse a DexYCB HPE result file as ``hpe_eval.py::_load_results`` does, more strictly.
 
     Returns:
-        ids (N,) int64 and joints (N, 21, 3) metres, in file order.
+        ids (N,) int64 and joints (N, 21, 3) in file order: metres, or with ``unit="mm"`` the file's millimetre
+        values exactly as the toolkit parses them.
 
     Raises:
         DataError: naming the file and the 1-based line, for a line without exactly 64 comma-separated
@@ -237,6 +270,6 @@ def read_dexycb_hpe(path) -> tuple[np.ndarray, np.ndarray]:
                 raise DataError(path, where, f"sample index {image_id} already on line {seen[image_id]}")
             seen[image_id] = number
             ids.append(image_id)
-            rows.append(coords.reshape(NUM_JOINTS, 3) / 1000.0)
+            rows.append(coords.reshape(NUM_JOINTS, 3) / (1.0 if unit == "mm" else 1000.0))
     joints = np.stack(rows) if rows else np.zeros((0, NUM_JOINTS, 3))
     return np.asarray(ids, dtype=np.int64), joints

@@ -1,0 +1,140 @@
+"""The official evaluators' numbers, computed with this project's metrics (:mod:`hoisdf.evaluation.metrics`).
+
+- DexYCB HPE (``NVlabs/dex-ycb-toolkit:dex_ycb_toolkit/hpe_eval.py``, ``HPEEvaluator.evaluate``): MPJPE in mm and
+  AUC over 0-50 mm at 100 thresholds for three alignments: ``absolute``, ``root-relative`` (each set minus its own
+  wrist) and ``procrustes`` (``align_w_scale``, reflections admitted). :func:`dexycb_hpe_scores` returns the
+  dict ``evaluate`` returns.
+- HO-3D challenge (``shreyashampali/ho3d:eval.py``, ``main``): the 14 lines of ``scores.txt``, with its names and
+  units: ``*_mean3d`` in **cm**, AUCs over 0-5 cm at 100 thresholds and F-scores unitless. Joints are compared
+  raw, after ``align_w_scale`` (Procrustes) and after ``align_sc_tr`` (scale from the wrist to joint 4 of HO-3D's
+  order, the middle MCP, then the wrist moved onto the GT wrist: the current script; before 2021-06 it used joint
+  9); the mesh errors and aligned F-scores use a separate Procrustes fit of the 778 vertices. F-scores at 5 and
+  15 mm count points strictly closer than the threshold and are averaged over samples.
+
+Every per-point error is pooled over samples and points: with all points visible (as both evaluators feed
+them) the mean of ``EvalUtil``'s per-keypoint means and AUCs equals the pooled mean and AUC.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from hoidata.errors import DataError
+from hoisdf.evaluation import metrics as M
+
+HPE_ALIGNMENTS = ("absolute", "root-relative", "procrustes")
+HO3D_SCORES = ("xyz_mean3d", "xyz_auc3d", "xyz_procrustes_al_mean3d", "xyz_procrustes_al_auc3d",
+               "xyz_scale_trans_al_mean3d", "xyz_scale_trans_al_auc3d", "mesh_mean3d", "mesh_auc3d",
+               "mesh_al_mean3d", "mesh_al_auc3d", "f_score_5", "f_al_score_5", "f_score_15", "f_al_score_15")
+HO3D_UNITS = "cm for *_mean3d (scores.txt's unit); AUCs (0-5 cm) and F-scores are ratios"
+HO3D_V2_EVALUATION = 11524  # eval.py's db_size('evaluation', 'v2'): the server also requires this many samples
+HO3D_MCP = 4  # middle MCP in HO-3D's joint order (align_sc_tr)
+HO3D_F_THRESHOLDS = (0.005, 0.015)  # metres
+NOT_MANO = -1.0  # eval.py's mesh scores when the predicted meshes do not have the GT's vertex count
+
+
+def dexycb_hpe_scores(pred_mm, gt_mm) -> dict[str, dict[str, float]]:
+    """``hpe_eval``'s result of predictions against ground truth: (N, 21, 3) **millimetres**, camera frame, DexYCB
+    order (the toolkit aligns in mm, so its 1e-8 is in mm). For its exact numbers pass the file's values as it
+    parses them and the ground truth as it computes it (:func:`toolkit_gt_mm`).
+
+    Returns ``{"absolute" | "root-relative" | "procrustes": {"mpjpe": mm, "auc": ratio over 0-50 mm}}``.
+    """
+    pred, gt = M._pair(pred_mm, gt_mm)
+    errors = {
+        "absolute": M.point_errors(pred, gt),
+        "root-relative": M.point_errors(pred - pred[:, :1], gt - gt[:, :1]),
+        "procrustes": M.point_errors(M.procrustes_align(pred, gt), gt),
+    }
+    return {name: {"mpjpe": float(e.mean()), "auc": M.auc(e, 0.0, 50.0, 100)} for name, e in errors.items()}
+
+
+def toolkit_gt_mm(joints_m) -> np.ndarray:
+    """The toolkit's ground truth from DexYCB joints in metres (float32 values, as its labels hold them): times 1000
+    in float32, then float64, so errors at the AUC's 0 mm threshold come out as the toolkit's."""
+    return (np.asarray(joints_m).astype(np.float32) * np.float32(1000.0)).astype(np.float64)
+
+
+def _mean_auc(errors: np.ndarray) -> tuple[float, float]:
+    """(mean in cm, AUC over 0-5 cm) of per-point errors in metres."""
+    return float(errors.mean()) * 100.0, M.auc(errors, 0.0, 0.05, 100)
+
+
+def ho3d_challenge_scores(pred_xyz, pred_verts, gt_xyz, gt_verts) -> dict[str, float]:
+    """The 14 ``scores.txt`` values of predictions against ground truth, all in HO-3D's convention.
+
+    Args:
+        pred_xyz, gt_xyz: (N, 21, 3) metres, HO-3D joint order (the frame does not matter, both must share it).
+        pred_verts: (N, V, 3); V = 778 (the GT's count) for the mesh scores, V = 0 when no mesh is predicted
+            (the mesh scores are then eval.py's -100 / -1 and the F-scores 0).
+        gt_verts: (N, 778, 3).
+    """
+    pred_xyz, gt_xyz = M._pair(pred_xyz, gt_xyz)
+    gt_verts = M._batch(gt_verts, "gt_verts")
+    pred_verts = np.asarray(pred_verts, np.float64).reshape(len(pred_xyz), -1, 3)
+    out = {}
+    out["xyz_mean3d"], out["xyz_auc3d"] = _mean_auc(M.point_errors(pred_xyz, gt_xyz))
+    pa = M.procrustes_align(pred_xyz, gt_xyz)
+    out["xyz_procrustes_al_mean3d"], out["xyz_procrustes_al_auc3d"] = _mean_auc(M.point_errors(pa, gt_xyz))
+    st = M.st_align(pred_xyz, gt_xyz, wrist=0, middle_mcp=HO3D_MCP)
+    out["xyz_scale_trans_al_mean3d"], out["xyz_scale_trans_al_auc3d"] = _mean_auc(M.point_errors(st, gt_xyz))
+    if pred_verts.shape[1] == gt_verts.shape[1]:
+        aligned = M.procrustes_align(pred_verts, gt_verts)
+        out["mesh_mean3d"], out["mesh_auc3d"] = _mean_auc(M.point_errors(pred_verts, gt_verts))
+        out["mesh_al_mean3d"], out["mesh_al_auc3d"] = _mean_auc(M.point_errors(aligned, gt_verts))
+    elif pred_verts.shape[1] == 0:
+        aligned = pred_verts
+        out.update(mesh_mean3d=NOT_MANO * 100, mesh_auc3d=NOT_MANO, mesh_al_mean3d=NOT_MANO * 100, mesh_al_auc3d=NOT_MANO)
+    else:  # eval.py would move them with its align_by_trafo, which is not reproduced here
+        raise ValueError(f"predicted meshes have {pred_verts.shape[1]} vertices; expected {gt_verts.shape[1]} or none")
+    for thr in HO3D_F_THRESHOLDS:
+        tag = round(thr * 1000)
+        out[f"f_score_{tag}"] = float(np.mean([M.f_score(p, g, thr)[0] for p, g in zip(pred_verts, gt_verts)]))
+        out[f"f_al_score_{tag}"] = float(np.mean([M.f_score(p, g, thr)[0] for p, g in zip(aligned, gt_verts)]))
+    return {name: out[name] for name in HO3D_SCORES}
+
+
+def read_ho3d_gt(folder) -> tuple[np.ndarray, np.ndarray]:
+    """``evaluation_xyz.json`` and ``evaluation_verts.json`` of a folder (the lists eval.py scores against) as
+    (N, 21, 3) and (N, 778, 3) arrays, HO-3D's convention as stored. DataError names a missing or malformed file."""
+    lists = []
+    for name, count in (("evaluation_xyz.json", 21), ("evaluation_verts.json", 778)):
+        path = Path(folder) / name
+        if not path.is_file():
+            raise DataError(path, None, "HO-3D ground-truth file not found")
+        try:
+            arr = np.array(json.loads(path.read_text()), dtype=np.float64)
+        except (ValueError, TypeError) as err:
+            raise DataError(path, None, f"not a JSON list of ({count}, 3) lists of numbers: {err}") from None
+        if arr.ndim != 3 or arr.shape[1:] != (count, 3) or not np.isfinite(arr).all():
+            raise DataError(path, None, f"expected finite numbers of shape (N, {count}, 3), got {arr.shape}")
+        lists.append(arr)
+    if len(lists[0]) != len(lists[1]):
+        raise DataError(folder, "evaluation_verts.json", f"{len(lists[1])} samples, evaluation_xyz.json has {len(lists[0])}")
+    return lists[0], lists[1]
+
+
+def score_ho3d_submission(pred_path, gt_folder) -> dict:
+    """Score a ``pred.json`` / ``pred.zip`` against a folder's ground-truth lists as the challenge server does.
+
+    Returns the 14 scores (:data:`HO3D_SCORES`) plus ``samples``, ``units`` and ``ground_truth``. Raises DataError
+    if the prediction does not have one item per ground-truth sample (eval.py's 'Expected format mismatch.').
+    """
+    from hoisdf.evaluation.submissions import read_ho3d_lists
+
+    pred_xyz, pred_verts = read_ho3d_lists(pred_path)
+    gt_xyz, gt_verts = read_ho3d_gt(gt_folder)
+    if len(pred_xyz) != len(gt_xyz):
+        raise DataError(pred_path, None, f"{len(pred_xyz)} samples, the ground truth in {gt_folder} has {len(gt_xyz)}")
+    scores = ho3d_challenge_scores(pred_xyz, pred_verts, gt_xyz, gt_verts)
+    return {**scores, "samples": len(gt_xyz), "units": HO3D_UNITS, "ground_truth": str(gt_folder)}
+
+
+def write_scores_txt(path, scores: dict) -> Path:
+    """``scores.txt`` as eval.py writes it: one ``name: %f`` line per score, in its order."""
+    path = Path(path)
+    path.write_text("".join(f"{name}: {scores[name]:f}\n" for name in HO3D_SCORES))
+    return path
