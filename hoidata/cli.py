@@ -156,7 +156,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_make_toy)
 
     p = sub.add_parser("build-sdf", help="build a verified training store (SDF samples, masks, crops, labels)")
-    p.add_argument("--dataset", required=True, help="pipeline name (pipelines/<name>.toml: dexycb, dexycb_full, ho3d, toy) or a .toml")
+    p.add_argument("--dataset", required=True, help="pipeline name (pipelines/<name>.toml: dexycb, dexycb_full, ho3d, ho3d_eval, toy) or a .toml")
     p.add_argument("--root", required=True, help="dataset folder (DexYCB or HO-3D layout)")
     p.add_argument("--mano", default=None, help="folder with MANO_RIGHT.pkl / MANO_LEFT.pkl (default ROOT/mano)")
     p.add_argument("--models", default=None, help="YCB models folder (default ROOT/models)")

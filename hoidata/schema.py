@@ -18,6 +18,16 @@ Members of a record (key ``<dataset>-<split>-<frame id>``, no dots):
 
 SDF sample order inside ``sdf.npy``: the hand set (near the hand surface), then the object set, then
 the uniform set; ``meta.json`` holds the three counts under ``sdf_counts``.
+
+Record kinds (``meta.json`` ``kind``; :data:`RECORD_KINDS` lists each kind's members and meta fields):
+
+``full``   every member and every label: what training needs (any split: a DexYCB test record is full).
+``eval``   what a benchmark's withheld split gives (HO-3D v2 ``evaluation``): ``img.jpg`` and ``meta.json`` only.
+           The crop comes from the dataset's given hand box and the object; ``hand_root`` is the given root
+           joint, ``hand_box`` the given box, ``object_pose`` / ``object_box`` the given object pose. Nothing that
+           needs the hidden hand pose is there: no joints, no MANO parameters, no masks (the hand's would need
+           its mesh), no heatmap, no SDF samples (the hand's distance needs the mesh too), no mask IoU.
+           Trainers refuse these records; evaluators take them.
 """
 
 from __future__ import annotations
@@ -26,7 +36,7 @@ import re
 
 import numpy as np
 
-SCHEMA_VERSION = 2  # 2: sample_index
+SCHEMA_VERSION = 2  # 2: sample_index, record kinds
 
 IMG = "img.jpg"
 SEG = "seg.png"
@@ -50,6 +60,7 @@ HEATMAP_SIGMA = 1.25  # pixels at the mask resolution
 # meta.json fields: name -> (shape or None for scalars/strings, description)
 META_FIELDS = {
     "schema_version": (None, "SCHEMA_VERSION of the writer"),
+    "kind": (None, "'full' | 'eval': which members and fields the record has (RECORD_KINDS)"),
     "key": (None, "the record key"),
     "dataset": (None, "'dexycb' | 'ho3d' | 'toy' | 'synthetic'"),
     "split": (None, "source split"),
@@ -68,7 +79,8 @@ META_FIELDS = {
     "object_name": (None, "YCB folder name"),
     "object_id": (None, "DexYCB class id 1..21"),
     "object_pose": ((4, 4), "model -> camera"),
-    "hand_box": ((4,), "x1, y1, x2, y2 of the projected hand mesh, crop pixels"),
+    "hand_box": ((4,), "x1, y1, x2, y2 of the projected hand mesh (eval records: the dataset's given hand box), "
+                       "crop pixels"),
     "object_box": ((4,), "x1, y1, x2, y2 of the projected object mesh, crop pixels"),
     "sdf_counts": ((3,), "hand, object and uniform sample counts in sdf.npy"),
     "seg_iou": ((2,), "IoU of our visible hand / object masks with the dataset's own segmentation "
@@ -79,9 +91,24 @@ META_FIELDS = {
 }
 
 # JSON types of the scalar meta fields; shaped fields are numeric arrays
-META_TYPES = {"schema_version": int, "key": str, "dataset": str, "split": str, "frame_id": str, "side": str,
+META_TYPES = {"schema_version": int, "kind": str, "key": str, "dataset": str, "split": str, "frame_id": str, "side": str,
               "mirrored": bool, "tip_convention": str, "object_name": str, "object_id": int, "sample_index": int,
               "source": dict}
+
+FULL, EVAL = "full", "eval"
+# labels an eval record does not have (they need the hidden hand pose, or the masks and samples made from it)
+EVAL_ABSENT = ("joints_3d", "joints_2d", "mano_pose", "mano_betas", "mano_transl", "sdf_counts", "seg_iou")
+# kind -> (members, meta fields), in schema order
+RECORD_KINDS = {
+    FULL: (MEMBERS, tuple(META_FIELDS)),
+    EVAL: ((IMG, META), tuple(f for f in META_FIELDS if f not in EVAL_ABSENT)),
+}
+
+
+def kind_of_members(names) -> str | None:
+    """The record kind whose members are exactly ``names`` (None if no kind has that set)."""
+    return next((kind for kind, (members, _) in RECORD_KINDS.items() if set(names) == set(members)), None)
+
 
 _KEY_RE = re.compile(r"[A-Za-z0-9_\-]+")  # used with fullmatch: no dots, slashes or trailing newline
 

@@ -26,13 +26,16 @@ from pathlib import Path
 import numpy as np
 
 from hoidata.errors import DataError
+from hoidata.schema import FULL
 from hoidata.store import read_index
 from hoisdf.evaluation import metrics as M
 from hoisdf.evaluation.inference import infer, load_for_eval, resolve_device, run_folder
+from hoisdf.evaluation.official import format_ho3d_scores
 from hoisdf.evaluation.outputs import (
     export,
     format_table,
     json_safe,
+    score_ho3d_files,
     write_per_object,
     write_vis,
 )
@@ -49,7 +52,7 @@ UNSEEN_HO3D = "019_pitcher_base"  # excluded from HO-3D object metrics (upstream
 
 def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=None, vis: int = 0,
              limit: int | None = None, boxes: str | None = None, plausibility: int = 32, ho3d_order=None,
-             baseline_store=None, progress: bool = True, workers: int = 4) -> dict:
+             baseline_store=None, progress: bool = True, workers: int = 4, ho3d_gt=None) -> dict:
     """Evaluate a checkpoint on stores; write the result files to ``out_dir`` and return metrics.json's content
     (plus ``table``, the printed table).
 
@@ -61,12 +64,16 @@ def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=No
         plausibility: samples (the first ones) for the plausibility report (0: none).
         ho3d_order: HO-3D ``evaluation.txt`` -> pred.json / pred.zip. baseline_store: store whose labels
             give the mean pose (default: the first evaluated store). workers: loader processes.
+        ho3d_gt: folder with the challenge's ``evaluation_xyz.json`` / ``evaluation_verts.json``: the written
+            pred.json is scored against them (``metrics.json["ho3d_challenge"]``, ``scores.txt``).
     """
     from hoidata.hand import load_mano
 
     stores = [Path(s) for s in ([stores] if isinstance(stores, (str, Path)) else stores)]
     if boxes not in (None, "gt", "predicted"):
         raise ValueError(f"boxes must be 'gt' or 'predicted', got {boxes!r}")
+    if ho3d_gt is not None and ho3d_order is None:
+        raise ValueError("--ho3d-gt scores the pred.json that --ho3d-order writes: give both")
     device = resolve_device(device)
     mano = load_mano(mano_dir, side="right")
     model, config, info = load_for_eval(run, mano, device, boxes)
@@ -85,7 +92,10 @@ def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=No
                        col.get("obj_pose"), col.get("gt_obj_pose"), obj_verts, obj_valid)
     summary = M.summarize(per_sample, names)
     base_src = Path(baseline_store) if baseline_store else stores[0]
-    base_summary = M.summarize(baseline_scores(col, mano, base_src, obj_verts, obj_valid, indexes.get(base_src)))["all"]
+    base_index = indexes.get(base_src) or read_index(base_src)
+    base_summary = None
+    if (base_index.labels["kind"] == FULL).any():
+        base_summary = M.summarize(baseline_scores(col, mano, base_src, obj_verts, obj_valid, base_index))["all"]
     counts = {str(name): int(c) for name, c in zip(*np.unique(names, return_counts=True))}
     result = {
         **info, "stores": [str(s) for s in stores], "device": str(device), "samples": len(col.keys),
@@ -95,17 +105,19 @@ def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=No
         "baseline": {"method": "mean wrist-relative joints/verts placed at the GT wrist; object at obj_center, "
                                "identity rotation", "mean_pose_from": str(base_src), "rows_max": BASELINE_ROWS,
                      "peeks_at_evaluated_labels": base_src.resolve() in [s.resolve() for s in stores],
-                     "overall": base_summary},
+                     "overall": base_summary or {"skipped": f"{base_src} has no hand labels; --baseline-store TRAIN"}},
         "plausibility": plausibility_summary(col, meshes, mano, plausibility, progress),
         "units": "mm for lengths, ratios for AUC and F-scores",
     }
     out_dir.mkdir(parents=True, exist_ok=True)
     result["files"], result["dexycb_hpe"] = export(col, stores, out_dir, ho3d_order, indexes)
+    if ho3d_gt is not None:
+        result["ho3d_challenge"] = score_ho3d_files(result["files"], ho3d_gt, out_dir)
     write_per_object(out_dir / "per_object.csv", summary, counts)
     (out_dir / "metrics.json").write_text(json.dumps(json_safe(result), indent=2))
     if vis:
         write_vis(col, meshes, mano, out_dir / "vis")
-    rows = {"HOISDF (this run)": summary["all"], "mean-pose baseline": base_summary}
+    rows = {"HOISDF (this run)": summary["all"], **({"mean-pose baseline": base_summary} if base_summary else {})}
     return {**result, "table": format_table(rows, col.get("verts") is not None, bool(col.get("ho3d").any()))}
 
 
@@ -125,6 +137,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--plausibility", type=int, default=32, metavar="N", help="samples for the plausibility report")
     p.add_argument("--ho3d-order", type=Path, default=None, metavar="evaluation.txt",
                    help="write HO-3D pred.json/pred.zip in this frame order")
+    p.add_argument("--ho3d-gt", type=Path, default=None, metavar="DIR",
+                   help="score pred.json against DIR/evaluation_xyz.json and evaluation_verts.json as the challenge "
+                        "server does (metrics.json['ho3d_challenge'], scores.txt); needs --ho3d-order")
     p.add_argument("--baseline-store", type=Path, default=None, metavar="STORE",
                    help="store whose mean hand pose is the baseline (e.g. the training store)")
     p.add_argument("--workers", type=int, default=4, help="loader processes decoding records (0: none)")
@@ -140,7 +155,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         result = evaluate(args.ckpt, args.shards, args.mano, args.out, args.batch_size, args.device, args.vis,
                           args.limit, args.boxes, args.plausibility, args.ho3d_order, args.baseline_store,
-                          progress=not args.no_progress, workers=args.workers)
+                          progress=not args.no_progress, workers=args.workers, ho3d_gt=args.ho3d_gt)
     except (DataError, ValueError, FileNotFoundError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -148,12 +163,15 @@ def main(argv: list[str] | None = None) -> int:
           f"boxes {result['test_boxes']}; lengths in mm")
     print(result["table"])
     for who, plaus in result["plausibility"].items():
-        if isinstance(plaus, dict):
+        if isinstance(plaus, dict) and "skipped" not in plaus:
             print(f"plausibility, {who} ({plaus['num_samples']} samples): penetration "
                   f"{plaus['penetration_depth_mm']:.2f} mm, intersection {plaus['intersection_volume_cm3']:.2f} cm^3, "
                   f"contact ratio {plaus['contact_ratio']:.2f}")
-    print(f"baseline mean pose from {result['baseline']['mean_pose_from']}"
-          + (" (the evaluated store's own labels)" if result["baseline"]["peeks_at_evaluated_labels"] else ""))
+    if "skipped" not in result["baseline"]["overall"]:
+        print(f"baseline mean pose from {result['baseline']['mean_pose_from']}"
+              + (" (the evaluated store's own labels)" if result["baseline"]["peeks_at_evaluated_labels"] else ""))
+    if "ho3d_challenge" in result:
+        print(format_ho3d_scores(result["ho3d_challenge"]))
     print("wrote", ", ".join([*(Path(p).name for p in result["files"].values()), "metrics.json", "per_object.csv"]))
     return 0
 

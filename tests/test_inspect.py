@@ -50,7 +50,7 @@ def make_record(i: int):
     sdf[:, :3] = rng.uniform(-0.05, 0.05, (n, 3)) / SDF_QUANTUM
     sdf[:, 3:5] = rng.uniform(-0.003, 0.003, (n, 2)) / SDF_QUANTUM
     sdf[:, 5] = rng.integers(-1, 16, n)
-    meta = {"schema_version": SCHEMA_VERSION, "key": key, "dataset": "toy", "split": "train",
+    meta = {"schema_version": SCHEMA_VERSION, "kind": "full", "key": key, "dataset": "toy", "split": "train",
             "frame_id": f"f{i:04d}", "side": "right", "mirrored": False, "tip_convention": "manopth",
             "object_name": "002_master_chef_can", "object_id": 1, "sample_index": i,
             "source": {"index": i}}

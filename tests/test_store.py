@@ -42,8 +42,8 @@ from hoidata.store import (
 )
 
 CROP = 32  # small crops keep the whole file well under a few seconds
-SCALARS = {"schema_version": SCHEMA_VERSION, "dataset": "toy", "split": "train", "side": "right", "mirrored": False,
-           "tip_convention": "manopth", "object_name": "002_master_chef_can", "object_id": 1, "sample_index": -1,
+SCALARS = {"schema_version": SCHEMA_VERSION, "kind": "full", "dataset": "toy", "split": "train", "side": "right",
+           "mirrored": False, "tip_convention": "manopth", "object_name": "002_master_chef_can", "object_id": 1, "sample_index": -1,
            "source": {"path": "seq0/labels_000.npz", "index": 0}}
 
 

@@ -1,7 +1,9 @@
 """Write a small toy dataset in the exact HO-3D v2 on-disk layout (``reference/datasets.md`` section 2).
 
 ``train/<SEQ>/{rgb/<id>.png, depth/<id>.png, seg/<id>.jpg, meta/<id>.pkl}``, the same for
-``evaluation/`` with the reduced ground truth, and ``train.txt`` / ``evaluation.txt``. Annotations
+``evaluation/`` with the reduced ground truth, and ``train.txt`` / ``evaluation.txt``; plus the challenge's hidden
+ground truth of the evaluation split, ``evaluation_xyz.json`` / ``evaluation_verts.json`` (what its eval.py scores
+against). Annotations
 are in HO-3D's OpenGL camera frame (y up, scene at negative z), the MANO pose is full axis-angle in
 the flat-hand-mean convention, and ``handJoints3D`` uses HO-3D's joint order and fingertip vertices.
 Meta pickles are written with protocol 2 and read back through the restricted unpickler.
@@ -93,24 +95,36 @@ def _write_view(seq_dir: Path, fid: str, view, meta: dict, object_label: int) ->
     (seq_dir / "meta" / f"{fid}.pkl").write_bytes(pickle.dumps(meta, protocol=2))
 
 
-def write_ho3d_sequence(root: Path, split: str, name: str, obj, renderer, mano, frames: int, seed: int) -> list[str]:
-    """Render one sequence from a single camera; returns its ``<SEQ>/<id>`` list entries."""
+def write_ho3d_sequence(root: Path, split: str, name: str, obj, renderer, mano, frames: int,
+                        seed: int) -> tuple[list[str], list[tuple[np.ndarray, np.ndarray]]]:
+    """Render one sequence from a single camera; returns its ``<SEQ>/<id>`` list entries and, per frame, the
+    challenge's ground truth: joints (21, 3) and vertices (778, 3), OpenGL frame, HO-3D joint order, metres."""
     rng = np.random.default_rng([seed, sum(map(ord, name))])
     betas = rng.normal(0.0, 0.8, size=10)
     seq = toy_scenes.make_sequence(mano, obj, betas, frames, rng, approach_frames=0)
     cam = toy_scenes.ring_cameras(1, rng, radius=(0.45, 0.6))[0]
     K = toy_scenes.intrinsics(rng)
     look = toy_scenes.random_look(rng, renderer.width, renderer.height)
-    entries = []
+    entries, truth = [], []
     for f in range(frames):
         view = toy_scenes.render_view(renderer, mano, seq, f, K, cam, [], look, HAND_LABEL)
         meta = _gl_meta(view, mano, seq, K)
+        truth.append((meta["handJoints3D"], view.vertices @ GL.T))
         if split == "evaluation":
             meta = _eval_meta(meta, view, K)
         fid = f"{f:04d}"
         _write_view(root / split / name, fid, view, meta, obj.class_id)
         entries.append(f"{name}/{fid}")
-    return entries
+    return entries, truth
+
+
+def write_challenge_truth(root: Path, truth: list[tuple[np.ndarray, np.ndarray]]) -> None:
+    """``evaluation_xyz.json`` and ``evaluation_verts.json`` in ``root``, as the challenge's eval.py reads them: JSON
+    lists, in ``evaluation.txt`` order, of (21, 3) joints and (778, 3) vertices, metres, OpenGL, HO-3D joint order."""
+    import json
+
+    for name, part in (("evaluation_xyz.json", 0), ("evaluation_verts.json", 1)):
+        (root / name).write_text(json.dumps([np.asarray(t[part], np.float64).tolist() for t in truth]))
 
 
 def write_toy_ho3d(root: str | Path, mano_dir: Path, models_dir: Path, size: ToyHO3DSize = ToyHO3DSize(),
@@ -124,10 +138,13 @@ def write_toy_ho3d(root: str | Path, mano_dir: Path, models_dir: Path, size: Toy
     objects = toy_scenes.load_toy_objects(models_dir)
     plan = [("train", n, o) for n, o in TRAIN_SEQUENCES[: size.train_sequences]]
     plan += [("evaluation", n, o) for n, o in EVAL_SEQUENCES[: size.eval_sequences]]
-    lists = {"train": [], "evaluation": []}
+    lists, truth = {"train": [], "evaluation": []}, []
     with Renderer(640, 480) as renderer:
         for split, name, obj in tqdm(plan, desc="toy ho3d sequences", disable=not progress):
-            lists[split] += write_ho3d_sequence(root, split, name, objects[obj], renderer, mano, size.frames, seed)
+            entries, gt = write_ho3d_sequence(root, split, name, objects[obj], renderer, mano, size.frames, seed)
+            lists[split] += entries
+            truth += gt if split == "evaluation" else []
     for split, entries in lists.items():
         (root / f"{split}.txt").write_text("".join(e + "\n" for e in entries))
+    write_challenge_truth(root, truth)
     return {"train": len(lists["train"]), "evaluation": len(lists["evaluation"])}

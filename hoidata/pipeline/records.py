@@ -187,18 +187,51 @@ def dataset_mask_iou(frame: Frame, labels: np.ndarray, to_mask: np.ndarray) -> n
     return np.array(out)
 
 
-def record_meta(frame: Frame, key: str, box: np.ndarray, K_crop: np.ndarray, hand: np.ndarray,
-                obj_verts: np.ndarray, counts) -> dict:
-    """The meta.json content (see ``schema.META_FIELDS``); arrays stay numpy until encoding."""
+def _common_meta(frame: Frame, key: str, kind: str, box: np.ndarray, K_crop: np.ndarray, obj_verts: np.ndarray) -> dict:
+    """The meta.json fields every record kind has (arrays stay numpy until encoding)."""
     x1, y1, side = box
     return {
-        "schema_version": schema.SCHEMA_VERSION, "key": key, "dataset": frame.dataset, "split": frame.split,
-        "frame_id": frame.frame_id, "side": frame.side, "mirrored": bool(frame.mirror),
+        "schema_version": schema.SCHEMA_VERSION, "kind": kind, "key": key, "dataset": frame.dataset,
+        "split": frame.split, "frame_id": frame.frame_id, "side": frame.side, "mirrored": bool(frame.mirror),
         "tip_convention": frame.tip_convention, "K": K_crop, "crop_box": np.array([x1, y1, x1 + side, y1 + side]),
-        "hand_root": frame.root_3d, "joints_3d": frame.joints_3d, "joints_2d": project(frame.joints_3d, K_crop),
-        "mano_pose": frame.mano_pose, "mano_betas": frame.mano_betas, "mano_transl": frame.mano_transl,
-        "object_name": frame.object_name, "object_id": int(frame.object_id), "object_pose": frame.object_pose,
-        "hand_box": box_from_points(project(hand, K_crop)), "object_box": box_from_points(project(obj_verts, K_crop)),
-        "sdf_counts": np.asarray(counts, dtype=np.int64), "sample_index": int(frame.sample_index),
-        "source": frame.source,
+        "hand_root": frame.root_3d, "object_name": frame.object_name, "object_id": int(frame.object_id),
+        "object_pose": frame.object_pose, "object_box": box_from_points(project(obj_verts, K_crop)),
+        "sample_index": int(frame.sample_index), "source": frame.source,
     }
+
+
+def record_meta(frame: Frame, key: str, box: np.ndarray, K_crop: np.ndarray, hand: np.ndarray,
+                obj_verts: np.ndarray, counts) -> dict:
+    """The meta.json content of a full record (see ``schema.META_FIELDS``; ``seg_iou`` is added by the caller)."""
+    return {
+        **_common_meta(frame, key, schema.FULL, box, K_crop, obj_verts),
+        "joints_3d": frame.joints_3d, "joints_2d": project(frame.joints_3d, K_crop),
+        "mano_pose": frame.mano_pose, "mano_betas": frame.mano_betas, "mano_transl": frame.mano_transl,
+        "hand_box": box_from_points(project(hand, K_crop)), "sdf_counts": np.asarray(counts, dtype=np.int64),
+    }
+
+
+def build_eval_record(frame: Frame, obj: ObjectAsset, key: str, settings: RecordSettings) -> dict:
+    """A frame whose hand pose the dataset withholds (HO-3D's evaluation split) -> an ``eval`` record.
+
+    The crop is squared around the dataset's given hand box and the posed object's 21-point box, each
+    expanded by ``crop.BOX_EXPAND``, times ``settings.context``: the training crop's rule with the given box in
+    place of the joints. ``hand_root`` is the given root joint, ``hand_box`` the given box in crop pixels.
+    Returns the dict :func:`build_record` returns, with ``seg``, ``heatmap`` and ``sdf`` None.
+    """
+    from hoidata.errors import DataError
+
+    if frame.hand_box is None:
+        raise DataError(frame.source.get("meta", frame.image_path), "hand_box",
+                        "a frame without hand labels needs the dataset's hand box for its crop")
+    if frame.mirror:
+        raise DataError(frame.image_path, "side", "a left-hand frame without hand labels cannot be mirrored")
+    obj_verts, _, obj_box21 = posed_object(frame, obj)
+    corners = np.asarray(frame.hand_box, np.float64).reshape(2, 2)
+    box = crop_ops.square_crop_box(corners, project(obj_box21, frame.K), settings.context)
+    to_crop = crop_ops.crop_affine(box, settings.crop_size)
+    K_crop = to_crop @ frame.K
+    meta = _common_meta(frame, key, schema.EVAL, box, K_crop, obj_verts)
+    meta["hand_box"] = crop_ops.apply_affine(to_crop, corners).reshape(4)
+    img = crop_ops.warp_image(frame.load_image(), to_crop, settings.crop_size)
+    return {"img": img, "seg": None, "heatmap": None, "sdf": None, "meta": meta}

@@ -40,12 +40,7 @@ def read_frames(cfg: BuildConfig, root: Path, mano_dir: Path) -> tuple[list, lis
             reader = HO3DReader(root, mano_dir, split, on_error="skip")
         else:
             raise ValueError(f"unknown dataset {cfg.dataset.name!r}; expected 'dexycb' or 'ho3d'")
-        for frame in reader.frames():
-            if frame.has_hand_pose:
-                frames.append(frame)
-            else:
-                skips.append(Skip(frame.frame_id, "no MANO annotation: SDF samples need the hand mesh",
-                                  str(frame.source.get("meta", ""))))
+        frames += reader.frames()  # frames without hand labels become 'eval' records (schema.RECORD_KINDS)
         skips += reader.skipped
     return frames, skips
 
@@ -105,13 +100,16 @@ def object_asset(models_dir: Path, name: str):
 
 
 def _build_one(frame, key: str, settings):
-    from hoidata.pipeline.records import build_record
+    from hoidata.pipeline.records import build_eval_record, build_record
 
     objects = _WORKER["objects"]
     if frame.object_name not in objects:
         objects[frame.object_name] = object_asset(_WORKER["models_dir"], frame.object_name)
-    mano = hand_model(frame.side, frame.fix_left_shapedirs)  # the model the frame's labels were made with
-    rec = build_record(frame, mano, objects[frame.object_name], _WORKER["renderer"], key, settings)
+    if not frame.has_hand_pose:  # e.g. HO-3D's evaluation split: no hand mesh, so no masks or SDF
+        rec = build_eval_record(frame, objects[frame.object_name], key, settings)
+    else:
+        mano = hand_model(frame.side, frame.fix_left_shapedirs)  # the model the frame's labels were made with
+        rec = build_record(frame, mano, objects[frame.object_name], _WORKER["renderer"], key, settings)
     return store.encode_record(key, rec["img"], rec["seg"], rec["heatmap"], rec["sdf"], rec["meta"])
 
 

@@ -16,19 +16,21 @@ import numpy as np
 
 from hoidata.errors import DataError
 from hoidata.schema import (
+    FULL,
     HEATMAP,
     IMG,
-    MEMBERS,
     META,
     META_FIELDS,
     META_TYPES,
     NO_PART,
+    RECORD_KINDS,
     SCHEMA_VERSION,
     SDF,
     SDF_COLUMNS,
     SDF_DTYPE,
     SEG,
     check_key,
+    kind_of_members,
 )
 from hoidata.store.index import to_jsonable
 
@@ -63,12 +65,12 @@ def _is_key(key) -> bool:
 
 
 def _check_images(where, key, img, seg, hm) -> None:
-    """img (S, S, 3) uint8; seg and hm (S // 2, S // 2) uint8."""
+    """img (S, S, 3) uint8; seg and hm (S // 2, S // 2) uint8 (both None for a record kind without them)."""
     if not (isinstance(img, np.ndarray) and img.dtype == np.uint8 and img.ndim == 3
             and img.shape[2] == 3 and img.shape[0] == img.shape[1] >= 2):
         raise DataError(where, _field(key, IMG), f"expected square (S, S, 3) uint8, got {_describe(img)}")
     half = img.shape[0] // 2
-    for member, arr in ((SEG, seg), (HEATMAP, hm)):
+    for member, arr in ((SEG, seg), (HEATMAP, hm)) if seg is not None or hm is not None else ():
         if not (isinstance(arr, np.ndarray) and arr.dtype == np.uint8 and arr.shape == (half, half)):
             raise DataError(where, _field(key, member), f"expected ({half}, {half}) uint8, got {_describe(arr)}")
 
@@ -93,8 +95,9 @@ def _describe(arr) -> str:
     return f"{arr.dtype} {arr.shape}" if isinstance(arr, np.ndarray) else type(arr).__name__
 
 
-def _check_meta(meta, where, key, n_sdf: int) -> dict:
-    """Check a JSON-level meta dict against META_FIELDS; return it with shaped fields as numpy arrays."""
+def _check_meta(meta, where, key, n_sdf: int | None, kind: str | None = None) -> dict:
+    """Check a JSON-level meta dict against META_FIELDS and its kind's fields (``kind``: the kind its members
+    say, checked against the meta's own); return it with shaped fields as numpy arrays."""
     name = _field(key, META)
     if not isinstance(meta, dict):
         raise DataError(where, name, f"expected a JSON object, got {type(meta).__name__}")
@@ -102,12 +105,17 @@ def _check_meta(meta, where, key, n_sdf: int) -> dict:
     version = meta.get("schema_version")
     if version != SCHEMA_VERSION or isinstance(version, bool):
         raise DataError(where, name, f"'schema_version': {version!r}, this reader knows {SCHEMA_VERSION}")
-    missing, extra = sorted(set(META_FIELDS) - set(meta)), sorted(set(meta) - set(META_FIELDS))
+    given = meta.get("kind")
+    if given not in RECORD_KINDS or (kind is not None and given != kind):
+        raise DataError(where, name, f"'kind': {given!r}, expected {kind!r}" if kind and given in RECORD_KINDS
+                        else f"'kind': {given!r}, expected one of {sorted(RECORD_KINDS)}")
+    fields = RECORD_KINDS[given][1]
+    missing, extra = sorted(set(fields) - set(meta)), sorted(set(meta) - set(fields))
     if missing or extra:
-        raise DataError(where, name, f"missing fields {missing}, unexpected fields {extra}")
+        raise DataError(where, name, f"missing fields {missing}, unexpected fields {extra} (kind {given!r})")
     out = {}
-    for field_name, (shape, _) in META_FIELDS.items():
-        value = meta[field_name]
+    for field_name in fields:
+        shape, value = META_FIELDS[field_name][0], meta[field_name]
         if shape is None:
             want = META_TYPES.get(field_name)
             # bool is an int in Python; a flag where a number belongs (or back) is still wrong
@@ -124,6 +132,8 @@ def _check_meta(meta, where, key, n_sdf: int) -> dict:
         out[field_name] = arr
     if key is not None and out["key"] != key:
         raise DataError(where, name, f"'key': {out['key']!r} differs from the record key")
+    if given != FULL:
+        return out
     counts = out["sdf_counts"]
     if (counts < 0).any() or (counts != np.round(counts)).any() or counts.sum() != n_sdf:
         raise DataError(where, name, f"'sdf_counts': {counts.tolist()} must be counts summing to {n_sdf} rows")
@@ -131,28 +141,37 @@ def _check_meta(meta, where, key, n_sdf: int) -> dict:
     return out
 
 
-def encode_record(key: str, img: np.ndarray, seg: np.ndarray, heatmap: np.ndarray, sdf: np.ndarray,
-                  meta: dict) -> dict[str, bytes]:
-    """Arrays and labels -> {member name: bytes}; the same inputs always give the same bytes.
+def encode_record(key: str, img: np.ndarray, seg: np.ndarray | None, heatmap: np.ndarray | None,
+                  sdf: np.ndarray | None, meta: dict) -> dict[str, bytes]:
+    """Arrays and labels -> {member name: bytes} of the record's kind; the same inputs always give the same bytes.
 
-    img is RGB. meta must hold every META_FIELDS field (numpy values allowed); it is checked exactly as a
-    reader would check it, so a record that encodes also decodes.
+    img is RGB. meta must hold exactly its kind's fields (``meta["kind"]``, schema.RECORD_KINDS; numpy values
+    allowed); seg, heatmap and sdf are None exactly for a kind without those members. It is checked as a reader
+    would check it, so a record that encodes also decodes.
     """
     _check_key(key, None)
+    kind = meta.get("kind") if isinstance(meta, dict) else None
+    members_of_kind = RECORD_KINDS[kind][0] if kind in RECORD_KINDS else ()
+    arrays = {SEG: seg, HEATMAP: heatmap, SDF: sdf}
+    given = {IMG, META} | {m for m, arr in arrays.items() if arr is not None}
+    if kind in RECORD_KINDS and given != set(members_of_kind):
+        raise DataError(None, key, f"a {kind!r} record has members {list(members_of_kind)}, got {sorted(given)}")
     _check_images(None, key, img, seg, heatmap)
-    _check_sdf(None, key, sdf)
+    if sdf is not None:
+        _check_sdf(None, key, sdf)
     plain = to_jsonable(meta, None, _field(key, META))
-    _check_meta(plain, None, key, len(sdf))
+    _check_meta(plain, None, key, None if sdf is None else len(sdf))
     members = {IMG: _imencode(".jpg", np.ascontiguousarray(img[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])}
-    for member, arr in ((SEG, seg), (HEATMAP, heatmap)):
+    for member, arr in ((SEG, seg), (HEATMAP, heatmap)) if seg is not None else ():
         members[member] = _imencode(".png", np.ascontiguousarray(arr), [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION])
-    buf = io.BytesIO()
-    np.save(buf, np.ascontiguousarray(sdf), allow_pickle=False)  # C order, so the header is always the same
-    members[SDF] = buf.getvalue()
+    if sdf is not None:
+        buf = io.BytesIO()
+        np.save(buf, np.ascontiguousarray(sdf), allow_pickle=False)  # C order, so the header is always the same
+        members[SDF] = buf.getvalue()
     # sorted keys and fixed separators: byte-identical JSON for equal labels
     text = json.dumps(plain, sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False)
     members[META] = text.encode()
-    return {member: members[member] for member in MEMBERS}
+    return {member: members[member] for member in members_of_kind}
 
 
 def _imencode(ext: str, arr: np.ndarray, params: list[int]) -> bytes:
@@ -201,27 +220,32 @@ def decode_record(members: dict[str, bytes], where: str) -> dict:
     """{member name: bytes} (plus an optional ``__key__``, as WebDataset samples have) -> decoded record.
 
     Returns {"__key__": key, IMG: RGB uint8, SEG: uint8, HEATMAP: uint8, SDF: int16 (N, 6), META: dict}
-    with META's shaped fields as numpy arrays. Other ``__*__`` entries (``__url__``...) are ignored.
+    with META's shaped fields as numpy arrays; a record of a kind without some members (schema.RECORD_KINDS)
+    has only its own (an ``eval`` record: IMG and META). Other ``__*__`` entries (``__url__``...) are ignored.
     Any deviation from the schema raises DataError naming ``where`` (the shard) and the key/member.
     """
     key = members.get(KEY)
     if key is not None and not isinstance(key, str):
         raise DataError(where, KEY, f"expected a string, got {type(key).__name__}")
     given = {name for name in members if not (name.startswith("__") and name.endswith("__"))}
-    if given != set(MEMBERS):
-        raise DataError(where, key, f"members {sorted(given)}, expected exactly {list(MEMBERS)}")
-    for name in MEMBERS:
+    kind = kind_of_members(given)
+    if kind is None:
+        kinds = "; ".join(f"{k}: {list(m)}" for k, (m, _) in RECORD_KINDS.items())
+        raise DataError(where, key, f"members {sorted(given)}, expected exactly those of a record kind ({kinds})")
+    for name in given:
         if not isinstance(members[name], (bytes, bytearray, memoryview)) or len(members[name]) > MAX_MEMBER_BYTES:
             raise DataError(where, _field(key, name), f"expected at most {MAX_MEMBER_BYTES} bytes")
-    img = _decode_image(members[IMG], where, key, IMG)
-    seg = _decode_image(members[SEG], where, key, SEG)
-    hm = _decode_image(members[HEATMAP], where, key, HEATMAP)
-    _check_images(where, key, img, seg, hm)
-    sdf = _decode_sdf(members[SDF], where, key)
-    _check_sdf(where, key, sdf)
+    out = {IMG: _decode_image(members[IMG], where, key, IMG)}
+    if kind == FULL:
+        out[SEG] = _decode_image(members[SEG], where, key, SEG)
+        out[HEATMAP] = _decode_image(members[HEATMAP], where, key, HEATMAP)
+    _check_images(where, key, out[IMG], out.get(SEG), out.get(HEATMAP))
+    if SDF in given:
+        out[SDF] = _decode_sdf(members[SDF], where, key)
+        _check_sdf(where, key, out[SDF])
     try:
         plain = json.loads(bytes(members[META]).decode("utf-8"))
     except (UnicodeDecodeError, ValueError, RecursionError) as exc:  # RecursionError: absurdly nested JSON
         raise DataError(where, _field(key, META), f"not UTF-8 JSON ({type(exc).__name__})") from None
-    meta = _check_meta(plain, where, key, len(sdf))
-    return {KEY: meta["key"], IMG: img, SEG: seg, HEATMAP: hm, SDF: sdf, META: meta}
+    out[META] = _check_meta(plain, where, key, len(out[SDF]) if SDF in out else None, kind)
+    return {KEY: out[META]["key"], **out}

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from hoidata.errors import DataError
-from hoidata.schema import META_FIELDS, META_TYPES, SCHEMA_VERSION, check_key
+from hoidata.schema import META_FIELDS, META_TYPES, RECORD_KINDS, SCHEMA_VERSION, check_key
 
 INDEX_NAME = "index.zarr"
 INDEX_FORMAT = 1  # layout version of index.zarr, recorded as the attribute "hoidata_index"
@@ -39,6 +39,8 @@ INDEX_LABELS = {name: np.float32 for name in ("joints_3d", "joints_2d", "K", "ha
                                               "mano_transl", "object_pose", "hand_box", "object_box")}
 INDEX_LABELS["object_id"] = np.int16
 INDEX_LABELS["sample_index"] = np.int64  # the toolkit's id of a DexYCB sample (-1 elsewhere)
+# label columns some record kind lacks: such rows hold NaN (sdf_counts: 0, 0, 0 -- the record has no SDF rows)
+ABSENT_IN_SOME_KIND = frozenset(f for _, fields in RECORD_KINDS.values() for f in META_FIELDS if f not in fields)
 _NODE_RE = re.compile(r"^(?!__)[A-Za-z0-9_\-.]+$")  # a zarr node name that is not "." or ".."
 
 
@@ -109,14 +111,20 @@ class ShardInfo:
 # writing
 
 
+def _absent_value(name: str, shape):
+    """What a column holds for a record whose kind lacks the field: NaN, or no SDF rows for sdf_counts."""
+    return np.zeros(shape, np.int64) if name == "sdf_counts" else np.full(shape, np.nan)
+
+
 def index_labels(metas: Sequence[dict]) -> dict[str, np.ndarray]:
     """Per-record meta dicts -> the label columns for write_index: every META_FIELDS field but the
-    schema version and the free-form source, shaped fields stacked (float32; sdf_counts int32)."""
+    schema version and the free-form source, shaped fields stacked (float32; sdf_counts int32). A field a
+    record's kind lacks (schema.RECORD_KINDS) is NaN in its row (sdf_counts 0, 0, 0)."""
     columns = {}
     for name, (shape, _) in META_FIELDS.items():
         if name in ("schema_version", "source"):
             continue
-        values = [meta[name] for meta in metas]
+        values = [meta[name] if name in meta else _absent_value(name, shape) for meta in metas]
         if META_TYPES.get(name) is str:
             columns[name] = np.array(values, dtype=np.dtypes.StringDType())
         elif shape is None:
@@ -149,9 +157,24 @@ def _column(name: str, values, n: int, where) -> np.ndarray:
         arr = cast
     if arr.ndim == 0 or len(arr) != n:
         raise DataError(where, f"labels.{name}", f"expected {n} rows, got shape {arr.shape}")
-    if arr.dtype.kind == "f" and not np.isfinite(arr).all():
+    if arr.dtype.kind == "f" and not np.isfinite(arr).all() and (name not in ABSENT_IN_SOME_KIND or np.isinf(arr).any()):
         raise DataError(where, f"labels.{name}", "non-finite values")
     return arr
+
+
+def _check_kinds(columns: dict[str, np.ndarray], where) -> None:
+    """The kind column names record kinds; a row's label is NaN exactly where its kind lacks the field."""
+    kinds = columns["kind"]
+    unknown = sorted(set(kinds.tolist()) - set(RECORD_KINDS))
+    if unknown:
+        raise DataError(where, "labels.kind", f"unknown record kinds {unknown}; expected {sorted(RECORD_KINDS)}")
+    for name, arr in columns.items():
+        if name not in ABSENT_IN_SOME_KIND or arr.dtype.kind != "f":
+            continue
+        lacking = np.array([name not in RECORD_KINDS[k][1] for k in kinds.tolist()], bool)
+        nan = np.isnan(arr.reshape(len(arr), -1))
+        if nan[lacking].size and not nan[lacking].all() or nan[~lacking].any():
+            raise DataError(where, f"labels.{name}", "NaN only, and only, in rows whose record kind lacks the field")
 
 
 def _check_keys(keys: list[str], n: int, where) -> None:
@@ -171,10 +194,11 @@ def _check_index_inputs(shards_info, labels: dict, where) -> tuple[list[ShardInf
     if [s.number for s in shards] != list(range(len(shards))):
         raise DataError(where, "shards", f"expected shards numbered 0..{len(shards) - 1} in order")
     n = sum(s.count for s in shards)
-    missing = sorted({"key", *INDEX_LABELS} - set(labels))
+    missing = sorted({"key", "kind", *INDEX_LABELS} - set(labels))
     if missing:
         raise DataError(where, "labels", f"missing columns {missing}")
     columns = {name: _column(name, values, n, where) for name, values in labels.items()}
+    _check_kinds(columns, where)
     keys = columns["key"].tolist()
     _check_keys(keys, n, where)
     start = 0
@@ -297,6 +321,9 @@ def _open_index(store_dir):
         raise DataError(path, None, f"not a readable zarr v3 group ({type(exc).__name__}: {exc})") from None
     if attrs.get("hoidata_index") != INDEX_FORMAT:
         raise DataError(path, "hoidata_index", f"{attrs.get('hoidata_index')!r}, this reader knows {INDEX_FORMAT}")
+    if attrs.get("schema_version") != SCHEMA_VERSION:
+        raise DataError(path, "schema_version", f"{attrs.get('schema_version')!r}: the store's records are of another "
+                                                f"schema than this reader's ({SCHEMA_VERSION}); rebuild it into a new folder")
     types = {"schema_version": int, "n_records": int, "shards": list, "label_columns": list, "objects": list,
              "skipped": list, "config": dict, "provenance": dict}
     for name, want in types.items():
@@ -323,7 +350,7 @@ def _read_labels(group, attrs: dict, shards: list[ShardInfo], path) -> dict[str,
     """Every label column, checked: required columns present and shaped, n rows each, shard column consistent."""
     n = attrs["n_records"]
     labels = {name: _read_array(group, f"labels/{name}", path) for name in attrs["label_columns"]}
-    for name in ("key", "shard", *INDEX_LABELS):
+    for name in ("key", "shard", "kind", *INDEX_LABELS):
         if name not in labels:
             raise DataError(path, f"labels/{name}", "missing column")
         want = (n, *(META_FIELDS[name][0] or ())) if name in INDEX_LABELS else (n,)

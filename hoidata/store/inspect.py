@@ -8,6 +8,9 @@ Each record gets a cell of two ``TILE`` px panels and a caption strip below them
   of the hand and object sets projected with ``K``, coloured by their signed distance to the hand;
 * caption: the record key and the object name.
 
+A record of kind ``eval`` (no masks, joints or SDF samples) gets the crop with its given hand box and its object
+box outlined, and a black right panel.
+
 Cells fill ``COLUMNS`` per row, so a grid of k records is ``min(k, COLUMNS) * 2 * TILE`` px wide and
 ``ceil(k / COLUMNS) * (TILE + CAPTION_HEIGHT)`` px high (see :func:`grid_size`).
 """
@@ -218,9 +221,24 @@ def _caption(record: dict, width: int) -> np.ndarray:
     return strip
 
 
+def boxes_panel(record: dict) -> np.ndarray:
+    """A record without masks, joints or SDF samples (kind ``eval``): the crop with its hand box (green) and
+    object box (orange) outlined, (TILE, TILE, 3) RGB."""
+    img, meta = record[IMG], record[META]
+    panel = np.ascontiguousarray(cv2.resize(img, (TILE, TILE), interpolation=cv2.INTER_AREA))
+    for name, colour in (("object_box", OBJECT_COLOUR), ("hand_box", HAND_COLOUR)):
+        (x1, y1), (x2, y2) = _to_tile(np.asarray(meta[name]).reshape(2, 2), img.shape[0])
+        cv2.rectangle(panel, (int(x1), int(y1)), (int(x2), int(y2)), colour, 1, cv2.LINE_AA)
+    return panel
+
+
 def record_cell(record: dict) -> np.ndarray:
-    """One record's cell: overlay and SDF panels side by side over the caption, RGB uint8."""
-    panels = np.concatenate([overlay_panel(record), sdf_panel(record)], axis=1)
+    """One record's cell: overlay and SDF panels side by side over the caption, RGB uint8 (a record without
+    labels: the boxes panel and a black one)."""
+    if SEG in record:
+        panels = np.concatenate([overlay_panel(record), sdf_panel(record)], axis=1)
+    else:
+        panels = np.concatenate([boxes_panel(record), np.zeros((TILE, TILE, 3), np.uint8)], axis=1)
     return np.concatenate([panels, _caption(record, 2 * TILE)], axis=0)
 
 

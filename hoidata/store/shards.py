@@ -25,7 +25,7 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 from hoidata.errors import DataError
-from hoidata.schema import MEMBERS
+from hoidata.schema import MEMBERS, kind_of_members
 from hoidata.store.codec import (
     KEY,
     MAX_MEMBER_BYTES,
@@ -80,6 +80,8 @@ class _OpenShard:
     def add(self, key: str, members: dict[str, bytes]) -> None:
         _check_members_to_write(key, members)
         for member in MEMBERS:  # schema order, whatever order the dict has
+            if member not in members:  # a record kind without this member
+                continue
             data = bytes(members[member])
             info = tarfile.TarInfo(f"{key}.{member}")
             info.size, info.mtime, info.mode, info.type = len(data), 0, 0o644, tarfile.REGTYPE
@@ -105,10 +107,12 @@ class _OpenShard:
 
 
 def _check_members_to_write(key: str, members: dict[str, bytes]) -> None:
-    """A record to write: a valid key and bytes for exactly the schema's members."""
+    """A record to write: a valid key and bytes for exactly the members of a record kind (schema.RECORD_KINDS)."""
     _check_key(key, None)
-    if set(members) != set(MEMBERS) or not all(isinstance(v, (bytes, bytearray, memoryview)) for v in members.values()):
-        raise DataError(None, key, f"expected bytes for exactly {list(MEMBERS)}, got {sorted(members)}")
+    if kind_of_members(members) is None or not all(isinstance(v, (bytes, bytearray, memoryview))
+                                                  for v in members.values()):
+        raise DataError(None, key, f"expected bytes for exactly {list(MEMBERS)} (or another record kind's members), "
+                                   f"got {sorted(members)}")
 
 
 def write_json_atomic(path: Path, value) -> None:

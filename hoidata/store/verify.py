@@ -55,6 +55,11 @@ def _label_mismatches(index: StoreIndex, row: int, meta: dict) -> list[str]:
     for name, column in index.labels.items():
         if name not in META_FIELDS or name == "key":
             continue
+        if name not in meta:  # the record's kind lacks the field: the index holds NaN (sdf_counts 0, 0, 0)
+            stored = np.asarray(column[row], np.float64)
+            if not (np.isnan(stored).all() or (name == "sdf_counts" and not stored.any())):
+                bad.append(name)
+            continue
         stored, value = column[row], meta[name]
         if column.dtype.kind == "U":
             same = isinstance(value, str) and str(stored) == value

@@ -39,7 +39,7 @@ def grasps_from_store(store_dir: Path, mano) -> list[GraspSource]:
 
     index = read_index(store_dir)
     lab = index.labels
-    keep = [i for i in range(len(index.keys)) if not bool(lab["mirrored"][i])]
+    keep = [i for i in range(len(index.keys)) if not bool(lab["mirrored"][i]) and lab["kind"][i] == "full"]
     betas = torch.as_tensor(np.asarray(lab["mano_betas"], np.float64)[keep])
     wrists = mano.rest_joints(betas)[:, 0].double().numpy() if keep else np.zeros((0, 3))
     out = []

@@ -42,7 +42,9 @@ import webdataset as wds
 from webdataset.utils import pytorch_worker_info
 
 from hoidata import schema
+from hoidata.errors import DataError
 from hoidata.store import KEY, decode_record, read_index
+from hoisdf.data.kinds import check_trainable, fill_absent_labels
 
 _MIX_STREAM, _SHUFFLE_STREAM = 1, 2  # distinguish the RNG streams drawn from the same seed
 
@@ -199,6 +201,10 @@ class _ToArrays:
 
     def convert(self, rec: dict) -> dict:
         meta, key = rec[schema.META], rec[KEY]
+        if meta["kind"] != schema.FULL:  # an 'eval' record: only evaluation takes it, its hand labels as NaN
+            if self.near is not None:
+                raise DataError(None, key, f"a {meta['kind']!r} record lacks {', '.join(schema.EVAL_ABSENT)}")
+            meta, rec = fill_absent_labels(meta, rec, self.n_hand, self.n_object)
         # seeded by the key, not by position, so the draw does not depend on the worker or shuffle
         rng = np.random.default_rng([self.seed, self.state.epoch, _key_seed(key)])
         out = sample_sdf(rec[schema.SDF], meta["sdf_counts"], rng, self.n_hand, self.n_object, self.near)
@@ -378,6 +384,8 @@ def build_dataset(stores: list[StoreSpec], batch_size: int, epoch_samples: int |
     pipes, sizes = [], []
     for number, spec in enumerate(stores):
         index = read_index(spec.path)
+        if training:
+            check_trainable(spec.path, index)
         urls = [str(Path(spec.path) / info.name) for info in index.shards]
         if not urls:
             raise ValueError(f"{spec.path}: the store has no shards")

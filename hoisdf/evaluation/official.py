@@ -138,3 +138,11 @@ def write_scores_txt(path, scores: dict) -> Path:
     path = Path(path)
     path.write_text("".join(f"{name}: {scores[name]:f}\n" for name in HO3D_SCORES))
     return path
+
+
+def format_ho3d_scores(scores: dict) -> str:
+    """The challenge scores as printed lines: joints, then mesh, then F-scores (scores.txt's names and units)."""
+    cells = [f"{name} {scores[name]:.4f}" for name in HO3D_SCORES]
+    rows = [cells[0:6], cells[6:10], cells[10:14]]
+    return (f"HO-3D challenge scores of {scores.get('pred_file', 'pred.json')} ({scores['samples']} samples; "
+            f"{HO3D_UNITS}):\n" + "\n".join("  " + ", ".join(r) for r in rows))

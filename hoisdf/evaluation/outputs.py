@@ -136,6 +136,19 @@ def _export_ho3d(col: Collected, sel: np.ndarray, joints: np.ndarray, path, out_
     return written
 
 
+def score_ho3d_files(files: dict[str, str], gt_folder, out_dir: Path) -> dict:
+    """Score the pred.json among ``files`` (export's result) against the challenge's ground truth in ``gt_folder``
+    and write ``out_dir/scores.txt`` as the server's eval.py does; returns the scores plus the pred file's name."""
+    from hoisdf.evaluation.official import score_ho3d_submission, write_scores_txt
+
+    preds = [path for key, path in files.items() if key.startswith("ho3d.json:")]
+    if len(preds) != 1:
+        raise DataError(gt_folder, None, f"--ho3d-gt scores one HO-3D store's pred.json; {len(preds)} were written")
+    scores = score_ho3d_submission(preds[0], gt_folder)
+    write_scores_txt(out_dir / "scores.txt", scores)
+    return {**scores, "pred_file": Path(preds[0]).name}
+
+
 def write_vis(col: Collected, meshes: list, mano, folder: Path) -> None:
     """``folder/<key>.png``: result over the input image | query points coloured by predicted SDF; ``meshes``:
     each sample's object mesh (``hoisdf.evaluate.sample_meshes``)."""

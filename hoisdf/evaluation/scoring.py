@@ -106,6 +106,11 @@ def plausibility_summary(col: Collected, meshes: list, mano, count: int, progres
     verts, k = col.get("verts"), min(count, len(col.keys))
     if verts is None or k == 0:
         return {"skipped": "no predicted hand mesh" if verts is None else "--plausibility 0"}
-    return {name: plausibility_of(col.get(v)[:k], col.get(p)[:k], meshes[:k], mano, progress)
-            for name, v, p in (("model", "verts", "obj_pose"), ("ground_truth", "gt_verts", "gt_obj_pose"))}
+    out = {}
+    for name, v, p in (("model", "verts", "obj_pose"), ("ground_truth", "gt_verts", "gt_obj_pose")):
+        hands, poses = col.get(v)[:k], col.get(p)[:k]
+        known = np.flatnonzero(np.isfinite(hands).all((1, 2)) & np.isfinite(poses).all((1, 2)))  # eval records: no GT
+        out[name] = (plausibility_of(hands[known], poses[known], [meshes[i] for i in known], mano, progress)
+                     if len(known) else {"skipped": "no ground-truth hand mesh (evaluation records)"})
+    return out
 

@@ -20,9 +20,11 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from hoidata.store import read_index
 from hoisdf.config import TrainConfig
 from hoisdf.data import StoreSpec, build_dataset, make_loader
 from hoisdf.data.augment import augment_batch
+from hoisdf.data.kinds import check_trainable
 from hoisdf.model import build_model
 from hoisdf.model.sampling import noise_scale
 from hoisdf.training.checkpoint import (
@@ -78,6 +80,8 @@ class Trainer:
                                      t.near, t.shuffle_buffer, training=True)
         self.loader = make_loader(self.dataset, t.workers, pin_memory=device.type == "cuda")
         self.val_stores = list(val_stores)
+        for spec in self.val_stores:  # validation losses need every label, as training does
+            check_trainable(spec.path, read_index(spec.path))
         self.generator = torch.Generator().manual_seed(t.seed * 1000 + rank)
         self.progress = Progress()
         self.autocast = device.type == "cuda" and t.bf16
