@@ -16,6 +16,7 @@ import yaml
 from hoidata.datasets.dexycb import SETTINGS, DexYCBReader
 from hoidata.datasets.dexycb_frames import TOOLKIT_INVALID
 from hoidata.datasets.dexycb_layout import SERIALS, SUBJECTS, toolkit_split
+from hoidata.errors import DataError
 
 SPLIT_SUBJECTS = {"train": range(10), "val": (0, 1), "test": range(2, 10)}  # toolkit s0
 
@@ -213,3 +214,64 @@ def test_hpe_file_of_a_subset_says_so(store_8cam, dexycb_8cam, tiny_run, mano_di
     assert printed.count("dexycb_hpe_s0_train_subset.txt: a subset of s0_train (54 of the split's 72") == 1
     with pytest.raises(AssertionError, match="missing image id in result file"):
         hpe_eval(dexycb_8cam, "train", tmp_path / "dexycb_hpe_s0_train_subset.txt")
+
+
+# ---------------------------------------------------------------- dataset.frame_list: gSDF-style id lists
+
+def _build_listed(root, out, ids, *extra):
+    """Build the listed frames with the toy setting narrowed to right hands, every 5th frame, proximity on: the
+    list must override all three."""
+    import json
+
+    from hoidata.pipeline.runner import build_store
+    from hoidata.pipeline.settings import load_build_config
+
+    listed = out.parent / f"{out.name}.json"
+    listed.write_text(json.dumps([str(i).rjust(8, "0") for i in ids]))  # gSDF writes 8-digit strings
+    overrides = ['dataset.splits=["train"]', 'dataset.sides=["right"]', "dataset.frame_stride=5",
+                 "dataset.proximity_mm=5.0", f"dataset.frame_list={listed}", "record.crop_size=64",
+                 "record.n_hand=64", "record.n_object=32", *extra]
+    build_store(load_build_config("toy", overrides), root, root / "mano", root / "models", out, progress=False)
+    return listed
+
+
+def test_frame_list_builds_exactly_the_listed_frames(tiny_dexycb, tmp_path):
+    from hoidata.store import read_index
+
+    ref = reference_ids(tiny_dexycb, "train")
+    seqs = sorted(p.name for p in (tiny_dexycb / SUBJECTS[0]).iterdir())
+    wanted = [ref[(SUBJECTS[0], seqs[0], SERIALS[0], f)] for f in (1, 3)]  # right hand, off the 5-frame stride
+    wanted.append(ref[(SUBJECTS[0], seqs[1], SERIALS[0], 2)])  # a left hand: mirrored
+    listed = _build_listed(tiny_dexycb, tmp_path / "store", wanted)
+    index = read_index(tmp_path / "store")
+    assert sorted(index.labels["sample_index"].tolist()) == sorted(wanted)
+    assert index.labels["mirrored"].tolist() == [False, False, True]
+    assert index.provenance["frame_list"]["ids"] == 3 and index.config["dataset"]["frame_list"] == str(listed)
+
+
+def test_frame_list_ids_missing_from_the_dataset_are_named(tiny_dexycb, tmp_path):
+    ref = reference_ids(tiny_dexycb, "train")
+    seqs = sorted(p.name for p in (tiny_dexycb / SUBJECTS[0]).iterdir())
+    absent_camera = ref[(SUBJECTS[0], seqs[0], SERIALS[1], 0)]  # the toy has only the first camera
+    with pytest.raises(DataError, match=r"2 listed ids are not frames of this dataset's s0_train \(128 samples; 1 past "
+                                        rf"its end.*\[{absent_camera}, 1000000\]"):
+        _build_listed(tiny_dexycb, tmp_path / "store", [0, absent_camera, 10 ** 6])
+    assert not (tmp_path / "store").exists()  # nothing written
+
+
+@pytest.mark.parametrize("content, match", [('["00000001", "x7"]', "item 1"), ("[3, 3]", "more than once: \\[3\\]"),
+                                            ('{"ids": [1]}', "non-empty JSON list"), ("[1.5]", "item 0")])
+def test_frame_list_bad_files(tmp_path, content, match):
+    from hoidata.pipeline.frame_list import read_frame_list
+
+    path = tmp_path / "list.json"
+    path.write_text(content)
+    with pytest.raises(DataError, match=f"{path}.*{match}"):
+        read_frame_list(path)
+
+
+def test_frame_list_needs_one_dexycb_split():
+    from hoidata.pipeline.settings import load_build_config
+
+    with pytest.raises(DataError, match="dataset.frame_list.*one DexYCB split"):
+        load_build_config("dexycb", ["dataset.frame_list=train_s0_29k.json"])  # dexycb.toml builds train and test

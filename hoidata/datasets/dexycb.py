@@ -75,6 +75,9 @@ class DexYCBReader:
         setting: a :class:`DexYCBSetting` (see SETTINGS).
         models_dir: YCB models folder, default ``root/models`` (proximity filter only).
         on_error: 'raise' stops at the first malformed file; 'skip' records it in ``skipped``.
+        frame_ids: read exactly these toolkit sample ids (a published frame list,
+            :mod:`hoidata.pipeline.frame_list`) instead of the setting's sides, frame stride and proximity rules;
+            listed left hands are mirrored.
 
     Every frame carries ``sample_index``, its index in the toolkit's enumeration of the split
     (:class:`~hoidata.datasets.dexycb_layout.ToolkitSplit`, in ``toolkit`` after :meth:`frames` started);
@@ -89,6 +92,7 @@ class DexYCBReader:
     models_dir: Path | None = None
     on_error: str = "raise"
     skipped: list[Skip] = field(default_factory=list)
+    frame_ids: frozenset[int] | None = None
     toolkit: ToolkitSplit | None = field(default=None, init=False)
 
     def __post_init__(self):
@@ -116,6 +120,8 @@ class DexYCBReader:
         try:
             self.toolkit = toolkit_split(self.root, self.setting.setup, self.split)
         except DataError as e:
+            if self.frame_ids is not None:  # a frame list cannot be resolved without the ids
+                raise
             self._fail(DataError(e.path, e.field, f"{e.problem}; the toolkit's sample ids are unknown"), "toolkit ids")
         for s, i, seq_dir in self.sequences():
             try:

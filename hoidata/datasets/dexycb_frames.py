@@ -49,7 +49,7 @@ def sequence_frames(reader, s: int, seq_index: int, seq_dir: Path, meta: dict) -
     """Frames of one sequence for `reader` (a DexYCBReader), cameras in SERIALS order, then frames."""
     subject, setting = SUBJECTS[s], reader.setting
     side = str(meta["mano_sides"][0])
-    if side not in setting.sides:
+    if side not in setting.sides and reader.frame_ids is None:
         reader.skipped.append(Skip(f"{subject}_{seq_dir.name}", f"{side} hand: setting {setting.name} keeps {setting.sides}",
                                    str(seq_dir / "meta.yml")))
         return
@@ -70,7 +70,7 @@ def sequence_frames(reader, s: int, seq_index: int, seq_dir: Path, meta: dict) -
             reader._fail(e, f"{subject}_{seq_dir.name}_{serial}")
             continue
         kept = []
-        for f in range(0, int(meta["num_frames"]), setting.frame_stride):
+        for f in _frames_to_read(reader, subject, seq_dir.name, serial, int(meta["num_frames"])):
             fid = f"{subject}_{seq_dir.name}_{serial}_{f:06d}"
             try:
                 labels = read_labels(label_path(seq_dir, serial, f), len(meta["ycb_ids"]))
@@ -91,6 +91,14 @@ def sequence_frames(reader, s: int, seq_index: int, seq_dir: Path, meta: dict) -
             reader._fail(e, f"{subject}_{seq_dir.name}_{serial}")
             continue
         yield from frames
+
+
+def _frames_to_read(reader, subject: str, sequence: str, serial: str, num_frames: int) -> list[int]:
+    """The frames of one camera the reader looks at: every ``frame_stride``-th, or those a frame list names."""
+    if reader.frame_ids is None:
+        return list(range(0, num_frames, reader.setting.frame_stride))
+    first = reader.toolkit.sample_index(subject, sequence, serial, 0) if num_frames else 0
+    return [f for f in range(num_frames) if first + f in reader.frame_ids]
 
 
 def _frames_for_camera(reader, kept: list, ctx: dict) -> Iterator[Frame]:
@@ -117,7 +125,8 @@ def _frames_for_camera(reader, kept: list, ctx: dict) -> Iterator[Frame]:
             image_size=IMAGE_SIZE, K=ctx["K"], side=ctx["side"], root_3d=joints[0], object_name=ctx["name"],
             object_id=ctx["class_id"], object_pose=pose, mano_pose=full[k], mano_betas=ctx["betas"],
             mano_transl=transl[k], joints_3d=joints, joints_2d=lab["joint_2d"][0].astype(np.float64),
-            tip_convention="manopth", mirror=reader.setting.mirror_left and ctx["side"] == "left",
+            tip_convention="manopth", mirror=(reader.setting.mirror_left or reader.frame_ids is not None)
+            and ctx["side"] == "left",
             fix_left_shapedirs=reader.setting.fix_left_shapedirs,
             segmentation_path=lpath, sample_index=sample,
             source={"labels": str(lpath), "subject": ctx["subject"], "sequence": ctx["seq_dir"].name,
@@ -128,7 +137,8 @@ def _frames_for_camera(reader, kept: list, ctx: dict) -> Iterator[Frame]:
 
 def _hand_object_distances(reader, mano, full, ctx, transl, kept) -> np.ndarray | None:
     """Min distance (m) from the grasped object's model vertices to the hand's vertices, per frame."""
-    if reader.setting.proximity_mm is None or reader.split not in reader.setting.proximity_splits:
+    if (reader.setting.proximity_mm is None or reader.split not in reader.setting.proximity_splits
+            or reader.frame_ids is not None):
         return None
     import torch
 

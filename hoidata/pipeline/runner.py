@@ -20,6 +20,7 @@ from tqdm import tqdm
 from hoidata import schema, store
 from hoidata.datasets.frame import Skip
 from hoidata.errors import DataError
+from hoidata.pipeline.frame_list import check_listed, frame_list_provenance, read_frame_list
 from hoidata.pipeline.settings import BuildConfig
 from hoidata.store.shards import write_json_atomic
 
@@ -33,15 +34,19 @@ def read_frames(cfg: BuildConfig, root: Path, mano_dir: Path) -> tuple[list, lis
         if cfg.dataset.name == "dexycb":
             from hoidata.datasets.dexycb import DexYCBReader
 
-            reader = DexYCBReader(root, mano_dir, split, cfg.dataset.dexycb_setting(), on_error="skip")
+            listed = read_frame_list(cfg.dataset.frame_list) if cfg.dataset.frame_list else None
+            reader = DexYCBReader(root, mano_dir, split, cfg.dataset.dexycb_setting(), on_error="skip",
+                                  frame_ids=None if listed is None else frozenset(listed))
         elif cfg.dataset.name == "ho3d":
             from hoidata.datasets.ho3d import HO3DReader
 
             reader = HO3DReader(root, mano_dir, split, on_error="skip")
         else:
             raise ValueError(f"unknown dataset {cfg.dataset.name!r}; expected 'dexycb' or 'ho3d'")
-        frames += reader.frames()  # frames without hand labels become 'eval' records (schema.RECORD_KINDS)
-        skips += reader.skipped
+        read = list(reader.frames())  # frames without hand labels become 'eval' records (schema.RECORD_KINDS)
+        if cfg.dataset.frame_list:  # every listed id must be a frame of the dataset
+            check_listed(cfg.dataset.frame_list, listed, read, reader.skipped, reader.toolkit)
+        frames, skips = frames + read, skips + reader.skipped
     return frames, skips
 
 
@@ -202,14 +207,15 @@ def toolkit_provenance(cfg: BuildConfig, root: Path) -> dict:
         return {}
     from hoidata.datasets.dexycb_layout import toolkit_split
 
-    splits = {}
+    splits, listed = {}, cfg.dataset.frame_list
     for split in cfg.dataset.splits:
         try:
             enum = toolkit_split(root, cfg.dataset.setup, split)
             splits[split] = {"name": enum.name, "size": enum.size}
         except DataError:  # the reader recorded the unreadable meta.yml; the ids are unknown
             splits[split] = {"name": f"{cfg.dataset.setup}_{split}", "size": None}
-    return {"toolkit_splits": splits}
+    return {"toolkit_splits": splits, **({"frame_list": frame_list_provenance(listed, read_frame_list(listed))}
+                                         if listed else {})}
 
 
 def run_shards(out: Path, n_items: int, per: int, make_job, shard_fn, init, initargs, workers: int,

@@ -40,6 +40,7 @@ class DatasetConfig:
     proximity_splits: tuple[str, ...] = ("train", "val", "test")
     complete_subjects: bool = True  # DexYCB: require 100 sequences per subject (see DexYCBSetting)
     fix_left_shapedirs: bool = False  # DexYCB: its labels use MANO_LEFT without the shapedirs fix
+    frame_list: str = ""  # DexYCB: a JSON list of toolkit sample ids (gSDF's format) to build exactly; one split
 
     def dexycb_setting(self) -> DexYCBSetting:
         return DexYCBSetting(name=self.setting, setup=self.setup, sides=tuple(self.sides), frame_stride=self.frame_stride,
@@ -151,6 +152,9 @@ def load_build_config(name_or_path: str, overrides: list[str] = ()) -> BuildConf
     dataset = section(DatasetConfig, data.get("dataset", {}), path, "dataset")
     if dataset.name not in ("dexycb", "ho3d"):
         raise DataError(path, "dataset.name", f"unknown dataset {dataset.name!r}; expected 'dexycb' or 'ho3d'")
+    if dataset.frame_list and (dataset.name != "dexycb" or len(dataset.splits) != 1):
+        raise DataError(path, "dataset.frame_list", "a frame list holds the toolkit ids of one DexYCB split: set "
+                                                    'dataset.splits to that split, e.g. dataset.splits=["test"]')
     return BuildConfig(dataset,
                        replace(record, sigmas=tuple(record.sigmas)),
                        section(StoreConfig, data.get("store", {}), path, "store"))
