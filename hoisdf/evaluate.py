@@ -162,6 +162,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{result['samples']} samples, checkpoint {result['checkpoint']} (epoch {result['epoch']}), "
           f"boxes {result['test_boxes']}; lengths in mm")
     print(result["table"])
+    if result["counts"]["hand_metrics"] == 0:
+        print("no hand ground truth in these records (nan above); an HO-3D evaluation split is scored by --ho3d-gt "
+              "or the challenge server")
     for who, plaus in result["plausibility"].items():
         if isinstance(plaus, dict) and "skipped" not in plaus:
             print(f"plausibility, {who} ({plaus['num_samples']} samples): penetration "
@@ -172,7 +175,9 @@ def main(argv: list[str] | None = None) -> int:
               + (" (the evaluated store's own labels)" if result["baseline"]["peeks_at_evaluated_labels"] else ""))
     if "ho3d_challenge" in result:
         print(format_ho3d_scores(result["ho3d_challenge"]))
-    print("wrote", ", ".join([*(Path(p).name for p in result["files"].values()), "metrics.json", "per_object.csv"]))
+    extra = ["scores.txt"] if "ho3d_challenge" in result else []
+    print("wrote", ", ".join([*(Path(p).name for p in result["files"].values()), *extra, "metrics.json",
+                              "per_object.csv"]))
     return 0
 
 

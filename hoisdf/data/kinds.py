@@ -30,6 +30,6 @@ def check_trainable(path, index) -> None:
     kinds = index.labels["kind"]
     other = kinds != schema.FULL
     if other.any():
-        raise DataError(path, "kind", f"{int(other.sum())} of {len(kinds)} records are {sorted(set(kinds[other]))} "
+        raise DataError(path, "kind", f"{int(other.sum())} of {len(kinds)} records are {sorted(set(kinds[other].tolist()))} "
                                       f"records (e.g. HO-3D's evaluation split) without {', '.join(schema.EVAL_ABSENT)}"
                                       ": training needs them; evaluate this store with python -m hoisdf.evaluate")
