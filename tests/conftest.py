@@ -69,12 +69,12 @@ def tiny_store(tiny_dexycb, tmp_path_factory):
 @pytest.fixture(scope="session")
 def dexycb_8cam(tmp_path_factory):
     """A toy DexYCB with all eight cameras, as the toolkit enumerates them: 1 subject, 3 train sequences (right,
-    left, right), 3 frames; frame 1 of the third sequence is invalid (joint_3d -1) in every camera."""
+    left, right), 2 frames; frame 1 of the third sequence is invalid (joint_3d -1) in every camera."""
     from hoidata.datasets.toy import write_assets
     from hoidata.datasets.toy_dexycb import ToyDexYCBSize, write_toy_dexycb
 
     root = tmp_path_factory.mktemp("dexycb_8cam")
     mano_dir, models_dir = write_assets(root)
-    size = ToyDexYCBSize(subjects=(0,), sequences=3, serials=tuple(range(8)), frames=3, invalid_frame=1)
-    write_toy_dexycb(root, mano_dir, models_dir, size, workers=2, progress=False)
+    size = ToyDexYCBSize(subjects=(0,), sequences=3, serials=tuple(range(8)), frames=2, invalid_frame=1)
+    write_toy_dexycb(root, mano_dir, models_dir, size, workers=1, progress=False)
     return root
