@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import os
 import zipfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,7 +19,7 @@ import torch
 
 from hoidata.errors import DataError
 
-SIZE = dict(train_sequences=1, eval_sequences=1, frames=4)
+SIZE = {"train_sequences": 1, "eval_sequences": 1, "frames": 4}
 
 
 @pytest.fixture(scope="module")
@@ -121,8 +122,8 @@ def challenge_eval(gt_path, pred_path) -> dict:
     """The challenge server's scores.txt values for the files in gt_path (ref/) and pred_path (res/), restated."""
     from scipy.linalg import orthogonal_procrustes
 
-    xyz_list = json.load(open(os.path.join(gt_path, "evaluation_xyz.json")))
-    verts_list = json.load(open(os.path.join(gt_path, "evaluation_verts.json")))
+    xyz_list = json.loads(Path(os.path.join(gt_path, "evaluation_xyz.json")).read_text())
+    verts_list = json.loads(Path(os.path.join(gt_path, "evaluation_verts.json")).read_text())
     with open(_search_pred_file(pred_path)) as fi:
         pred = json.load(fi)
     assert len(pred) == 2, "Expected format mismatch."
@@ -186,8 +187,8 @@ def test_toy_writes_the_challenge_ground_truth(ho3d_root):
     from hoisdf.evaluation.submissions import HO3D_TIP_VERTICES
 
     order = (ho3d_root / "evaluation.txt").read_text().split()
-    xyz = np.array(json.load(open(ho3d_root / "evaluation_xyz.json")))
-    verts = np.array(json.load(open(ho3d_root / "evaluation_verts.json")))
+    xyz = np.array(json.loads((ho3d_root / "evaluation_xyz.json").read_text()))
+    verts = np.array(json.loads((ho3d_root / "evaluation_verts.json").read_text()))
     assert xyz.shape == (len(order), 21, 3) and verts.shape == (len(order), 778, 3)
     assert (xyz[..., 2] < 0).all() and (verts[..., 2] < 0).all()  # OpenGL: in front of the camera at negative z
     np.testing.assert_allclose(xyz[:, 16:], verts[:, list(HO3D_TIP_VERTICES)], atol=1e-9)  # HO-3D order: tips last
@@ -205,8 +206,8 @@ def _oracle(ho3d_root, offset=(0.0, 0.0, 0.0), noise: float = 0.0):
     from hoisdf.evaluation.submissions import from_ho3d
 
     order = (ho3d_root / "evaluation.txt").read_text().split()
-    gt_j, gt_v = from_ho3d(np.array(json.load(open(ho3d_root / "evaluation_xyz.json"))),
-                           np.array(json.load(open(ho3d_root / "evaluation_verts.json"))))
+    gt_j, gt_v = from_ho3d(np.array(json.loads((ho3d_root / "evaluation_xyz.json").read_text())),
+                           np.array(json.loads((ho3d_root / "evaluation_verts.json").read_text())))
 
     def forward(self, batch, points="field", **_):
         rows = [order.index("/".join(k.split("-")[-1].rsplit("_", 1))) for k in batch["key"]]

@@ -105,7 +105,7 @@ def _export_hpe(index, rows: np.ndarray, joints: np.ndarray, gt: np.ndarray, out
         if not complete:
             why = (f"{len(missing)} of the split's {info['size']} samples are neither in it nor marked invalid "
                    "(joint_3d -1)" if missing is not None else "the store does not record the toolkit's split size")
-            score["missing"] = None if missing is None else int(len(missing))
+            score["missing"] = None if missing is None else len(missing)
             print(f"{file.name}: a subset of {name} ({why}; the toolkit's hpe_eval.py refuses such a file, "
                   f"metrics.json['dexycb_hpe'] has the toolkit's numbers for it)")
         yield name, str(file), score
