@@ -45,6 +45,13 @@ class DexYCBSetting:
     frame_stride: int = 5
     proximity_mm: float | None = 5.0  # keep a frame only if some object vertex is this close to the hand
     proximity_splits: tuple[str, ...] = ("train", "val", "test")
+    proximity_to: str = "hand_vertices"  # the MANO vertices (gSDF) or 'hand_joints', the 21 labels (ArtiBoost)
+    # the HandOccNet/HOISDF hand box rule (dexycb_selection.hand_box_ok) applies in these splits
+    box_splits: tuple[str, ...] = ()
+    # keep a frame only if the grasped object turned more than motion_deg or moved more than motion_m since the
+    # camera's frame 0 (UniHOPE's grasping label); None: no motion rule
+    motion_deg: float | None = None
+    motion_m: float | None = None
     mirror_left: bool = False
     # The toolkit indexes sequences by position and asserts 100 per subject: with a partial download,
     # sequences would silently change split. False accepts any count (toy data, deliberate subsets).
@@ -60,7 +67,7 @@ class DexYCBSetting:
 SETTINGS = {
     "dexycb": DexYCBSetting(),
     "dexycb_full": DexYCBSetting(name="dexycb_full", sides=("right", "left"), frame_stride=1,
-                                 proximity_mm=None, mirror_left=True),
+                                 proximity_mm=None, mirror_left=True, box_splits=("train", "val", "test")),
 }
 
 

@@ -1,4 +1,4 @@
-"""Turning one DexYCB sequence into Frames: label checks, PCA -> axis-angle, the proximity filter."""
+"""Turning one DexYCB sequence into Frames: label checks, PCA -> axis-angle, the setting's frame rules."""
 
 from __future__ import annotations
 
@@ -6,20 +6,19 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from hoidata.datasets.dexycb_layout import (
     IMAGE_SIZE,
     SERIALS,
     SUBJECTS,
     color_path,
-    hand_box_valid,
     label_path,
     object_name,
     read_betas,
     read_intrinsics,
     read_labels,
 )
+from hoidata.datasets.dexycb_selection import hand_box_ok, selection_reasons
 from hoidata.datasets.frame import Frame, Skip
 from hoidata.errors import DataError
 from hoidata.hand.pose import pca_to_axis_angle
@@ -30,8 +29,9 @@ from hoidata.hand.pose import pca_to_axis_angle
 TOOLKIT_INVALID = "hand annotation missing (joint_3d is -1)"
 
 
-def invalid_reason(labels: dict, grasp: int) -> str | None:
-    """Why a frame's annotation cannot be used, or None if it can (the toolkit's invalid markers)."""
+def invalid_reason(labels: dict, grasp: int, check_box: bool = True) -> str | None:
+    """Why a frame's annotation cannot be used, or None if it can (the toolkit's invalid markers; with
+    ``check_box`` also HandOccNet's hand box rule)."""
     if np.all(labels["joint_3d"] == -1):
         return TOOLKIT_INVALID
     if not np.any(labels["pose_m"]):
@@ -40,8 +40,8 @@ def invalid_reason(labels: dict, grasp: int) -> str | None:
         return "grasped object pose missing (pose_y is all zeros)"
     if not np.isfinite(labels["joint_3d"]).all() or not np.isfinite(labels["pose_m"]).all():
         return "non-finite values in joint_3d or pose_m"
-    if not hand_box_valid(labels["joint_2d"][0]):
-        return "hand box (1.5x the 2D joints) does not meet the image"
+    if check_box and not hand_box_ok(labels["joint_2d"][0]):
+        return "hand box (1.5x the 2D joints) fails HandOccNet's process_bbox"
     return None
 
 
@@ -77,7 +77,7 @@ def sequence_frames(reader, s: int, seq_index: int, seq_dir: Path, meta: dict) -
             except DataError as e:
                 reader._fail(e, fid)
                 continue
-            reason = invalid_reason(labels, grasp)
+            reason = invalid_reason(labels, grasp, reader.split in setting.box_splits and reader.frame_ids is None)
             if reason:
                 sample = -1 if reader.toolkit is None else reader.toolkit.sample_index(subject, seq_dir.name, serial, f)
                 reader.skipped.append(Skip(fid, reason, str(label_path(seq_dir, serial, f)), sample))
@@ -86,7 +86,8 @@ def sequence_frames(reader, s: int, seq_index: int, seq_dir: Path, meta: dict) -
         try:
             frames = list(_frames_for_camera(reader, kept, dict(subject=subject, seq_dir=seq_dir, seq_index=seq_index,
                                                          serial=serial, K=K, side=side, betas=betas,
-                                                         grasp=grasp, name=name, class_id=int(meta["ycb_ids"][grasp]))))
+                                                         grasp=grasp, name=name, class_id=int(meta["ycb_ids"][grasp]),
+                                                         num_objects=len(meta["ycb_ids"]))))
         except DataError as e:  # e.g. the grasped object's model is missing (proximity filter)
             reader._fail(e, f"{subject}_{seq_dir.name}_{serial}")
             continue
@@ -108,14 +109,12 @@ def _frames_for_camera(reader, kept: list, ctx: dict) -> Iterator[Frame]:
     pose_m = np.stack([lab["pose_m"][0] for _, _, lab in kept]).astype(np.float64)
     full = pca_to_axis_angle(pose_m[:, :48], mano.hands_components.double().numpy(), mano.hands_mean.double().numpy())
     transl = pose_m[:, 48:51]
-    distances = _hand_object_distances(reader, mano, full, ctx, transl, kept)
-    limit, toolkit = reader.setting.proximity_mm, reader.toolkit
+    reasons, toolkit = selection_reasons(reader, mano, full, transl, kept, ctx), reader.toolkit
     for k, (f, fid, lab) in enumerate(kept):
         lpath = label_path(ctx["seq_dir"], ctx["serial"], f)
         sample = -1 if toolkit is None else toolkit.sample_index(ctx["subject"], ctx["seq_dir"].name, ctx["serial"], f)
-        if distances is not None and distances[k] * 1000.0 > limit:
-            reader.skipped.append(Skip(fid, f"hand-object distance {distances[k] * 1000:.1f} mm > {limit} mm", str(lpath),
-                                       sample))
+        if reasons[k]:
+            reader.skipped.append(Skip(fid, reasons[k], str(lpath), sample))
             continue
         pose = np.eye(4)
         pose[:3] = lab["pose_y"][ctx["grasp"]]
@@ -133,21 +132,3 @@ def _frames_for_camera(reader, kept: list, ctx: dict) -> Iterator[Frame]:
                     "sequence_index": ctx["seq_index"], "serial": ctx["serial"], "frame": f,
                     "num_objects": len(lab["pose_y"])},
         )
-
-
-def _hand_object_distances(reader, mano, full, ctx, transl, kept) -> np.ndarray | None:
-    """Min distance (m) from the grasped object's model vertices to the hand's vertices, per frame."""
-    if (reader.setting.proximity_mm is None or reader.split not in reader.setting.proximity_splits
-            or reader.frame_ids is not None):
-        return None
-    import torch
-
-    betas = np.tile(ctx["betas"], (len(kept), 1))
-    with torch.no_grad():
-        verts = mano(torch.as_tensor(full), torch.as_tensor(betas), torch.as_tensor(transl)).vertices.numpy()
-    obj = reader.object_vertices(ctx["name"])
-    out = np.empty(len(kept))
-    for k, (_, _, lab) in enumerate(kept):
-        rt = lab["pose_y"][ctx["grasp"]].astype(np.float64)
-        out[k] = cKDTree(verts[k]).query(obj @ rt[:, :3].T + rt[:, 3])[0].min()
-    return out

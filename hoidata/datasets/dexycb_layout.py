@@ -15,7 +15,6 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from hoidata.datasets.frame import box_from_points
 from hoidata.errors import DataError
 from hoidata.objects import YCB_CLASSES
 
@@ -198,14 +197,6 @@ def object_name(class_id: int, path: Path) -> str:
     if int(class_id) not in YCB_CLASSES:
         raise DataError(path, "ycb_ids", f"unknown YCB class id {class_id}")
     return YCB_CLASSES[int(class_id)]
-
-
-def hand_box_valid(joints_2d: np.ndarray, size=IMAGE_SIZE, expand: float = 1.5) -> bool:
-    """The ``dexycb_full`` validity rule: the 1.5x box of the 2D joints has area and meets the image."""
-    x1, y1, x2, y2 = box_from_points(joints_2d)
-    w, h = (x2 - x1) * expand, (y2 - y1) * expand
-    cx, cy = (x1 + x2) / 2, (y1 + y2) / 2
-    return bool(w > 1 and h > 1 and cx + w / 2 > 0 and cy + h / 2 > 0 and cx - w / 2 < size[0] and cy - h / 2 < size[1])
 
 
 def label_path(seq_dir: Path, serial: str, frame: int) -> Path:

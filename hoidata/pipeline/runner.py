@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import subprocess
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,7 +22,7 @@ from hoidata import schema, store
 from hoidata.datasets.frame import Skip
 from hoidata.errors import DataError
 from hoidata.pipeline.frame_list import check_listed, frame_list_provenance, read_frame_list
-from hoidata.pipeline.settings import BuildConfig
+from hoidata.pipeline.settings import BuildConfig, stated_count_warnings
 from hoidata.store.shards import write_json_atomic
 
 BUILD_FILE = "build.json"
@@ -183,6 +184,8 @@ def build_store(cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path, 
     frames, reader_skips = read_frames(cfg, root, Path(mano_dir))
     if not frames:
         raise DataError(root, None, f"no frames to build for splits {cfg.dataset.splits} (skipped: {len(reader_skips)})")
+    for line in stated_count_warnings(cfg.dataset, [f.split for f in frames]):
+        print(line, file=sys.stderr)
     keys = [schema.record_key(f.dataset, f.split, f.frame_id) for f in frames]
     _check_build_file(out, cfg.as_dict(), keys)
     per = cfg.store.records_per_shard

@@ -41,12 +41,21 @@ class DatasetConfig:
     complete_subjects: bool = True  # DexYCB: require 100 sequences per subject (see DexYCBSetting)
     fix_left_shapedirs: bool = False  # DexYCB: its labels use MANO_LEFT without the shapedirs fix
     frame_list: str = ""  # DexYCB: a JSON list of toolkit sample ids (gSDF's format) to build exactly; one split
+    proximity_to: str = "hand_vertices"  # DexYCB: 'hand_vertices' (MANO mesh, gSDF) or 'hand_joints' (ArtiBoost)
+    box_splits: tuple[str, ...] = ("train", "val", "test")  # DexYCB: splits where HandOccNet's hand box rule applies
+    motion_deg: float = -1.0  # DexYCB: keep frames whose object turned more than this since frame 0 (negative: off)
+    motion_m: float = -1.0  # DexYCB: ... or moved more than this many metres (negative: off)
+    # DexYCB: {split: frames} the setting selects on the full dataset; a complete build that differs warns
+    expected_frames: dict = field(default_factory=dict)
 
     def dexycb_setting(self) -> DexYCBSetting:
         return DexYCBSetting(name=self.setting, setup=self.setup, sides=tuple(self.sides), frame_stride=self.frame_stride,
                              proximity_mm=None if self.proximity_mm < 0 else self.proximity_mm,
                              proximity_splits=tuple(self.proximity_splits), mirror_left="left" in self.sides,
-                             complete_subjects=self.complete_subjects, fix_left_shapedirs=self.fix_left_shapedirs)
+                             complete_subjects=self.complete_subjects, fix_left_shapedirs=self.fix_left_shapedirs,
+                             proximity_to=self.proximity_to, box_splits=tuple(self.box_splits),
+                             motion_deg=None if self.motion_deg < 0 else self.motion_deg,
+                             motion_m=None if self.motion_m < 0 else self.motion_m)
 
 
 @dataclass(frozen=True)
@@ -155,6 +164,32 @@ def load_build_config(name_or_path: str, overrides: list[str] = ()) -> BuildConf
     if dataset.frame_list and (dataset.name != "dexycb" or len(dataset.splits) != 1):
         raise DataError(path, "dataset.frame_list", "a frame list holds the toolkit ids of one DexYCB split: set "
                                                     'dataset.splits to that split, e.g. dataset.splits=["test"]')
+    _check_selection(dataset, path)
     return BuildConfig(dataset,
                        replace(record, sigmas=tuple(record.sigmas)),
                        section(StoreConfig, data.get("store", {}), path, "store"))
+
+
+def _check_selection(dataset: DatasetConfig, path: Path) -> None:
+    """The DexYCB rule names and the stated counts: DataError naming the key."""
+    from hoidata.datasets.dexycb_selection import PROXIMITY_TARGETS
+
+    if dataset.proximity_to not in PROXIMITY_TARGETS:
+        raise DataError(path, "dataset.proximity_to", f"expected one of {PROXIMITY_TARGETS}, got {dataset.proximity_to!r}")
+    expected = dataset.expected_frames
+    if not isinstance(expected, dict) or not all(isinstance(k, str) and value_problem("int", v) is None and v >= 0
+                                                 for k, v in expected.items()):
+        raise DataError(path, "dataset.expected_frames", f"expected a table of split = frame count, got {expected!r}")
+
+
+def stated_count_warnings(dataset: DatasetConfig, frame_splits) -> list[str]:
+    """Lines for the splits whose selected frame count (``frame_splits``: the split of every selected frame)
+    differs from ``dataset.expected_frames``; only a DexYCB read of the setting's rules that requires complete
+    subjects (the full dataset) is compared, since any other read (a subset, a frame list) differs by design."""
+    from collections import Counter
+
+    from hoidata.datasets.dexycb_selection import count_warnings
+
+    if dataset.name != "dexycb" or not dataset.complete_subjects or not dataset.expected_frames or dataset.frame_list:
+        return []
+    return count_warnings(dataset.expected_frames, dict(Counter(frame_splits)), dataset.setting, "its pipeline TOML")
