@@ -81,6 +81,29 @@ def cmd_build_sdf(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_export(args: argparse.Namespace) -> int:
+    """Write a dataset's frames as another codebase's files (docs/other-codebases.md)."""
+    from hoidata.export import export_dataset
+    from hoidata.pipeline.settings import load_build_config
+
+    cfg = load_build_config(args.dataset, args.overrides)
+    root = Path(args.root)
+    mano, models = Path(args.mano or root / "mano"), Path(args.models or root / "models")
+    s = export_dataset(args.format, cfg, root, mano, models, Path(args.out), splits=args.splits,
+                       store=Path(args.store) if args.store else None, workers=args.workers, part=args.part)
+    print(f"{s.out}: {s.exported} of {s.frames} frames exported as {s.format} in {s.seconds:.1f} s "
+          f"({s.frames_per_second:.2f} frames/s), {s.chunks_written} chunks written, {s.chunks_kept} kept from an "
+          f"earlier run, {len(s.skipped)} frames skipped")
+    for skip in s.skipped[:10]:
+        print(f"  skipped {skip['frame_id']}: {skip['reason']}")
+    if s.sdf_sources:
+        print("SDF rows: " + ", ".join(f"{n} frames {k}" for k, n in sorted(s.sdf_sources.items())))
+    for line in s.notes:
+        print(line)
+    print("annotation files written" if s.finished else "annotation files not written yet: other parts still have work")
+    return 0
+
+
 def cmd_render_synthetic(args: argparse.Namespace) -> int:
     """Render perturbed grasps of a store or dataset from new views into a training store."""
     from hoidata.pipeline.records import RecordSettings
@@ -166,6 +189,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--estimate", action="store_true", help="time and disk estimate from a few frames; writes nothing")
     p.add_argument("overrides", nargs="*", help="section.key=value overrides, e.g. record.n_hand=2048")
     p.set_defaults(func=cmd_build_sdf)
+
+    p = sub.add_parser("export", help="write a dataset as another codebase's files (HandOccNet family, gSDF)")
+    p.add_argument("--format", required=True, choices=("handoccnet", "gsdf"), help="the consumer's layout")
+    p.add_argument("--dataset", required=True, help="pipeline name (its [dataset] selects the frames) or a .toml")
+    p.add_argument("--root", required=True, help="dataset folder (DexYCB or HO-3D layout)")
+    p.add_argument("--mano", default=None, help="folder with MANO_RIGHT.pkl / MANO_LEFT.pkl (default ROOT/mano)")
+    p.add_argument("--models", default=None, help="YCB models folder (default ROOT/models)")
+    p.add_argument("--out", required=True, help="the folder the consumer reads (resumes an interrupted export)")
+    p.add_argument("--store", default=None, help="gsdf: a built store whose SDF rows are re-used where they fit")
+    p.add_argument("--splits", type=lambda text: tuple(text.split(",")), default=None,
+                   help="comma-separated splits to export (default: HO-3D train,evaluation; DexYCB the pipeline's)")
+    p.add_argument("--workers", type=int, default=1, help="worker processes")
+    p.add_argument("--part", type=_part, default=(0, 1), help="i/N: export only chunks k with k %% N == i")
+    p.add_argument("overrides", nargs="*", help="section.key=value overrides, e.g. dataset.box_splits=[\"train\"]")
+    p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("render-synthetic", help="render perturbed grasps from new views into a training store")
     p.add_argument("--source", required=True, help="a store, or an HO-3D / DexYCB / toy dataset folder, to take grasps from")

@@ -78,3 +78,31 @@ def dexycb_8cam(tmp_path_factory):
     size = ToyDexYCBSize(subjects=(0,), sequences=3, serials=tuple(range(8)), frames=2, invalid_frame=1)
     write_toy_dexycb(root, mano_dir, models_dir, size, workers=1, progress=False)
     return root
+
+
+@pytest.fixture(scope="session")
+def dexycb_s0(tmp_path_factory):
+    """A toy DexYCB with s0 train and test (and val): subjects 1 and 3, 5 sequences each (right, left, right,
+    left, right; the fifth is val for subject 1 and test for subject 3), 1 camera, 6 frames: approach frames
+    0-1 (hand not yet on the object), then a lift-and-turn; frame 4 of the third sequence is invalid."""
+    from hoidata.datasets.toy import write_assets
+    from hoidata.datasets.toy_dexycb import ToyDexYCBSize, write_toy_dexycb
+
+    root = tmp_path_factory.mktemp("dexycb_s0")
+    mano_dir, models_dir = write_assets(root)
+    size = ToyDexYCBSize(subjects=(0, 2), sequences=5, serials=(0,), frames=6, invalid_frame=4)
+    write_toy_dexycb(root, mano_dir, models_dir, size, workers=2, progress=False)
+    return root
+
+
+@pytest.fixture(scope="session")
+def ho3d_small(tmp_path_factory):
+    """A toy HO-3D v2: 2 training sequences and 1 evaluation sequence of 3 frames."""
+    from hoidata.datasets.toy import write_assets
+    from hoidata.datasets.toy_ho3d import ToyHO3DSize, write_toy_ho3d
+
+    root = tmp_path_factory.mktemp("ho3d_small")
+    mano_dir, models_dir = write_assets(root)
+    write_toy_ho3d(root, mano_dir, models_dir, ToyHO3DSize(train_sequences=2, eval_sequences=1, frames=3),
+                   progress=False)
+    return root

@@ -222,11 +222,12 @@ def toolkit_provenance(cfg: BuildConfig, root: Path) -> dict:
 
 
 def run_shards(out: Path, n_items: int, per: int, make_job, shard_fn, init, initargs, workers: int,
-               part: tuple[int, int], progress: bool, desc: str) -> tuple[BuildSummary, list[int], bool]:
+               part: tuple[int, int], progress: bool, desc: str, done=None) -> tuple[BuildSummary, list[int], bool]:
     """Run the missing shard jobs of this part, serially or in a spawn pool; report whether all are done.
 
     make_job(n) -> the picklable job of shard n; shard_fn(job) -> (number, records written, skips);
-    init(*initargs) sets up each worker process.
+    init(*initargs) sets up each worker process. done(n) -> whether unit n is finished, for jobs that write
+    something other than store shards (default: the store shard and its sidecar are intact).
     """
     import multiprocessing as mp
 
@@ -235,23 +236,30 @@ def run_shards(out: Path, n_items: int, per: int, make_job, shard_fn, init, init
     # count left open: items skipped while building make a shard shorter (build.json pins the items)
     plan = [store.ShardInfo(n, store.shard_name(n), None) for n in numbers]
     owned = [p for p in plan if p.number % part[1] == part[0]]
-    complete = store.completed_shards(out, owned)  # also clears this part's leftovers of a killed run
-    mine = [p.number for p in owned if not _shard_done(out, p.number, complete)]
+    if done is None:
+        complete = store.completed_shards(out, owned)  # also clears this part's leftovers of a killed run
+        mine = [p.number for p in owned if not _shard_done(out, p.number, complete)]
+    else:
+        complete = {p.number for p in owned if done(p.number)}
+        mine = [p.number for p in owned if p.number not in complete]
     jobs = [make_job(n) for n in mine]
     summary = BuildSummary(out, frames=n_items, shards_kept=len(complete))
     bar = tqdm(total=sum(min(per, n_items - n * per) for n in mine), desc=desc, unit="frame", disable=not progress)
     if workers <= 1:
         init(*initargs)
         _run((shard_fn(job) for job in jobs), summary, bar, start)
-        _WORKER.pop("renderer").close()
+        renderer = _WORKER.pop("renderer", None)
+        if renderer is not None:
+            renderer.close()
     elif jobs:
         with mp.get_context("spawn").Pool(workers, initializer=init, initargs=initargs) as pool:
             _run(pool.imap_unordered(shard_fn, jobs), summary, bar, start)
     bar.close()
     summary.seconds = time.perf_counter() - start
-    finished = store.completed_shards(out, plan, clean=False)  # other parts may still be writing
-    done = all(_shard_done(out, n, finished) for n in numbers)
-    return summary, numbers, done
+    if done is None:
+        finished = store.completed_shards(out, plan, clean=False)  # other parts may still be writing
+        return summary, numbers, all(_shard_done(out, n, finished) for n in numbers)
+    return summary, numbers, all(done(n) for n in numbers)
 
 
 def _run(results, summary: BuildSummary, bar, start: float) -> None:

@@ -1,0 +1,211 @@
+"""``hoidata export``: a dataset (read through our readers and a pipeline setting) -> another codebase's files.
+
+The work is cut like ``build-sdf``'s (:func:`hoidata.pipeline.runner.run_shards` runs it): chunk k holds the
+frames k*R .. (k+1)*R-1 of the reader's order; a chunk writes its per-frame files (each to a temporary name,
+then renamed) and then its manifest ``.hoidata-export/<format>/chunk-%06d.json`` with the annotation entries
+and the files it wrote. A chunk whose manifest and files exist is done, so a killed export resumes, ``--part
+i/N`` jobs split it, and any number of workers gives the same files (per-frame randomness is seeded from the
+record key). When every chunk is done, the format's annotation files are assembled from the manifests in
+frame order. ``export.json`` pins the settings and frames; a folder exported with others is refused.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from hoidata import schema
+from hoidata.errors import DataError
+from hoidata.export import gsdf, handoccnet, worker
+from hoidata.export.files import write_json
+from hoidata.pipeline.settings import BuildConfig, stated_count_warnings
+
+WORK_DIR = ".hoidata-export"
+SPEC_FILE = "export.json"
+FORMATS = ("handoccnet", "gsdf")
+DATASETS = {"handoccnet": ("dexycb", "ho3d"), "gsdf": ("dexycb",)}  # gSDF has no HO-3D dataset class
+
+
+@dataclass
+class ExportSummary:
+    """What an export did: frames read and exported, skips with reasons, chunks, and the files it assembled."""
+
+    out: Path
+    format: str
+    frames: int = 0
+    exported: int = 0
+    skipped: list = field(default_factory=list)
+    chunks_written: int = 0
+    chunks_kept: int = 0
+    seconds: float = 0.0
+    finished: bool = False  # every chunk done and the annotation files written
+    files: list = field(default_factory=list)  # what the last step wrote (relative to out)
+    sdf_sources: dict = field(default_factory=dict)  # gsdf: {"store": n, "sampled": m}
+    notes: list = field(default_factory=list)  # lines for the user (e.g. the gSDF config keys to set)
+
+    @property
+    def frames_per_second(self) -> float:
+        return self.exported / self.seconds if self.seconds else 0.0
+
+
+def export_frames(cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path, splits) -> tuple[list, list, list]:
+    """(frames, reader skips, ids) of the splits, in reader order; ids are the consumer's image ids: the
+    DexYCB toolkit's sample index, or an HO-3D frame's line in ``<split>.txt``. Frames without a hand pose
+    (HO-3D's evaluation split) are kept: annotation formats carry what the split has."""
+    frames, skips, ids = [], [], []
+    for split in splits:
+        if cfg.dataset.name == "dexycb":
+            from hoidata.datasets.dexycb import DexYCBReader
+
+            reader = DexYCBReader(root, mano_dir, split, cfg.dataset.dexycb_setting(), models_dir, on_error="skip")
+            got = list(reader.frames())
+            ids += [f.sample_index for f in got]
+        else:
+            from hoidata.datasets.ho3d import HO3DReader
+
+            reader = HO3DReader(root, mano_dir, split, on_error="skip")
+            line = {entry: n for n, entry in enumerate(reader.entries)}
+            got = list(reader.frames())
+            ids += [line[f"{f.source['sequence']}/{f.source['id']}"] for f in got]
+        frames += got
+        skips += reader.skipped
+    return frames, skips, ids
+
+
+def _spec(fmt: str, cfg: BuildConfig, splits, keys: list[str], options: dict) -> dict:
+    return json.loads(json.dumps({
+        "format": fmt, "config": cfg.as_dict(), "splits": list(splits), "frames": len(keys),
+        "keys_sha256": hashlib.sha256("\n".join(keys).encode()).hexdigest(), "options": options,
+        "schema_version": schema.SCHEMA_VERSION}))
+
+
+def _check_spec(work: Path, spec: dict) -> None:
+    path = work / SPEC_FILE
+    if path.is_file():
+        if json.loads(path.read_text()) != spec:
+            raise DataError(path, None, "this folder holds an export made with other settings, frames or options; "
+                                        "use a new --out folder (nothing was changed)")
+    else:
+        write_json(path, spec, indent=1)
+
+
+def chunk_path(work: Path, number: int) -> Path:
+    return work / f"chunk-{number:06d}.json"
+
+
+def chunk_done(out: Path, work: Path, number: int) -> bool:
+    """A chunk is done when its manifest reads and every file it lists exists."""
+    try:
+        manifest = json.loads(chunk_path(work, number).read_text())
+    except (OSError, ValueError):
+        return False
+    return all((out / f).is_file() for e in manifest["entries"] for f in e["files"])
+
+
+def read_chunks(work: Path, numbers: list[int]):
+    """The manifests' entries, in frame order (one chunk in memory at a time)."""
+    for n in numbers:
+        yield from json.loads(chunk_path(work, n).read_text())["entries"]
+
+
+def _export_chunk(job) -> tuple[int, int, list]:
+    """Worker: one chunk's entries and files, then its manifest; returns (number, exported, skips)."""
+    number, fmt, frames, ids, keys, out, opts = job
+    entries, skips = [], []
+    for frame, ident, key in zip(frames, ids, keys):
+        try:
+            entries.append(entry(fmt, frame, ident, key, Path(out), opts))
+        except (DataError, ValueError) as e:  # a frame that cannot be exported is skipped with its reason
+            skips.append({"frame_id": frame.frame_id, "reason": str(e), "path": str(frame.image_path),
+                          "sample_index": int(frame.sample_index)})
+    write_json(chunk_path(Path(out) / WORK_DIR / fmt, number), {"entries": entries, "skipped": skips})
+    return number, len(entries), skips
+
+
+def export_dataset(fmt: str, cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path, out: Path,
+                   splits=None, store: Path | None = None, workers: int = 1, part: tuple[int, int] = (0, 1),
+                   chunk_size: int = 64, progress: bool = True) -> ExportSummary:
+    """Export (or resume exporting) the frames of ``cfg``'s setting into ``out`` in format ``fmt``.
+
+    Args:
+        fmt: 'handoccnet' or 'gsdf'.
+        cfg: the pipeline settings (its ``[dataset]`` selects the frames; ``[record]`` is not used).
+        root, mano_dir, models_dir: the dataset, MANO and YCB model folders.
+        out: the folder the consumer's loader reads (see docs/other-codebases.md).
+        splits: the splits to export (default: the format's, see :func:`default_splits`).
+        store: gsdf: a built store whose SDF rows are re-used for the frames it holds unmirrored.
+        workers, part, chunk_size: parallelism, ``--part i/N`` and frames per unit of work.
+    """
+    from hoidata.pipeline.runner import run_shards
+
+    if fmt not in FORMATS:
+        raise ValueError(f"unknown export format {fmt!r}; expected one of {FORMATS}")
+    if cfg.dataset.name not in DATASETS[fmt]:
+        raise DataError(None, "dataset.name", f"the {fmt} format reads {' and '.join(DATASETS[fmt])}, not {cfg.dataset.name}")
+    start, root, out = time.perf_counter(), Path(root), Path(out)
+    splits = tuple(splits or default_splits(fmt, cfg))
+    frames, reader_skips, ids = export_frames(cfg, root, Path(mano_dir), Path(models_dir), splits)
+    if not frames:
+        raise DataError(root, None, f"no frames to export for splits {splits} (skipped: {len(reader_skips)})")
+    for line in stated_count_warnings(cfg.dataset, [f.split for f in frames]):
+        print(line, file=sys.stderr)
+    keys = [schema.record_key(f.dataset, f.split, f.frame_id) for f in frames]
+    opts = options(fmt, cfg, root, Path(mano_dir), Path(models_dir), store)
+    work = out / WORK_DIR / fmt
+    work.mkdir(parents=True, exist_ok=True)
+    _check_spec(work, _spec(fmt, cfg, splits, keys, {k: str(v) for k, v in opts.items()}))
+
+    def make_job(n):
+        cut = slice(n * chunk_size, (n + 1) * chunk_size)
+        return n, fmt, frames[cut], ids[cut], keys[cut], str(out), opts
+
+    run, numbers, done = run_shards(out, len(frames), chunk_size, make_job, _export_chunk, worker.init,
+                                    (Path(mano_dir), Path(models_dir), opts.get("store")), workers, part,
+                                    progress, f"export {fmt}", done=lambda n: chunk_done(out, work, n))
+    summary = ExportSummary(out, fmt, frames=len(frames), exported=run.records, chunks_written=run.shards_written,
+                            chunks_kept=run.shards_kept)
+    summary.skipped = [{"frame_id": s.frame_id, "reason": s.reason, "path": s.path} for s in reader_skips]
+    if done:
+        summary.skipped += [s for n in numbers for s in json.loads(chunk_path(work, n).read_text())["skipped"]]
+        summary.exported = sum(1 for _ in read_chunks(work, numbers))
+        finish = finish_function(fmt)
+        summary.files, summary.sdf_sources, summary.notes = finish(out, cfg, splits, lambda: read_chunks(work, numbers),
+                                                                   root, Path(models_dir))
+        summary.finished = True
+    else:
+        summary.skipped += run.skipped
+    summary.seconds = time.perf_counter() - start
+    return summary
+
+
+def default_splits(fmt: str, cfg: BuildConfig) -> tuple[str, ...]:
+    """The splits a format's loaders read: HO-3D's train and evaluation lists; for DexYCB the setting's splits."""
+    if cfg.dataset.name == "ho3d":
+        return ("train", "evaluation")
+    return tuple(cfg.dataset.splits)
+
+
+def options(fmt: str, cfg, root: Path, mano_dir: Path, models_dir: Path, store) -> dict:
+    """The picklable options every chunk job carries (recorded in ``export.json``)."""
+    out = {"root": str(Path(root).resolve()), "setup": cfg.dataset.setup, "dataset": cfg.dataset.name}
+    if fmt == "gsdf":
+        out["store"] = str(Path(store).resolve()) if store else ""
+    return out
+
+
+def entry(fmt: str, frame, ident: int, key: str, out: Path, opts: dict) -> dict:
+    """One frame's manifest entry: {'split', 'image', 'annotation', 'files', ...} (files relative to ``out``)."""
+    if ident is None or int(ident) < 0:
+        raise ValueError("the consumer's image id (the toolkit's sample index) is unknown for this frame")
+    if fmt == "handoccnet":
+        return handoccnet.frame_entry(frame, int(ident))
+    return gsdf.frame_entry(frame, int(ident), key, out, opts)
+
+
+def finish_function(fmt: str):
+    """The format's last step: (out, cfg, splits, entries(), root, models_dir) -> (files, sdf sources, notes)."""
+    return handoccnet.finish if fmt == "handoccnet" else gsdf.finish
