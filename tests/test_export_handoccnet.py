@@ -223,7 +223,7 @@ def test_parts_resume_and_settings_guard(dex_export, dexycb_s0, tmp_path):
     assert not first.finished and not (split / "annotations").exists()
     second = export_dataset("handoccnet", cfg, dexycb_s0, dexycb_s0 / "mano", dexycb_s0 / "models", split, part=(1, 2), **kw)
     assert second.finished and all((split / p).read_bytes() == b for p, b in files.items())
-    manifests = sorted((split / ".hoidata-export" / "handoccnet").glob("chunk-*.json"))
+    manifests = sorted((split / ".hoidata-export" / "handoccnet-train-test").glob("chunk-*.json"))
     manifests[1].unlink()  # an interrupted run: one chunk missing
     (split / "annotations" / "DEX_YCB_s0_train_data.json").unlink()
     again = export_dataset("handoccnet", cfg, dexycb_s0, dexycb_s0 / "mano", dexycb_s0 / "models", split, **kw)

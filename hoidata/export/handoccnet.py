@@ -75,6 +75,12 @@ def finish(out: Path, cfg, splits, entries, root: Path, models_dir: Path) -> tup
         n = write_coco(out / name, entries, split)
         files.append(name)
         notes.append(f"{name}: {n} annotations")
+        listed = root / f"{split}.txt"
+        if dataset == "ho3d" and split == "evaluation" and listed.is_file():
+            lines = sum(1 for line in listed.read_text().splitlines() if line.strip())
+            if n != lines:  # HandOccNet dumps its predictions in annotation order, the challenge scores all lines
+                notes.append(f"warning: {name} holds {n} of the {lines} frames of {listed.name}: a prediction file "
+                             "made from it would not be complete")
     test = annotation_name(dataset, cfg.dataset.setup, "test")
     alias = out / annotation_name(dataset, cfg.dataset.setup, "val")
     if dataset == "dexycb" and "test" in splits and "val" not in splits:

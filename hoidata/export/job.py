@@ -2,11 +2,12 @@
 
 The work is cut like ``build-sdf``'s (:func:`hoidata.pipeline.runner.run_shards` runs it): chunk k holds the
 frames k*R .. (k+1)*R-1 of the reader's order; a chunk writes its per-frame files (each to a temporary name,
-then renamed) and then its manifest ``.hoidata-export/<format>/chunk-%06d.json`` with the annotation entries
-and the files it wrote. A chunk whose manifest and files exist is done, so a killed export resumes, ``--part
-i/N`` jobs split it, and any number of workers gives the same files (per-frame randomness is seeded from the
-record key). When every chunk is done, the format's annotation files are assembled from the manifests in
-frame order. ``export.json`` pins the settings and frames; a folder exported with others is refused.
+then renamed) and then its manifest ``.hoidata-export/<format>-<splits>/chunk-%06d.json`` with the annotation
+entries and the files it wrote. A chunk whose manifest and files exist is done, so a killed export resumes,
+``--part i/N`` jobs split it, and any number of workers gives the same files (per-frame randomness is seeded
+from the record key). When every chunk is done, the format's annotation files are assembled from the
+manifests in frame order. ``export.json`` pins the settings and frames; a folder exported with others is
+refused.
 """
 
 from __future__ import annotations
@@ -55,14 +56,20 @@ class ExportSummary:
 def export_frames(cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path, splits) -> tuple[list, list, list]:
     """(frames, reader skips, ids) of the splits, in reader order; ids are the consumer's image ids: the
     DexYCB toolkit's sample index, or an HO-3D frame's line in ``<split>.txt``. Frames without a hand pose
-    (HO-3D's evaluation split) are kept: annotation formats carry what the split has."""
+    (HO-3D's evaluation split) are kept: annotation formats carry what the split has. A DexYCB
+    ``dataset.frame_list`` is read as ``build-sdf`` reads it: exactly the listed frames."""
     frames, skips, ids = [], [], []
     for split in splits:
         if cfg.dataset.name == "dexycb":
             from hoidata.datasets.dexycb import DexYCBReader
+            from hoidata.pipeline.frame_list import check_listed, read_frame_list
 
-            reader = DexYCBReader(root, mano_dir, split, cfg.dataset.dexycb_setting(), models_dir, on_error="skip")
+            listed = read_frame_list(cfg.dataset.frame_list) if cfg.dataset.frame_list else None
+            reader = DexYCBReader(root, mano_dir, split, cfg.dataset.dexycb_setting(), models_dir, on_error="skip",
+                                  frame_ids=None if listed is None else frozenset(listed))
             got = list(reader.frames())
+            if listed is not None:  # every listed id must be a frame of the dataset
+                check_listed(cfg.dataset.frame_list, listed, got, reader.skipped, reader.toolkit)
             ids += [f.sample_index for f in got]
         else:
             from hoidata.datasets.ho3d import HO3DReader
@@ -91,6 +98,12 @@ def _check_spec(work: Path, spec: dict) -> None:
                                         "use a new --out folder (nothing was changed)")
     else:
         write_json(path, spec, indent=1)
+
+
+def work_dir(out: Path, fmt: str, splits) -> Path:
+    """``out/.hoidata-export/<format>-<splits>``: exports of other splits into the same folder (gSDF's train and
+    test lists, say) keep apart and write their own annotation files."""
+    return Path(out) / WORK_DIR / f"{fmt}-{'-'.join(splits)}"
 
 
 def chunk_path(work: Path, number: int) -> Path:
@@ -122,7 +135,7 @@ def _export_chunk(job) -> tuple[int, int, list]:
         except (DataError, ValueError) as e:  # a frame that cannot be exported is skipped with its reason
             skips.append({"frame_id": frame.frame_id, "reason": str(e), "path": str(frame.image_path),
                           "sample_index": int(frame.sample_index)})
-    write_json(chunk_path(Path(out) / WORK_DIR / fmt, number), {"entries": entries, "skipped": skips})
+    write_json(chunk_path(Path(opts["work"]), number), {"entries": entries, "skipped": skips})
     return number, len(entries), skips
 
 
@@ -148,6 +161,8 @@ def export_dataset(fmt: str, cfg: BuildConfig, root: Path, mano_dir: Path, model
         raise DataError(None, "dataset.name", f"the {fmt} format reads {' and '.join(DATASETS[fmt])}, not {cfg.dataset.name}")
     start, root, out = time.perf_counter(), Path(root), Path(out)
     splits = tuple(splits or default_splits(fmt, cfg))
+    if cfg.dataset.frame_list and len(splits) != 1:
+        raise DataError(cfg.dataset.frame_list, "dataset.frame_list", f"a frame list holds the ids of one split, not {splits}")
     frames, reader_skips, ids = export_frames(cfg, root, Path(mano_dir), Path(models_dir), splits)
     if not frames:
         raise DataError(root, None, f"no frames to export for splits {splits} (skipped: {len(reader_skips)})")
@@ -155,9 +170,10 @@ def export_dataset(fmt: str, cfg: BuildConfig, root: Path, mano_dir: Path, model
         print(line, file=sys.stderr)
     keys = [schema.record_key(f.dataset, f.split, f.frame_id) for f in frames]
     opts = options(fmt, cfg, root, Path(mano_dir), Path(models_dir), store)
-    work = out / WORK_DIR / fmt
+    work = work_dir(out, fmt, splits)
     work.mkdir(parents=True, exist_ok=True)
     _check_spec(work, _spec(fmt, cfg, splits, keys, {k: str(v) for k, v in opts.items()}))
+    opts["work"] = str(work)
 
     def make_job(n):
         cut = slice(n * chunk_size, (n + 1) * chunk_size)
