@@ -88,8 +88,12 @@ def finish(out: Path, cfg, splits, entries, root: Path, models_dir: Path) -> tup
             alias.unlink(missing_ok=True)
             alias.symlink_to(Path(test).name)
             files.append(alias.relative_to(out).as_posix())
-            notes.append(f"{alias.relative_to(out).as_posix()} -> {Path(test).name} (HandOccNet's loader at HEAD opens 'val')")
-    folders = sorted({e["image"]["file_name"].split("/")[0] for e in entries()}) if dataset == "dexycb" else list(splits)
+            notes.append(f"{alias.relative_to(out).as_posix()} -> {Path(test).name} "
+                         "(HandOccNet's loader at HEAD opens 'val')")
+    if dataset == "dexycb":
+        folders = sorted({e["image"]["file_name"].split("/")[0] for e in entries()})
+    else:
+        folders = list(splits)
     linked = [name for name in folders if link(root / name, out / name)]
     if linked:
         notes.append(f"linked {', '.join(linked)} -> {root}")

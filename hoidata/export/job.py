@@ -158,11 +158,13 @@ def export_dataset(fmt: str, cfg: BuildConfig, root: Path, mano_dir: Path, model
     if fmt not in FORMATS:
         raise ValueError(f"unknown export format {fmt!r}; expected one of {FORMATS}")
     if cfg.dataset.name not in DATASETS[fmt]:
-        raise DataError(None, "dataset.name", f"the {fmt} format reads {' and '.join(DATASETS[fmt])}, not {cfg.dataset.name}")
+        raise DataError(None, "dataset.name",
+                        f"the {fmt} format reads {' and '.join(DATASETS[fmt])}, not {cfg.dataset.name}")
     start, root, out = time.perf_counter(), Path(root), Path(out)
     splits = tuple(splits or default_splits(fmt, cfg))
     if cfg.dataset.frame_list and len(splits) != 1:
-        raise DataError(cfg.dataset.frame_list, "dataset.frame_list", f"a frame list holds the ids of one split, not {splits}")
+        raise DataError(cfg.dataset.frame_list, "dataset.frame_list",
+                        f"a frame list holds the ids of one split, not {splits}")
     frames, reader_skips, ids = export_frames(cfg, root, Path(mano_dir), Path(models_dir), splits)
     if not frames:
         raise DataError(root, None, f"no frames to export for splits {splits} (skipped: {len(reader_skips)})")

@@ -172,8 +172,8 @@ def store_rows(sdf_rows: np.ndarray, counts: np.ndarray, hand_root: np.ndarray) 
     from hoidata.schema import dequantize_sdf
 
     xyz, sdf_h, sdf_o, _ = dequantize_sdf(sdf_rows)
-    rows = np.concatenate([xyz.astype(np.float64) + np.asarray(hand_root, np.float64), sdf_h[:, None].astype(np.float64),
-                           sdf_o[:, None].astype(np.float64)], axis=1)
+    rows = np.concatenate([xyz.astype(np.float64) + np.asarray(hand_root, np.float64),
+                           sdf_h[:, None].astype(np.float64), sdf_o[:, None].astype(np.float64)], axis=1)
     n_h, n_o, _ = (int(c) for c in counts)
     uniform = rows[n_h + n_o:]
     return np.concatenate([rows[:n_h], uniform]), np.concatenate([rows[n_h:n_h + n_o], uniform])

@@ -78,6 +78,8 @@ def store_record(key: str) -> dict | None:
     if name not in _STATE["shards"]:
         _STATE["shards"] = {name: {}}  # chunks follow the reader's order, so one shard at a time suffices
         for members in store.read_shard_members(_STATE["store"] / name):  # checks the tar and member names
+            if schema.SDF not in members:  # an 'eval' record: no SDF rows to re-use
+                continue
             meta = json.loads(members[schema.META])
             sdf = np.load(io.BytesIO(members[schema.SDF]), allow_pickle=False)
             schema.dequantize_sdf(sdf)  # raises ValueError unless int16 (N, 6)
