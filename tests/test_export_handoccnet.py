@@ -233,3 +233,19 @@ def test_parts_resume_and_settings_guard(dex_export, dexycb_s0, tmp_path):
     with pytest.raises(DataError, match="other settings"):
         export_dataset("handoccnet", other, dexycb_s0, dexycb_s0 / "mano", dexycb_s0 / "models", split, **kw)
     shutil.rmtree(split)
+
+
+def test_the_export_command(dexycb_s0, ho3d_small, tmp_path, capsys):
+    from hoidata.cli import main
+
+    out = tmp_path / "data"
+    argv = ["export", "--format", "handoccnet", "--dataset", "dexycb_full", "--root", str(dexycb_s0), "--out", str(out),
+            "--splits", "test", "dataset.complete_subjects=false"]
+    assert main(argv) == 0
+    printed = capsys.readouterr().out
+    assert "frames exported as handoccnet" in printed and "annotation files written" in printed
+    assert sorted(p.name for p in (out / "annotations").iterdir()) == ["DEX_YCB_s0_test_data.json",
+                                                                       "DEX_YCB_s0_val_data.json"]
+    assert main(["export", "--format", "gsdf", "--dataset", "ho3d", "--root", str(ho3d_small), "--out", str(out)]) == 2
+    assert capsys.readouterr().err.strip() == ("hoidata export: error: 'dataset.name': the gsdf format reads dexycb, "
+                                               "not ho3d")
