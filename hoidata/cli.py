@@ -11,7 +11,25 @@ import sys
 from pathlib import Path
 
 from hoidata import __version__
-from hoidata.errors import DataError
+from hoidata.errors import run_cli
+
+
+def count_type(low: int):
+    """argparse type: a whole number >= low, the flag named in the error (argparse adds it)."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number >= {low}, got {text!r}") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"expected a whole number >= {low}, got {value}")
+        return value
+
+    parse.__name__ = f"whole number >= {low}"
+    return parse
+
+
+positive_int, non_negative_int = count_type(1), count_type(0)
 
 
 def cmd_make_toy(args: argparse.Namespace) -> int:
@@ -73,10 +91,12 @@ def cmd_build_sdf(args: argparse.Namespace) -> int:
             print(f"{k:>30}: {v}")
         return 0
     s = build_store(cfg, root, mano, models, Path(args.out), workers=args.workers, part=args.part)
+    empty = f" ({s.empty_shards} empty: every frame skipped)" if s.empty_shards else ""
     print(f"{s.store}: {s.records} records written in {s.seconds:.1f} s ({s.frames_per_second:.2f} frames/s), "
-          f"{s.shards_written} shards written, {s.shards_kept} kept from an earlier run, {len(s.skipped)} frames skipped")
-    for skip in s.skipped[:10]:
-        print(f"  skipped {skip['frame_id']}: {skip['reason']}")
+          f"{s.shards_written} shards written{empty}, {s.shards_kept} kept from an earlier run; "
+          f"{len(s.reader_skipped)} frames skipped by the dataset reader, {len(s.skipped)} while building")
+    print_skips(s.reader_skipped, "reader")
+    print_skips(s.skipped, "build")
     print("index.zarr written" if s.index_written else "index not written yet: other parts still have shards to build")
     return 0
 
@@ -104,6 +124,17 @@ def cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def print_skips(skips: list, who: str, limit: int = 10) -> None:
+    """The reasons of a skips list, most frequent first, one line each with a count and an example file."""
+    from hoidata.pipeline.runner import skip_groups
+
+    groups = skip_groups(skips)
+    for reason, n, path in groups[:limit]:
+        print(f"  skipped ({who}) {n} x {reason}" + (f"  e.g. {path}" if path else ""))
+    if len(groups) > limit:
+        print(f"  ... {len(groups) - limit} more reasons (all are listed in the store's index)")
+
+
 def cmd_render_synthetic(args: argparse.Namespace) -> int:
     """Render perturbed grasps of a store or dataset from new views into a training store."""
     from hoidata.pipeline.records import RecordSettings
@@ -116,7 +147,8 @@ def cmd_render_synthetic(args: argparse.Namespace) -> int:
                          backgrounds=args.backgrounds, workers=args.workers, part=args.part, record=record,
                          records_per_shard=args.records_per_shard)
     print(f"{s.store}: {s.records} synthetic records in {s.seconds:.1f} s ({s.frames_per_second:.2f} renders/s), "
-          f"{len(s.skipped)} samples skipped (no perturbation passed the physical check)")
+          f"{len(s.skipped)} samples skipped")
+    print_skips(s.skipped, "render")
     if s.index_written:
         from hoidata.store import read_index
 
@@ -142,8 +174,8 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 def cmd_toy_pipeline(args: argparse.Namespace) -> int:
     """The data half of the main job: toy datasets -> verified train and test stores -> inspection PNG."""
     out = Path(args.out)
-    size = [*(["--sequences", str(args.sequences)] if args.sequences else []),
-            *(["--frames", str(args.frames)] if args.frames else [])]
+    size = [*(["--sequences", str(args.sequences)] if args.sequences is not None else []),
+            *(["--frames", str(args.frames)] if args.frames is not None else [])]
     root = out / "data" / "dexycb"
     made = out / "data" / f"made-seed{args.seed}{''.join(size)}.ok"  # make-toy finished with these settings
     steps = [] if made.is_file() else [["make-toy", "--out", str(out / "data"), "--seed", str(args.seed), *size]]
@@ -167,30 +199,36 @@ def cmd_toy_pipeline(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="hoidata", description="Hand-object datasets -> training-ready stores.")
     parser.add_argument("--version", action="version", version=f"hoidata {__version__}")
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--debug", action="store_true", help="on an error, show the traceback instead of one line")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    parser.commands = sub.choices  # name -> subcommand parser (main parses the subcommand's own arguments)
 
-    p = sub.add_parser("make-toy", help="write toy DexYCB / HO-3D datasets with procedural MANO files and objects")
+    def add(name: str, text: str) -> argparse.ArgumentParser:
+        return sub.add_parser(name, help=text, parents=[common])
+
+    p = add("make-toy", "write toy DexYCB / HO-3D datasets with procedural MANO files and objects")
     p.add_argument("--out", required=True, help="output folder; with --layout all it gets dexycb/ and ho3d/")
     p.add_argument("--layout", choices=("dexycb", "ho3d", "all"), default="all", help="dataset layout (default: all)")
-    p.add_argument("--sequences", type=int, default=None, help="sequences per subject (DexYCB) / training sequences (HO-3D)")
-    p.add_argument("--frames", type=int, default=None, help="frames per sequence and camera")
-    p.add_argument("--seed", type=int, default=0, help="random seed; the same seed gives the same files")
+    p.add_argument("--sequences", type=positive_int, default=None, help="sequences per subject (DexYCB) / training sequences (HO-3D)")
+    p.add_argument("--frames", type=positive_int, default=None, help="frames per sequence and camera")
+    p.add_argument("--seed", type=non_negative_int, default=0, help="random seed; the same seed gives the same files")
     p.add_argument("--cache-dir", default=None, help="cache for simplified meshes (default $HOIDATA_CACHE/objects or ~/.cache/hoidata/objects)")
     p.set_defaults(func=cmd_make_toy)
 
-    p = sub.add_parser("build-sdf", help="build a verified training store (SDF samples, masks, crops, labels)")
+    p = add("build-sdf", "build a verified training store (SDF samples, masks, crops, labels)")
     p.add_argument("--dataset", required=True, help="pipeline name (pipelines/<name>.toml: dexycb, dexycb_full, ho3d, ho3d_eval, toy) or a .toml")
     p.add_argument("--root", required=True, help="dataset folder (DexYCB or HO-3D layout)")
     p.add_argument("--mano", default=None, help="folder with MANO_RIGHT.pkl / MANO_LEFT.pkl (default ROOT/mano)")
     p.add_argument("--models", default=None, help="YCB models folder (default ROOT/models)")
     p.add_argument("--out", required=True, help="store folder (resumes if it holds an interrupted build)")
-    p.add_argument("--workers", type=int, default=1, help="worker processes")
+    p.add_argument("--workers", type=positive_int, default=1, help="worker processes (1: build in this process)")
     p.add_argument("--part", type=_part, default=(0, 1), help="i/N: build only shards k with k %% N == i")
     p.add_argument("--estimate", action="store_true", help="time and disk estimate from a few frames; writes nothing")
     p.add_argument("overrides", nargs="*", help="section.key=value overrides, e.g. record.n_hand=2048")
     p.set_defaults(func=cmd_build_sdf)
 
-    p = sub.add_parser("export", help="write a dataset as another codebase's files (HandOccNet family, gSDF)")
+    p = add("export", "write a dataset as another codebase's files (HandOccNet family, gSDF)")
     p.add_argument("--format", required=True, choices=("handoccnet", "gsdf"), help="the consumer's layout")
     p.add_argument("--dataset", required=True, help="pipeline name (its [dataset] selects the frames) or a .toml")
     p.add_argument("--root", required=True, help="dataset folder (DexYCB or HO-3D layout)")
@@ -200,62 +238,71 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--store", default=None, help="gsdf: a built store whose SDF rows are re-used where they fit")
     p.add_argument("--splits", type=lambda text: tuple(text.split(",")), default=None,
                    help="comma-separated splits to export (default: HO-3D train,evaluation; DexYCB the pipeline's)")
-    p.add_argument("--workers", type=int, default=1, help="worker processes")
+    p.add_argument("--workers", type=positive_int, default=1, help="worker processes (1: export in this process)")
     p.add_argument("--part", type=_part, default=(0, 1), help="i/N: export only chunks k with k %% N == i")
     p.add_argument("overrides", nargs="*", help="section.key=value overrides, e.g. dataset.box_splits=[\"train\"]")
     p.set_defaults(func=cmd_export)
 
-    p = sub.add_parser("render-synthetic", help="render perturbed grasps from new views into a training store")
+    p = add("render-synthetic", "render perturbed grasps from new views into a training store")
     p.add_argument("--source", required=True, help="a store, or an HO-3D / DexYCB / toy dataset folder, to take grasps from")
     p.add_argument("--out", required=True, help="store folder (resumes an interrupted run)")
-    p.add_argument("--count", type=int, required=True, help="samples to render")
+    p.add_argument("--count", type=positive_int, required=True, help="samples to render")
     p.add_argument("--mano", default=None, help="MANO folder (default SOURCE/mano)")
     p.add_argument("--models", default=None, help="YCB models folder (default SOURCE/models)")
     p.add_argument("--backgrounds", default=None, help="folder of background images (default: procedural)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--workers", type=int, default=1)
+    p.add_argument("--seed", type=non_negative_int, default=0)
+    p.add_argument("--workers", type=positive_int, default=1, help="worker processes (1: render in this process)")
     p.add_argument("--part", type=_part, default=(0, 1), help="i/N: render only shards k with k %% N == i")
-    p.add_argument("--crop-size", type=int, default=512, help="record crop size, pixels")
-    p.add_argument("--records-per-shard", type=int, default=256)
+    p.add_argument("--crop-size", type=count_type(32), default=512, help="record crop size, pixels (>= 32)")
+    p.add_argument("--records-per-shard", type=positive_int, default=256)
     p.set_defaults(func=cmd_render_synthetic)
 
-    p = sub.add_parser("verify", help="decode every record of a store and check counts and checksums")
+    p = add("verify", "decode every record of a store and check counts and checksums")
     p.add_argument("store")
     p.set_defaults(func=cmd_verify)
 
-    p = sub.add_parser("inspect", help="PNG grid of records: image, masks, joints, heatmap, SDF samples")
+    p = add("inspect", "PNG grid of records: image, masks, joints, heatmap, SDF samples")
     p.add_argument("store")
-    p.add_argument("--n", type=int, default=16, help="records to show")
+    p.add_argument("--n", type=positive_int, default=16, help="records to show")
     p.add_argument("--out", default="grid.png", help="output PNG")
     p.set_defaults(func=cmd_inspect)
 
-    p = sub.add_parser("toy-pipeline", help="toy data -> verified train/test stores (the data half of python -m hoisdf.toy)")
+    p = add("toy-pipeline", "toy data -> verified train/test stores (the data half of python -m hoisdf.toy)")
     p.add_argument("--out", default="toy_run", help="output folder (data/, store/train, store/test, store_grid.png)")
-    p.add_argument("--workers", type=int, default=2, help="worker processes for the store build")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--sequences", type=int, default=None, help="toy size: sequences per subject (see make-toy)")
-    p.add_argument("--frames", type=int, default=None, help="toy size: frames per sequence and camera")
+    p.add_argument("--workers", type=positive_int, default=2, help="worker processes for the store build")
+    p.add_argument("--seed", type=non_negative_int, default=0)
+    p.add_argument("--sequences", type=positive_int, default=None, help="toy size: sequences per subject (see make-toy)")
+    p.add_argument("--frames", type=positive_int, default=None, help="toy size: frames per sequence and camera")
     p.set_defaults(func=cmd_toy_pipeline)
 
-    p = sub.add_parser("check-mano", help="load and check MANO_RIGHT.pkl / MANO_LEFT.pkl")
+    p = add("check-mano", "load and check MANO_RIGHT.pkl / MANO_LEFT.pkl")
     p.add_argument("mano_dir", help="folder holding MANO_RIGHT.pkl and/or MANO_LEFT.pkl")
     p.set_defaults(func=cmd_check_mano)
 
-    p = sub.add_parser("check-objects", help="load, repair and simplify the objects of a YCB models folder")
+    p = add("check-objects", "load, repair and simplify the objects of a YCB models folder")
     p.add_argument("models_dir", help="folder with <name>/textured_simple.obj per object")
-    p.add_argument("--vertices", type=int, default=1000, help="vertex count of the evaluation meshes")
+    p.add_argument("--vertices", type=count_type(4), default=1000, help="vertex count of the evaluation meshes")
     p.add_argument("--cache-dir", default=None, help="cache for simplified meshes (default $HOIDATA_CACHE/objects or ~/.cache/hoidata/objects)")
     p.set_defaults(func=cmd_check_objects)
     return parser
 
 
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The subcommand's arguments, parsed intermixed: ``section.key=value`` overrides may stand before and after
+    other options (``build-sdf a=1 --out S b=2``)."""
+    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if not argv or argv[0] not in parser.commands:
+        return parser.parse_args(argv)  # --help, --version, a missing or unknown command: argparse says it
+    args = parser.commands[argv[0]].parse_intermixed_args(argv[1:])
+    args.command = argv[0]
+    return args
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    try:
-        return args.func(args)
-    except (DataError, ValueError) as e:  # bad files, settings or arguments: a message, not a traceback
-        print(f"hoidata {args.command}: error: {e}", file=sys.stderr)
-        return 2
+    args = parse_args(argv)
+    # bad files, settings or arguments, a full or read-only disk, a worker that cannot start: one line, exit 2
+    return run_cli(f"hoidata {args.command}", lambda: args.func(args), args.debug)
 
 
 if __name__ == "__main__":

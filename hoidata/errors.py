@@ -1,8 +1,15 @@
-"""One error type for bad input files, so every message names the file and the field."""
+"""One error type for bad input files, so every message names the file and the field; and how CLIs report them.
+
+Every command line of the project (``hoidata``, ``python -m hoisdf.train``/``evaluate``/``toy``) runs its work
+through :func:`run_cli`: an error the user can act on (a :class:`DataError`, a bad value, a full or read-only
+disk, a worker that could not start) becomes one ``error:`` line and exit code 2; ``--debug`` shows the
+traceback instead. Anything else is a bug and keeps its traceback.
+"""
 
 from __future__ import annotations
 
 import os
+import sys
 
 
 class DataError(ValueError):
@@ -10,6 +17,7 @@ class DataError(ValueError):
 
     The message always starts with the file path, then the field (key, member, column) that is
     wrong, then what is wrong with it, e.g. ``MANO_RIGHT.pkl: 'posedirs': expected shape (778, 3, 135), got (778, 3)``.
+    DataErrors survive pickling (worker processes send them to the parent as they are).
     """
 
     def __init__(self, path: str | os.PathLike | None, field: str | None, problem: str):
@@ -18,3 +26,42 @@ class DataError(ValueError):
         self.problem = problem
         parts = [p for p in (self.path, None if field is None else repr(field)) if p]
         super().__init__(": ".join(parts + [problem]))
+
+    def __reduce__(self):
+        return type(self), (self.path, self.field, self.problem)
+
+
+class WorkerError(DataError):
+    """A worker process could not start or died (a missing package, no GL, out of memory); see hoidata.pipeline.pool."""
+
+
+def user_message(exc: BaseException) -> str | None:
+    """The one-line message of an error the user can act on, or None for a bug (which keeps its traceback).
+
+    DataError and ValueError: their text; OSError (disk full, read-only folder, permission): the file and the
+    system's reason; MemoryError: "out of memory".
+    """
+    if isinstance(exc, (DataError, ValueError)):
+        lines = [line for line in str(exc).splitlines() if line.strip()]
+        return lines[0] if lines else type(exc).__name__
+    if isinstance(exc, OSError):
+        reason = exc.strerror or str(exc) or type(exc).__name__
+        names = [os.fspath(n) for n in (exc.filename, exc.filename2) if n is not None]
+        return ": ".join([" -> ".join(names), reason] if names else [reason])
+    if isinstance(exc, MemoryError):
+        return "out of memory" + (f" ({exc})" if str(exc) else "")
+    return None
+
+
+def run_cli(prog: str, work, debug: bool = False) -> int:
+    """``work()``'s exit code; a user error (see :func:`user_message`) prints ``PROG: error: ...`` (just
+    ``error: ...`` when ``prog`` is empty) and gives 2. With ``debug`` the exception propagates with its traceback.
+    """
+    try:
+        return work()
+    except Exception as exc:  # noqa: BLE001 - sorted into user errors and bugs right here
+        message = user_message(exc)
+        if debug or message is None:
+            raise
+        print(f"{prog + ': ' if prog else ''}error: {message}", file=sys.stderr)
+        return 2

@@ -90,6 +90,8 @@ META_FIELDS = {
     "source": (None, "provenance dict from the reader"),
 }
 
+OBJECT_IDS = range(1, 22)  # meta object_id: the DexYCB class ids
+
 # JSON types of the scalar meta fields; shaped fields are numeric arrays
 META_TYPES = {"schema_version": int, "kind": str, "key": str, "dataset": str, "split": str, "frame_id": str, "side": str,
               "mirrored": bool, "tip_convention": str, "object_name": str, "object_id": int, "sample_index": int,

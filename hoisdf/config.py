@@ -9,9 +9,17 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import ClassVar
 
 from hoidata.errors import DataError
-from hoidata.pipeline.settings import apply_overrides, read_pipeline, section
+from hoidata.pipeline.settings import (
+    TRAIN_SECTIONS,
+    apply_overrides,
+    read_pipeline,
+    refuse_unused,
+    resolve_pipeline,
+    section,
+)
 from hoisdf.data.augment import AugmentSettings
 from hoisdf.training.losses import LossWeights
 
@@ -57,6 +65,12 @@ class ModelSettings:
     mask_threshold: float = 0.5
     chunk: int = 32768  # grid points per SDF-decoder call at inference
     cls_dist: float = 0.04  # m: voting classification radius
+    LIMITS: ClassVar[dict] = {
+        "image_size": (">= 32",), "sdf_scale": ("> 0",), "sdf_clamp": ("> 0",), "n_freq": (">= 0",),
+        **{k: (">= 1",) for k in ("d_model", "heads", "ff", "hand_layers", "decoder_layers", "object_layers",
+                                  "sdf_features", "sdf_hidden", "token_hidden", "n_hand", "n_object", "chunk")},
+        "dropout": (">= 0", "< 1"), "sdf_dropout": (">= 0", "< 1"), "grid_resolution": (">= 2",),
+        "beta_init": ("> 0",), "beta_min": ("> 0",), "mask_threshold": ("> 0", "< 1"), "cls_dist": ("> 0",)}
 
 
 @dataclass(frozen=True)
@@ -84,6 +98,14 @@ class TrainSettings:
     max_steps: int = 0  # stop after this many steps in total (0: run all epochs)
     shuffle_buffer: int = 64
     record_keys: bool = False  # write the record keys each rank trained on (for checking DDP splits)
+    LIMITS: ClassVar[dict] = {
+        "epochs": (">= 1",), "batch_size": (">= 1",), "lr": ("> 0",), "weight_decay": (">= 0",), "lr_drop": (">= 1",),
+        "lr_gamma": ("> 0",), "lr_min": (">= 0",), "point_sampling_epoch": (">= 0",), "field_prob": (">= 0", "<= 1"),
+        "noise_ratios": (">= 0", "<= 1"), "noise_dists": (">= 0",), "near": ("> 0",),
+        "epoch_samples": (">= 0",),  # 0: the stores' sizes times their weights
+        "workers": (">= 0",),  # 0: load in the training process
+        "seed": (">= 0",), "log_every": (">= 1",), "val_every": (">= 0",), "val_batches": (">= 1",),
+        "ckpt_every": (">= 0",), "max_steps": (">= 0",), "shuffle_buffer": (">= 0",)}
 
 
 @dataclass(frozen=True)
@@ -102,10 +124,12 @@ def load_train_config(name_or_path: str | None, overrides: list[str] = ()) -> Tr
 
     ``augment.input_size`` follows ``model.image_size`` unless set; a mismatch is an error.
     """
+    where = resolve_pipeline(name_or_path) if name_or_path else Path("<defaults>")
+    refuse_unused(list(overrides), TRAIN_SECTIONS, "training", "hoidata build-sdf", where)
     if name_or_path:
         path, data = read_pipeline(name_or_path, overrides)
     else:
-        path = Path("<defaults>")
+        path = where
         data = apply_overrides({}, overrides, path)
     model = section(ModelSettings, data.get("model", {}), path, "model")
     train = section(TrainSettings, data.get("train", {}), path, "train")
@@ -119,9 +143,12 @@ def load_train_config(name_or_path: str | None, overrides: list[str] = ()) -> Tr
                                       noise_dists=tuple(train.noise_dists)), augment, loss)
 
 
-def config_from_dict(data: dict) -> TrainConfig:
-    """Inverse of :meth:`TrainConfig.as_dict` (checkpoints store the resolved config as a dict)."""
-    path = Path("<checkpoint>")
+def config_from_dict(data: dict, path: Path | str = "<checkpoint>") -> TrainConfig:
+    """Inverse of :meth:`TrainConfig.as_dict` (checkpoints store the resolved config as a dict); errors name
+    ``path`` (the checkpoint file)."""
+    path = Path(path)
+    if not isinstance(data, dict) or not all(isinstance(data.get(k, {}), dict) for k in ("model", "train", "augment", "loss")):
+        raise DataError(path, "config", "expected a dict of settings sections")
     model = section(ModelSettings, data.get("model", {}), path, "model")
     train = section(TrainSettings, data.get("train", {}), path, "train")
     return TrainConfig(model, train, section(AugmentSettings, data.get("augment", {}), path, "augment"),

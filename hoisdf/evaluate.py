@@ -25,9 +25,11 @@ from pathlib import Path
 
 import numpy as np
 
-from hoidata.errors import DataError
+from hoidata.atomic import write_atomic
+from hoidata.cli import non_negative_int, positive_int
+from hoidata.errors import DataError, run_cli
 from hoidata.schema import FULL
-from hoidata.store import read_index
+from hoidata.store import read_index, resolve_store
 from hoisdf.evaluation import metrics as M
 from hoisdf.evaluation.inference import infer, load_for_eval, resolve_device, run_folder
 from hoisdf.evaluation.official import format_ho3d_scores
@@ -69,7 +71,7 @@ def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=No
     """
     from hoidata.hand import load_mano
 
-    stores = [Path(s) for s in ([stores] if isinstance(stores, (str, Path)) else stores)]
+    stores = [resolve_store(s) for s in ([stores] if isinstance(stores, (str, Path)) else stores)]
     if boxes not in (None, "gt", "predicted"):
         raise ValueError(f"boxes must be 'gt' or 'predicted', got {boxes!r}")
     if ho3d_gt is not None and ho3d_order is None:
@@ -114,7 +116,7 @@ def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=No
     if ho3d_gt is not None:
         result["ho3d_challenge"] = score_ho3d_files(result["files"], ho3d_gt, out_dir)
     write_per_object(out_dir / "per_object.csv", summary, counts)
-    (out_dir / "metrics.json").write_text(json.dumps(json_safe(result), indent=2))
+    write_atomic(out_dir / "metrics.json", json.dumps(json_safe(result), indent=2).encode())
     if vis:
         write_vis(col, meshes, mano, out_dir / "vis")
     rows = {"HOISDF (this run)": summary["all"], **({"mean-pose baseline": base_summary} if base_summary else {})}
@@ -125,16 +127,17 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m hoisdf.evaluate", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--ckpt", required=True, type=Path, help="run folder (its checkpoints/last.pt) or a .pt file")
-    p.add_argument("--shards", nargs="+", required=True, type=Path, metavar="STORE", help="stores to evaluate")
+    p.add_argument("--shards", nargs="+", required=True, type=str, metavar="STORE", help="stores to evaluate")
     p.add_argument("--mano", required=True, type=Path, help="folder with MANO_RIGHT.pkl")
     p.add_argument("--out", type=Path, default=None, help="output folder (default RUN/eval-<store name>)")
-    p.add_argument("--batch-size", type=int, default=8)
+    p.add_argument("--batch-size", type=positive_int, default=8)
     p.add_argument("--device", default=None, help="cpu, cuda, cuda:1 (default: cuda when present)")
-    p.add_argument("--vis", type=int, default=0, metavar="N", help="write vis/<key>.png for the first N samples")
-    p.add_argument("--limit", type=int, default=None, metavar="N", help="evaluate only the first N samples")
+    p.add_argument("--vis", type=non_negative_int, default=0, metavar="N", help="write vis/<key>.png for the first N samples")
+    p.add_argument("--limit", type=positive_int, default=None, metavar="N", help="evaluate only the first N samples")
     p.add_argument("--boxes", choices=("gt", "predicted"), default=None,
                    help="2D boxes that filter the inference grid (default: the model's test_boxes)")
-    p.add_argument("--plausibility", type=int, default=32, metavar="N", help="samples for the plausibility report")
+    p.add_argument("--plausibility", type=non_negative_int, default=32, metavar="N",
+                   help="samples for the plausibility report (0: none)")
     p.add_argument("--ho3d-order", type=Path, default=None, metavar="evaluation.txt",
                    help="write HO-3D pred.json/pred.zip in this frame order")
     p.add_argument("--ho3d-gt", type=Path, default=None, metavar="DIR",
@@ -142,23 +145,22 @@ def build_parser() -> argparse.ArgumentParser:
                         "server does (metrics.json['ho3d_challenge'], scores.txt); needs --ho3d-order")
     p.add_argument("--baseline-store", type=Path, default=None, metavar="STORE",
                    help="store whose mean hand pose is the baseline (e.g. the training store)")
-    p.add_argument("--workers", type=int, default=4, help="loader processes decoding records (0: none)")
+    p.add_argument("--workers", type=non_negative_int, default=4,
+                   help="loader processes decoding records (0: decode in this process)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--debug", action="store_true", help="on an error, show the traceback instead of one line")
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    if min(args.batch_size, args.limit or 1) < 1 or min(args.vis, args.plausibility, args.workers) < 0:
-        print("error: --batch-size and --limit must be >= 1, --vis, --plausibility, --workers >= 0", file=sys.stderr)
-        return 2
-    try:
-        result = evaluate(args.ckpt, args.shards, args.mano, args.out, args.batch_size, args.device, args.vis,
-                          args.limit, args.boxes, args.plausibility, args.ho3d_order, args.baseline_store,
-                          progress=not args.no_progress, workers=args.workers, ho3d_gt=args.ho3d_gt)
-    except (DataError, ValueError, FileNotFoundError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    return run_cli("", lambda: _run(args), args.debug)
+
+
+def _run(args) -> int:
+    result = evaluate(args.ckpt, args.shards, args.mano, args.out, args.batch_size, args.device, args.vis,
+                      args.limit, args.boxes, args.plausibility, args.ho3d_order, args.baseline_store,
+                      progress=not args.no_progress, workers=args.workers, ho3d_gt=args.ho3d_gt)
     print(f"{result['samples']} samples, checkpoint {result['checkpoint']} (epoch {result['epoch']}), "
           f"boxes {result['test_boxes']}; lengths in mm")
     print(result["table"])

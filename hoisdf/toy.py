@@ -17,8 +17,10 @@ import sys
 import time
 from pathlib import Path
 
+from hoidata.atomic import write_atomic
 from hoidata.cli import main as hoidata_main
-from hoidata.errors import DataError
+from hoidata.cli import non_negative_int, positive_int
+from hoidata.errors import run_cli
 from hoisdf.evaluate import evaluate
 from hoisdf.evaluation.visualize import plot_training_curve
 from hoisdf.train import main as train_main
@@ -67,7 +69,7 @@ def run(out: Path, steps: int, workers: int, seed: int, sequences: int | None, f
     summary = {"beats_mean_pose_baseline": verdict, "timing": timing, "train_steps": steps,
                "model": {k: model[k] for k in COMPARED if k in model},
                "baseline": {k: baseline[k] for k in COMPARED if k in baseline}}
-    (report / "summary.json").write_text(json.dumps(summary, indent=2))
+    write_atomic(report / "summary.json", json.dumps(summary, indent=2).encode())
     print(f"\nreport: {report}  (metrics.json, per_object.csv, training_curve.png, vis/, summary.json)")
     print("model vs mean-pose baseline (mm): " + ", ".join(
         f"{k} {model[k]:.1f} vs {baseline[k]:.1f} {'better' if v else 'NOT better'}" for k, v in verdict.items()))
@@ -76,37 +78,23 @@ def run(out: Path, steps: int, workers: int, seed: int, sequences: int | None, f
     return 0
 
 
-def positive_int(text: str) -> int:
-    """argparse type: an integer >= 1 (0 would mean "the default" to make-toy and "no limit" to the trainer)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {value}")
-    return value
-
-
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m hoisdf.toy", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, default=Path("toy_run"), help="output folder")
     p.add_argument("--steps", type=positive_int, default=700, help="training steps (batch 8)")
     p.add_argument("--workers", type=positive_int, default=2, help="worker processes for the data build")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=non_negative_int, default=0)
     # twice make-toy's default sequences at half its frames: the same 600 DexYCB images with twice the grasps,
     # which the object's depth needs to generalise (README, "The main job")
     p.add_argument("--sequences", type=positive_int, default=10, help="toy size: sequences per subject (see hoidata make-toy)")
     p.add_argument("--frames", type=positive_int, default=5, help="toy size: frames per sequence and camera")
-    p.add_argument("--vis", type=int, default=8, help="result pictures to write")
+    p.add_argument("--vis", type=non_negative_int, default=8, help="result pictures to write")
+    p.add_argument("--debug", action="store_true", help="on an error, show the traceback instead of one line")
     p.add_argument("overrides", nargs="*", metavar="section.key=value", help="training overrides")
-    args = p.parse_args(argv)
-    try:
-        return run(args.out, args.steps, args.workers, args.seed, args.sequences, args.frames, args.vis,
-                   args.overrides)
-    except (DataError, ValueError, FileNotFoundError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    args = p.parse_intermixed_args(argv)  # overrides before and after other options
+    return run_cli("", lambda: run(args.out, args.steps, args.workers, args.seed, args.sequences, args.frames,
+                                   args.vis, args.overrides), args.debug)
 
 
 if __name__ == "__main__":

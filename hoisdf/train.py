@@ -9,30 +9,70 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
+import re
+import shutil
 import sys
 from pathlib import Path
 
 import torch
 
-from hoidata.errors import DataError
+from hoidata.atomic import write_atomic
+from hoidata.errors import DataError, run_cli
 from hoidata.pipeline.runner import git_commit
-from hoidata.pipeline.settings import apply_overrides
+from hoidata.pipeline.settings import TRAIN_SECTIONS, apply_overrides, refuse_unused
+from hoidata.store import resolve_store
 from hoisdf.config import TrainConfig, config_from_dict, load_train_config
 from hoisdf.data import StoreSpec
-from hoisdf.training.checkpoint import CHECKPOINTS, LAST, load_checkpoint
-from hoisdf.training.trainer import Trainer
+from hoisdf.training.checkpoint import CHECKPOINTS, LAST, find_checkpoint, load_checkpoint
+from hoisdf.training.trainer import CURVE, Trainer
 
 
 def parse_store(text: str) -> StoreSpec:
-    """'path' or 'path:weight' -> StoreSpec."""
+    """'path' or 'path:weight' (a finite weight > 0) -> StoreSpec; the path is always a local folder
+    (hoidata.store.resolve_store: a name like 'pipe:...' is just a folder name)."""
     path, sep, weight = text.rpartition(":")
     if sep and path and not weight.startswith(("/", "\\")):
         try:
-            return StoreSpec(Path(path), float(weight))
+            value = float(weight)
         except ValueError:
             pass
-    return StoreSpec(Path(text), 1.0)
+        else:
+            if not (math.isfinite(value) and value > 0):
+                raise DataError(text, "weight", f"must be a finite number > 0, got {weight}")
+            return StoreSpec(resolve_store(path), value)
+    return StoreSpec(resolve_store(text), 1.0)
+
+
+_OVERRIDE = re.compile(r"^[A-Za-z_]+\.[A-Za-z_][A-Za-z0-9_]*=")
+
+
+def _split_overrides(args) -> None:
+    """``--shards a b train.x=1``: items that look like overrides and are no folder are overrides, so overrides
+    work after --shards / --val-shards too."""
+    for name in ("shards", "val_shards"):
+        items = getattr(args, name)
+        moved = [i for i in items if _OVERRIDE.match(i) and not Path(i).exists()]
+        setattr(args, name, [i for i in items if i not in moved])
+        args.overrides = [*moved, *args.overrides]
+    if not args.shards:
+        raise DataError(None, "--shards", "give at least one training store")
+
+
+def clean_dead_run(run_dir: Path) -> list[str]:
+    """Remove what an earlier run in ``run_dir`` left without ever writing a checkpoint (its logs, config and
+    TensorBoard files describe training that cannot be resumed); returns the names removed."""
+    removed = []
+    for path in [run_dir / CURVE, run_dir / "config.json", run_dir / "tb", *sorted(run_dir.glob("keys-rank*.txt"))]:
+        if path.is_dir():
+            shutil.rmtree(path)
+        elif path.exists():
+            path.unlink()
+        else:
+            continue
+        removed.append(path.name)
+    return removed
 
 
 def distributed_setup(device_arg: str | None) -> tuple[int, int, torch.device]:
@@ -55,7 +95,7 @@ def write_run_info(run_dir: Path, config: TrainConfig, stores, val_stores, world
     info = {"config": config.as_dict(), "stores": [[str(s.path), s.weight] for s in stores],
             "val_stores": [str(s.path) for s in val_stores], "git_commit": git_commit(), "version": __version__,
             "world_size": world, "argv": argv}
-    (run_dir / "config.json").write_text(json.dumps(info, indent=2))
+    write_atomic(run_dir / "config.json", json.dumps(info, indent=2).encode())
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -69,29 +109,29 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true", help="continue the run folder's last checkpoint")
     p.add_argument("--device", default=None, help="cpu, cuda, cuda:1 (default: cuda when present)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--debug", action="store_true", help="on an error, show the traceback instead of one line")
     p.add_argument("overrides", nargs="*", metavar="section.key=value", help="e.g. train.batch_size=8 model.depth=18")
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    args = build_parser().parse_args(argv)
-    try:
-        return run(args, argv)
-    except (DataError, ValueError, FileNotFoundError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = build_parser().parse_intermixed_args(argv)  # overrides before and after other options
+    return run_cli("", lambda: run(args, argv), args.debug)
 
 
 def run(args, argv: list[str]) -> int:
     from hoidata.hand import load_mano
 
+    _split_overrides(args)
     stores = [parse_store(s) for s in args.shards]
-    val_stores = [StoreSpec(Path(s)) for s in args.val_shards]
+    val_stores = [StoreSpec(resolve_store(s)) for s in args.val_shards]
     run_dir = args.out or Path("runs") / Path(args.config or "default").stem
-    payload = load_checkpoint(run_dir) if args.resume else None
+    checkpoint = find_checkpoint(run_dir) if args.resume else None
+    payload = load_checkpoint(checkpoint) if args.resume else None
     if payload:  # the run's own config; overrides (e.g. a later train.max_steps) still apply
-        config = config_from_dict(apply_overrides(payload["config"], args.overrides, run_dir / "config.json"))
+        refuse_unused(args.overrides, TRAIN_SECTIONS, "training", "hoidata build-sdf", checkpoint)
+        config = config_from_dict(apply_overrides(payload["config"], args.overrides, checkpoint), checkpoint)
     else:
         if (run_dir / CHECKPOINTS / LAST).exists():
             raise DataError(run_dir, None, "the run folder already holds a checkpoint: pass --resume or another --out")
@@ -99,9 +139,11 @@ def run(args, argv: list[str]) -> int:
     rank, world, device = distributed_setup(args.device)
     torch.manual_seed(config.train.seed + rank)
     run_dir.mkdir(parents=True, exist_ok=True)
+    if not payload and rank == 0 and (removed := clean_dead_run(run_dir)):
+        print(f"note: {run_dir} held an earlier run that never wrote a checkpoint; removed its {', '.join(removed)}")
     mano = load_mano(args.mano, side="right")
     trainer = Trainer(config, stores, mano, run_dir, device, val_stores, rank, world)
-    rng = trainer.load(payload) if payload else None
+    rng = trainer.load(payload, checkpoint) if payload else None
     if rank == 0 and not payload:
         write_run_info(run_dir, config, stores, val_stores, world, argv)
     if rank == 0:

@@ -75,7 +75,7 @@ def test_interrupted_build_resumes_to_the_same_store(built, tiny_root, tmp_path)
 
 def test_resume_refuses_a_store_built_with_other_settings(built, tiny_root):
     out, _ = built
-    with pytest.raises(Exception, match="other settings"):
+    with pytest.raises(Exception, match="record.n_hand differs"):
         _build(tiny_root, out, extra=["record.n_hand=100"])
 
 

@@ -60,6 +60,9 @@ def sequence_frames(reader, s: int, seq_index: int, seq_dir: Path, meta: dict) -
         reader._fail(e, f"{subject}_{seq_dir.name}")
         return
     grasp = int(meta["ycb_grasp_ind"])
+    for serial in sorted({str(x) for x in meta["serials"]} - set(SERIALS)):  # a typo would drop a camera silently
+        reader.skipped.append(Skip(f"{subject}_{seq_dir.name}_{serial}", f"meta.yml lists camera serial {serial!r}, "
+                                   "which is not a DexYCB camera: its frames are not read", str(seq_dir / "meta.yml")))
     for c in reader._serials:
         serial = SERIALS[c]
         if serial not in [str(x) for x in meta["serials"]]:

@@ -182,6 +182,8 @@ def read_labels(path: Path, num_objects: int) -> dict[str, np.ndarray]:
             raise DataError(path, key, "missing key")
         if labels[key].shape != shape:
             raise DataError(path, key, f"expected shape {shape}, got {labels[key].shape}")
+        if labels[key].dtype.kind not in "biuf":
+            raise DataError(path, key, f"expected numbers, got dtype {labels[key].dtype}")
     return labels
 
 

@@ -62,12 +62,24 @@ class Frame:
 
 
 def read_rgb(path: Path, size: tuple[int, int] | None = None) -> np.ndarray:
-    """Read an image file as RGB uint8 (H, W, 3), optionally checking its (width, height)."""
+    """Read an image file as RGB uint8 (H, W, 3), optionally checking its (width, height).
+
+    A JPEG or PNG that is cut short is a DataError (OpenCV alone would fill the missing part with grey).
+    """
     import cv2
+
+    from hoidata.store.codec import incomplete_image
 
     if not Path(path).is_file():
         raise DataError(path, None, "image file not found")
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    try:
+        data = Path(path).read_bytes()
+    except OSError as exc:
+        raise DataError(path, None, f"cannot read image ({exc.strerror or exc})") from None
+    problem = incomplete_image(data)
+    if problem:
+        raise DataError(path, None, f"{problem}: the file is cut short")
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
     if img is None:
         raise DataError(path, None, "cannot decode image (corrupt or not an image)")
     if size is not None and (img.shape[1], img.shape[0]) != tuple(size):

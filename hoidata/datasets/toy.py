@@ -31,8 +31,12 @@ def make_toy(out: str | Path, layout: str, sequences: int | None = None, frames:
 
     if layout not in LAYOUTS:
         raise ValueError(f"unknown toy layout {layout!r}; expected one of {LAYOUTS}")
+    for name, value in (("sequences", sequences), ("frames", frames)):
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+            raise ValueError(f"{name} must be a whole number >= 1 (or None for the default size), got {value!r}")
     out = Path(out)
     start = time.perf_counter()
+    prepare_folder(out, {"layout": layout, "sequences": sequences, "frames": frames, "seed": seed})
     mano_dir, models_dir = write_assets(out)
     if layout == "dexycb":
         size = ToyDexYCBSize()
@@ -43,6 +47,29 @@ def make_toy(out: str | Path, layout: str, sequences: int | None = None, frames:
         size = replace(size, train_sequences=sequences or size.train_sequences, frames=frames or size.frames)
         counts = write_toy_ho3d(out, mano_dir, models_dir, size, seed=seed, progress=progress)
     return {"layout": layout, "root": str(out), **counts, "seconds": round(time.perf_counter() - start, 1)}
+
+
+MARKER = ".hoidata-toy.json"  # make-toy's mark on a folder it wrote (with the settings it wrote it with)
+
+
+def prepare_folder(out: Path, settings: dict) -> None:
+    """Make ``out`` ready for a fresh toy dataset: create it, or empty a folder make-toy wrote before (its
+    marker file says so); any other non-empty folder is refused, so old and new files never mix."""
+    import json
+    import shutil
+
+    from hoidata.errors import DataError
+
+    if out.exists() and not out.is_dir():
+        raise DataError(out, None, "exists and is not a folder")
+    if out.is_dir() and any(out.iterdir()):
+        if not (out / MARKER).is_file():
+            raise DataError(out, None, "the folder is not empty and was not written by make-toy: give an empty or "
+                                       "new --out folder (nothing was changed)")
+        for child in out.iterdir():  # an earlier toy dataset: replaced as a whole
+            shutil.rmtree(child) if child.is_dir() and not child.is_symlink() else child.unlink()
+    out.mkdir(parents=True, exist_ok=True)
+    (out / MARKER).write_text(json.dumps(settings, sort_keys=True) + "\n")
 
 
 def split_rows(root: str | Path, layout: str) -> list[dict]:

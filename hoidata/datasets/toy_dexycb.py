@@ -168,24 +168,20 @@ def write_toy_dexycb(root: str | Path, mano_dir: Path, models_dir: Path, size: T
     Sequences are independent (each seeds its own generator), so the files are the same whatever the
     number of worker processes.
     """
-    import multiprocessing as mp
+    from hoidata.pipeline.pool import run_pool
 
     root = Path(root)
     calib = write_calibration(root, size, np.random.default_rng(seed))
     jobs = [(root, pos, s, q, size, calib, seed) for pos, s in enumerate(size.subjects) for q in range(size.sequences)]
     bar = tqdm(total=len(jobs), desc="toy dexycb sequences", disable=not progress)
     images = 0
-    if workers <= 1:
-        _init_worker(mano_dir, models_dir)
-        for job in jobs:
-            images += _run_job(job)
+    try:
+        for n in run_pool(_run_job, jobs, workers, _init_worker, (mano_dir, models_dir)):
+            images += n
             bar.update()
-        _WORKER.pop("renderer").close()
-    else:
-        ctx = mp.get_context("spawn")
-        with ctx.Pool(workers, initializer=_init_worker, initargs=(mano_dir, models_dir)) as pool:
-            for n in pool.imap_unordered(_run_job, jobs):
-                images += n
-                bar.update()
-    bar.close()
+    finally:
+        bar.close()
+        renderer = _WORKER.pop("renderer", None)  # the serial run's own renderer
+        if renderer is not None:
+            renderer.close()
     return {"subjects": len(size.subjects), "sequences": len(jobs), "images": images}

@@ -13,6 +13,7 @@ Mesh repair and simplification live in :mod:`hoidata.objects.meshops` and are re
 from __future__ import annotations
 
 import hashlib
+import io
 import os
 import tempfile
 from pathlib import Path
@@ -107,7 +108,12 @@ def load_object_mesh(path: str | os.PathLike) -> trimesh.Trimesh:
     if not path.is_file():
         raise DataError(path, None, "mesh file not found")
     try:
-        loaded = trimesh.load(path, process=False, maintain_order=True, split_objects=True, split_groups=True)
+        options = dict(process=False, maintain_order=True, split_objects=True, split_groups=True)
+        if path.suffix.lower() == ".obj":  # text: handed to trimesh as UTF-8, whatever the file's encoding
+            loaded = trimesh.load(io.BytesIO(_as_utf8(path.read_bytes())), file_type="obj",
+                                  resolver=_Utf8Resolver(path), **options)
+        else:
+            loaded = trimesh.load(path, **options)
     except Exception as exc:  # trimesh raises many exception types on malformed files
         raise DataError(path, None, f"cannot read mesh ({type(exc).__name__}: {exc})") from exc
     if isinstance(loaded, trimesh.Scene):
@@ -119,6 +125,25 @@ def load_object_mesh(path: str | os.PathLike) -> trimesh.Trimesh:
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
         raise DataError(path, "faces", "no triangle faces")
     return loaded
+
+
+def _as_utf8(data: bytes) -> bytes:
+    """OBJ/MTL text as UTF-8: files that are not UTF-8 (a latin-1 byte in a comment or material name) are read
+    as latin-1, which maps every byte. trimesh would need charset_normalizer or chardet to guess, and the
+    geometry never depends on those characters."""
+    try:
+        data.decode("utf-8")
+        return data
+    except UnicodeDecodeError:
+        return data.decode("latin-1").encode("utf-8")
+
+
+class _Utf8Resolver(trimesh.resolvers.FilePathResolver):
+    """Finds an OBJ's material and texture files next to it; material text is handed on as UTF-8."""
+
+    def get(self, name):
+        data = super().get(name)
+        return _as_utf8(data) if str(name).lower().endswith(".mtl") else data
 
 
 def load_points(path: str | os.PathLike) -> np.ndarray:

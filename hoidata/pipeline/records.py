@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import hashlib
 from dataclasses import dataclass, replace
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -38,6 +39,9 @@ class RecordSettings:
     sigmas: tuple[float, float] = (0.010, 0.003)
     part_radius: float = 0.05
     heatmap_sigma: float = schema.HEATMAP_SIGMA
+    LIMITS: ClassVar[dict] = {"crop_size": (">= 32", "<= 4096"), "context": ("> 0",), "n_hand": (">= 1",),
+                              "n_object": (">= 1",), "uniform_fraction": (">= 0", "<= 1"), "cube": ("> 0",),
+                              "sigmas": ("> 0",), "part_radius": ("> 0",), "heatmap_sigma": ("> 0",)}
 
 
 @dataclass

@@ -19,11 +19,12 @@ from pathlib import Path
 from tqdm import tqdm
 
 from hoidata import schema, store
+from hoidata.atomic import write_json_atomic
 from hoidata.datasets.frame import Skip
 from hoidata.errors import DataError
+from hoidata.pipeline import fingerprint
 from hoidata.pipeline.frame_list import check_listed, frame_list_provenance, read_frame_list
 from hoidata.pipeline.settings import BuildConfig, stated_count_warnings
-from hoidata.store.shards import write_json_atomic
 
 BUILD_FILE = "build.json"
 
@@ -56,8 +57,10 @@ class BuildSummary:
     store: Path
     frames: int = 0
     records: int = 0
-    skipped: list = field(default_factory=list)
+    skipped: list = field(default_factory=list)  # frames skipped while building (every shard's, once the store is done)
+    reader_skipped: list = field(default_factory=list)  # frames the dataset reader left out, with their reasons
     shards_written: int = 0
+    empty_shards: int = 0  # shards whose frames were all skipped
     shards_kept: int = 0
     seconds: float = 0.0
     index_written: bool = False
@@ -123,49 +126,83 @@ def _extra_name(number: int) -> str:
     return f"shard-{number:06d}.skips.json"
 
 
-def _build_shard(job) -> tuple[int, int, list]:
-    """Build and write one shard; returns (number, records written, skips)."""
-    number, frames, keys, settings, out = job
-    records, skips = [], []
-    for frame, key in zip(frames, keys):
+@dataclass
+class ShardJob:
+    """One shard to build: its frames and keys, the record settings, the store folder; ``root`` (the dataset
+    folder) makes the shard's skips file fingerprint the files its frames read; ``extra`` goes into that file."""
+
+    number: int
+    frames: list
+    keys: list[str]
+    settings: object
+    out: Path
+    root: Path | None = None
+    extra: dict | None = None
+
+
+def _build_shard(job: ShardJob) -> tuple[int, int, list]:
+    """Build and write one shard (empty when every frame was skipped); returns (number, records written, skips).
+
+    The shard (tar and sidecar) is written first, then its skips file: a shard counts as done only with both.
+    """
+    records, skips, inputs = [], [], {}
+    for frame, key in zip(job.frames, job.keys):
+        if job.root is not None:
+            inputs.update(fingerprint.frame_inputs(frame, Path(job.root)))
         try:
-            records.append((key, _build_one(frame, key, settings)))
+            records.append((key, _build_one(frame, key, job.settings)))
         except (DataError, ValueError) as e:  # a broken frame is skipped with its reason, the build goes on
             skips.append({"frame_id": frame.frame_id, "reason": str(e), "path": str(frame.image_path)})
-    _write_json(Path(out) / _extra_name(number), {"skipped": skips, "records": len(records)})
-    if records:
-        store.write_shard(out, number, records)
-    return number, len(records), skips
+    store.write_shard(job.out, job.number, records)
+    write_json_atomic(Path(job.out) / _extra_name(job.number),
+                      {"skipped": skips, "records": len(records), "inputs": inputs, **(job.extra or {})})
+    return job.number, len(records), skips
 
 
-def _write_json(path: Path, value) -> None:
-    write_json_atomic(path, value)
+def read_shard_skips(out: Path, number: int) -> dict:
+    """Shard ``number``'s skips file, checked: {"skipped": [...], "records": n, "inputs": {...}, ...}."""
+    path = Path(out) / _extra_name(number)
+    try:
+        value = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise DataError(path, None, f"unreadable skips file ({exc}); rerun the build to rewrite it") from None
+    ok = isinstance(value, dict) and isinstance(value.get("skipped"), list) and isinstance(value.get("records"), int)
+    if not ok or not all(isinstance(s, dict) and {"frame_id", "reason"} <= set(s) for s in value["skipped"]):
+        raise DataError(path, None, "not a skips file (expected 'skipped' entries and 'records'); rerun the build")
+    return value
 
 
 def _shard_done(out: Path, number: int, complete: set[int]) -> bool:
-    """A shard is done if it is intact on disk, or if it was planned but every frame in it was skipped."""
-    if number in complete:
-        return True
-    extra = out / _extra_name(number)
-    return extra.is_file() and json.loads(extra.read_text())["records"] == 0
+    """Done: the shard is intact on disk (complete) and its skips file is readable and agrees with it; a lost
+    or damaged skips file makes the shard be built again (the same bytes)."""
+    if number not in complete:
+        return False
+    try:
+        return read_shard_skips(out, number)["records"] == store.read_sidecar(out, number).count
+    except DataError:
+        return False
 
 
-def _check_build_file(out: Path, config: dict, keys: list[str]) -> None:
-    """Refuse to resume into a store built with other settings or frames (it would mix records)."""
+def _check_build_file(out: Path, config: dict, keys: list[str], inputs: dict) -> None:
+    """Refuse to resume into a store built with other settings, frames or inputs (it would mix records)."""
     import hashlib
 
     spec = {"config": config, "keys_sha256": hashlib.sha256("\n".join(keys).encode()).hexdigest(),
-            "frames": len(keys), "schema_version": schema.SCHEMA_VERSION}
+            "frames": len(keys), "schema_version": schema.SCHEMA_VERSION, "inputs": inputs}
     spec = json.loads(json.dumps(spec))
     path = out / BUILD_FILE
     if path.is_file():
-        old = json.loads(path.read_text())
-        if old != spec:
-            raise DataError(path, None, "this folder holds a store built with other settings or frames; "
-                                        "use a new --out folder (nothing was changed)")
+        try:
+            old = json.loads(path.read_text())
+        except (OSError, UnicodeDecodeError, ValueError) as exc:
+            raise DataError(path, None, f"unreadable ({exc}); use a new --out folder") from None
+        where = fingerprint.first_difference(old, spec)
+        if where is not None:
+            raise DataError(path, where, f"{fingerprint.describe_difference(where)}; resuming would mix records: "
+                                         "use a new --out folder (nothing was changed)")
     else:
         out.mkdir(parents=True, exist_ok=True)
-        _write_json(path, spec)
+        write_json_atomic(path, spec)
 
 
 def git_commit() -> str:
@@ -176,6 +213,13 @@ def git_commit() -> str:
         return "unknown"
 
 
+def build_inputs(frames, root: Path, mano_dir: Path, models_dir: Path) -> dict:
+    """What build.json pins besides settings and keys (see hoidata.pipeline.fingerprint)."""
+    return {"mano": fingerprint.files(mano_dir, fingerprint.MANO_FILES),
+            "models": fingerprint.models(models_dir, {f.object_name for f in frames}),
+            "annotations": fingerprint.annotations(frames, root)}
+
+
 def build_store(cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path, out: Path, workers: int = 1,
                 part: tuple[int, int] = (0, 1), progress: bool = True) -> BuildSummary:
     """Build (or resume) the store in `out`; see the module docstring."""
@@ -183,22 +227,27 @@ def build_store(cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path, 
     start = time.perf_counter()
     frames, reader_skips = read_frames(cfg, root, Path(mano_dir))
     if not frames:
-        raise DataError(root, None, f"no frames to build for splits {cfg.dataset.splits} (skipped: {len(reader_skips)})")
+        raise DataError(root, None, f"no frames to build for splits {cfg.dataset.splits}: "
+                                    f"{describe_skips(reader_skips, 'the reader skipped')}")
     for line in stated_count_warnings(cfg.dataset, [f.split for f in frames]):
         print(line, file=sys.stderr)
     keys = [schema.record_key(f.dataset, f.split, f.frame_id) for f in frames]
-    _check_build_file(out, cfg.as_dict(), keys)
+    _check_build_file(out, cfg.as_dict(), keys, build_inputs(frames, root, Path(mano_dir), models_dir))
     per = cfg.store.records_per_shard
 
     def make_job(n):
-        return n, frames[n * per:(n + 1) * per], keys[n * per:(n + 1) * per], cfg.record, out
+        return ShardJob(n, frames[n * per:(n + 1) * per], keys[n * per:(n + 1) * per], cfg.record, out, root)
+
+    def check_kept(numbers):
+        fingerprint.check_kept_inputs(lambda n: read_shard_skips(out, n).get("inputs", {}), numbers, root)
 
     init = (Path(mano_dir), models_dir, cfg.record.crop_size)
     summary, numbers, done = run_shards(out, len(keys), per, make_job, _build_shard, _init_worker, init, workers,
-                                        part, progress, "build-sdf")
+                                        part, progress, "build-sdf", check_kept=check_kept)
+    summary.reader_skipped = [_skip_dict(s) for s in reader_skips]
     if done:
-        write_store_index(out, cfg.as_dict(), models_dir, numbers, reader_skips, toolkit_provenance(cfg, root))
-        summary.index_written = True
+        summary.skipped = finish_store(out, cfg.as_dict(), models_dir, numbers, reader_skips, summary,
+                                       toolkit_provenance(cfg, root))
     summary.seconds = time.perf_counter() - start
     return summary
 
@@ -221,15 +270,67 @@ def toolkit_provenance(cfg: BuildConfig, root: Path) -> dict:
                                          if listed else {})}
 
 
+def _skip_dict(skip) -> dict:
+    """A Skip as a plain dict (its toolkit sample_index kept when it has one)."""
+    if isinstance(skip, dict):
+        return skip
+    sample = getattr(skip, "sample_index", -1)
+    return {"frame_id": skip.frame_id, "reason": skip.reason, "path": skip.path,
+            **({"sample_index": sample} if sample >= 0 else {})}
+
+
+def skip_groups(skips) -> list[tuple[str, int, str]]:
+    """(reason without its file path, count, an example path) of a skips list, most frequent first."""
+    groups: dict[str, list] = {}
+    for skip in map(_skip_dict, skips):
+        reason, path = str(skip["reason"]), str(skip.get("path") or "")
+        head, sep, tail = reason.partition(": ")
+        kind = tail if sep and (head == path or Path(head).suffix or "/" in head) else reason
+        entry = groups.setdefault(kind, [0, head if kind == tail else path])
+        entry[0] += 1
+    return sorted(((k, n, p) for k, (n, p) in groups.items()), key=lambda g: -g[1])
+
+
+def describe_skips(skips, who: str, limit: int = 3) -> str:
+    """'<who> N: reason (e.g. path), ...' in one line, the most frequent reasons first."""
+    groups = skip_groups(skips)
+    parts = [f"{n} x {kind}" + (f" ({path})" if path else "") for kind, n, path in groups[:limit]]
+    more = f", and {len(groups) - limit} other reasons" if len(groups) > limit else ""
+    return f"{who} {len(skips)}" + (": " + "; ".join(parts) + more if parts else "")
+
+
+def finish_store(out: Path, config: dict, models_dir: Path, numbers: list[int], reader_skips: list,
+                 summary: BuildSummary, provenance: dict | None = None) -> list[dict]:
+    """Write the index when every shard is done (unless the index already lists exactly these shards, so a
+    finished store on a read-only disk can be "rebuilt"); returns every shard's build-time skips."""
+    build_skips = [s for n in numbers for s in read_shard_skips(out, n)["skipped"]]
+    infos = [store.read_sidecar(out, n) for n in numbers]
+    if not sum(info.count for info in infos):
+        raise DataError(out, None, f"no records: every frame was skipped while building; "
+                                   f"{describe_skips(build_skips, 'skipped')}")
+    try:
+        current = store.read_index(out).shards == infos
+    except DataError:
+        current = False
+    if not current:
+        write_store_index(out, config, models_dir, numbers, reader_skips, provenance)
+    summary.index_written = True
+    summary.empty_shards = sum(info.count == 0 for info in infos)
+    return build_skips
+
+
 def run_shards(out: Path, n_items: int, per: int, make_job, shard_fn, init, initargs, workers: int,
-               part: tuple[int, int], progress: bool, desc: str, done=None) -> tuple[BuildSummary, list[int], bool]:
-    """Run the missing shard jobs of this part, serially or in a spawn pool; report whether all are done.
+               part: tuple[int, int], progress: bool, desc: str, done=None,
+               check_kept=None) -> tuple[BuildSummary, list[int], bool]:
+    """Run the missing shard jobs of this part, serially or in a pool (hoidata.pipeline.pool); report whether all
+    are done.
 
     make_job(n) -> the picklable job of shard n; shard_fn(job) -> (number, records written, skips);
     init(*initargs) sets up each worker process. done(n) -> whether unit n is finished, for jobs that write
-    something other than store shards (default: the store shard and its sidecar are intact).
+    something other than store shards (default: the store shard, its sidecar and its skips file are intact).
+    check_kept(numbers) may refuse the units a resumed run keeps (inputs that changed since).
     """
-    import multiprocessing as mp
+    from hoidata.pipeline.pool import run_pool
 
     start = time.perf_counter()
     numbers = list(range((n_items + per - 1) // per))
@@ -242,19 +343,18 @@ def run_shards(out: Path, n_items: int, per: int, make_job, shard_fn, init, init
     else:
         complete = {p.number for p in owned if done(p.number)}
         mine = [p.number for p in owned if p.number not in complete]
+    if check_kept is not None:
+        check_kept([p.number for p in owned if p.number not in mine])
     jobs = [make_job(n) for n in mine]
-    summary = BuildSummary(out, frames=n_items, shards_kept=len(complete))
+    summary = BuildSummary(out, frames=n_items, shards_kept=len(owned) - len(mine))
     bar = tqdm(total=sum(min(per, n_items - n * per) for n in mine), desc=desc, unit="frame", disable=not progress)
-    if workers <= 1:
-        init(*initargs)
-        _run((shard_fn(job) for job in jobs), summary, bar, start)
-        renderer = _WORKER.pop("renderer", None)
+    try:
+        _run(run_pool(shard_fn, jobs, workers, init, initargs) if jobs else iter(()), summary, bar, start)
+    finally:
+        bar.close()
+        renderer = _WORKER.pop("renderer", None)  # the serial run's own renderer
         if renderer is not None:
             renderer.close()
-    elif jobs:
-        with mp.get_context("spawn").Pool(workers, initializer=init, initargs=initargs) as pool:
-            _run(pool.imap_unordered(shard_fn, jobs), summary, bar, start)
-    bar.close()
     summary.seconds = time.perf_counter() - start
     if done is None:
         finished = store.completed_shards(out, plan, clean=False)  # other parts may still be writing
@@ -266,6 +366,7 @@ def _run(results, summary: BuildSummary, bar, start: float) -> None:
     for _, written, skips in results:
         summary.records += written
         summary.shards_written += 1
+        summary.empty_shards += written == 0
         summary.skipped += skips
         bar.update(written + len(skips))
         bar.set_postfix(fps=f"{summary.records / max(time.perf_counter() - start, 1e-9):.2f}")
@@ -278,10 +379,9 @@ def write_store_index(out: Path, config: dict, models_dir: Path, numbers: list[i
 
     shards, metas, skipped = [], [], list(reader_skips)  # Skips keep their toolkit sample_index
     for n in numbers:
-        skipped += json.loads((out / _extra_name(n)).read_text())["skipped"]
-        if (out / store.shard_name(n)).is_file():
-            shards.append(store.read_sidecar(out, n))
-            metas += [json.loads(m[schema.META]) for m in store.read_shard_members(out / store.shard_name(n))]
+        skipped += read_shard_skips(out, n)["skipped"]
+        shards.append(store.read_sidecar(out, n))
+        metas += [json.loads(m[schema.META]) for m in store.read_shard_members(out / store.shard_name(n))]
     names = sorted({m["object_name"] for m in metas})
     meshes = {}
     for name in names:

@@ -6,8 +6,10 @@ these dataclasses and passes explicit values on.
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
+from typing import ClassVar
 
 import tomllib
 
@@ -47,6 +49,7 @@ class DatasetConfig:
     motion_m: float = -1.0  # DexYCB: ... or moved more than this many metres (negative: off)
     # DexYCB: {split: frames} the setting selects on the full dataset; a complete build that differs warns
     expected_frames: dict = field(default_factory=dict)
+    LIMITS: ClassVar[dict] = {"frame_stride": (">= 1",)}  # proximity_mm: any number (negative: off)
 
     def dexycb_setting(self) -> DexYCBSetting:
         return DexYCBSetting(name=self.setting, setup=self.setup, sides=tuple(self.sides), frame_stride=self.frame_stride,
@@ -61,6 +64,7 @@ class DatasetConfig:
 @dataclass(frozen=True)
 class StoreConfig:
     records_per_shard: int = 256
+    LIMITS: ClassVar[dict] = {"records_per_shard": (">= 1",)}
 
 
 @dataclass(frozen=True)
@@ -86,6 +90,8 @@ def value_problem(annotation: str, value) -> str | None:
     """
     if annotation in _SCALARS:
         ok = isinstance(value, _SCALARS[annotation]) and (annotation == "bool" or not isinstance(value, bool))
+        if ok and annotation == "float" and not math.isfinite(value):
+            return f"must be a finite number, got {value!r}"
         return None if ok else f"must be {_WORDS[annotation]}, got {value!r}"
     if annotation.startswith("tuple[") and annotation.endswith("]"):
         items = [a.strip() for a in annotation[6:-1].split(",")]
@@ -100,14 +106,27 @@ def value_problem(annotation: str, value) -> str | None:
     return None
 
 
+def limit_problem(rules: tuple[str, ...], value) -> str | None:
+    """Why ``value`` (a number or a list of numbers) breaks one of ``rules`` such as (">= 1",) or ("> 0", "<= 1")."""
+    ops = {">": lambda a, b: a > b, ">=": lambda a, b: a >= b, "<": lambda a, b: a < b, "<=": lambda a, b: a <= b}
+    for item in value if isinstance(value, (list, tuple)) else [value]:
+        for rule in rules:
+            op, bound = rule.split()
+            if not ops[op](item, float(bound)):
+                return f"must be {' and '.join(rules)}{' (every item)' if isinstance(value, (list, tuple)) else ''}, got {value!r}"
+    return None
+
+
 def section(cls, values: dict, path: Path, name: str):
-    """``cls(**values)`` after checking every key is a field of ``cls`` and every value fits its annotation."""
+    """``cls(**values)`` after checking every key is a field of ``cls``, every value fits its annotation and the
+    range the class declares for it (``LIMITS``: field -> rules like (">= 1",); the defaults obey them too)."""
     known = {f.name: f for f in fields(cls)}
+    limits = getattr(cls, "LIMITS", {})
     kwargs = {}
     for key, value in values.items():
         if key not in known:
             raise DataError(path, f"{name}.{key}", f"unknown setting; expected one of {sorted(known)}")
-        problem = value_problem(known[key].type, value)
+        problem = value_problem(known[key].type, value) or (key in limits and limit_problem(limits[key], value))
         if problem:
             raise DataError(path, f"{name}.{key}", problem)
         kwargs[key] = tuple(value) if isinstance(value, list) else value
@@ -154,9 +173,23 @@ def read_pipeline(name_or_path: str, overrides: list[str] = ()) -> tuple[Path, d
     return path, apply_overrides(data, overrides, path)
 
 
+BUILD_SECTIONS = ("dataset", "record", "store")  # read by the build, ignored by training
+
+
+def refuse_unused(overrides: list[str], used: tuple[str, ...], command: str, user: str, path: Path) -> None:
+    """An override of a section this command does not read is an error, not silently ignored."""
+    for item in overrides:
+        section_name = item.partition("=")[0].partition(".")[0]
+        if section_name not in used and section_name in (*BUILD_SECTIONS, *TRAIN_SECTIONS):
+            raise DataError(path, item.partition("=")[0], f"{command} does not use [{section_name}] settings "
+                                                          f"({user} reads them); leave this override out")
+
+
 def load_build_config(name_or_path: str, overrides: list[str] = ()) -> BuildConfig:
-    """Read a pipeline TOML and apply ``section.key=value`` overrides (values parsed as TOML)."""
-    path, data = read_pipeline(name_or_path, [o for o in overrides if o.split(".", 1)[0] not in TRAIN_SECTIONS])
+    """Read a pipeline TOML and apply ``section.key=value`` overrides (values parsed as TOML); overrides of the
+    training sections are an error (the build does not use them)."""
+    refuse_unused(list(overrides), BUILD_SECTIONS, "build-sdf", "python -m hoisdf.train", resolve_pipeline(name_or_path))
+    path, data = read_pipeline(name_or_path, overrides)
     record = section(RecordSettings, data.get("record", {}), path, "record")
     dataset = section(DatasetConfig, data.get("dataset", {}), path, "dataset")
     if dataset.name not in ("dexycb", "ho3d"):

@@ -23,6 +23,7 @@ from hoidata.schema import (
     META_FIELDS,
     META_TYPES,
     NO_PART,
+    OBJECT_IDS,
     RECORD_KINDS,
     SCHEMA_VERSION,
     SDF,
@@ -41,6 +42,8 @@ MAX_IMAGE_SIDE = 4096  # refuse absurd image headers before decoding (decompress
 KEY = "__key__"  # the record key in decoded records, as WebDataset names it
 N_PARTS = 16  # hand part labels 0..15 in sdf.npy's last column
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+_PNG_END = b"IEND\xaeB`\x82"  # the IEND chunk's type and CRC, the last bytes of every PNG
+FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -70,6 +73,12 @@ def _check_images(where, key, img, seg, hm) -> None:
             and img.shape[2] == 3 and img.shape[0] == img.shape[1] >= 2):
         raise DataError(where, _field(key, IMG), f"expected square (S, S, 3) uint8, got {_describe(img)}")
     half = img.shape[0] // 2
+    masks = [(member, arr) for member, arr in ((SEG, seg), (HEATMAP, hm)) if isinstance(arr, np.ndarray)]
+    if len(masks) == 2 and seg.shape == hm.shape != (half, half) and seg.ndim == 2 and seg.shape[0] == seg.shape[1]:
+        # both masks agree with each other: the image is the odd one out
+        side = 2 * seg.shape[0]
+        raise DataError(where, _field(key, IMG), f"{img.shape[1]}x{img.shape[0]} px, but {SEG} and {HEATMAP} are "
+                                                 f"{seg.shape[1]}x{seg.shape[0]}: expected a {side}x{side} image")
     for member, arr in ((SEG, seg), (HEATMAP, hm)) if seg is not None or hm is not None else ():
         if not (isinstance(arr, np.ndarray) and arr.dtype == np.uint8 and arr.shape == (half, half)):
             raise DataError(where, _field(key, member), f"expected ({half}, {half}) uint8, got {_describe(arr)}")
@@ -121,14 +130,19 @@ def _check_meta(meta, where, key, n_sdf: int | None, kind: str | None = None) ->
             # bool is an int in Python; a flag where a number belongs (or back) is still wrong
             if want is not None and (not isinstance(value, want) or (want is int and isinstance(value, bool))):
                 raise DataError(where, name, f"{field_name!r}: expected {want.__name__}, got {type(value).__name__}")
+            if field_name == "object_id" and value not in OBJECT_IDS:
+                raise DataError(where, name, f"'object_id': {value} is not a DexYCB class id "
+                                             f"({OBJECT_IDS.start}..{OBJECT_IDS.stop - 1})")
             out[field_name] = value
             continue
         try:
             arr = np.asarray(value, dtype=np.float64)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             raise DataError(where, name, f"{field_name!r}: expected numbers of shape {shape}") from None
-        if arr.shape != shape or not np.isfinite(arr).all():
-            raise DataError(where, name, f"{field_name!r}: expected finite numbers of shape {shape}, got {arr.shape}")
+        # finite as float32 too: the loader hands float32 tensors on (1e300 would become inf there)
+        if arr.shape != shape or not (np.isfinite(arr).all() and (np.abs(arr) <= FLOAT32_MAX).all()):
+            raise DataError(where, name, f"{field_name!r}: expected finite float32 numbers of shape {shape}, "
+                                         f"got {arr.shape}")
         out[field_name] = arr
     if key is not None and out["key"] != key:
         raise DataError(where, name, f"'key': {out['key']!r} differs from the record key")
@@ -181,6 +195,21 @@ def _imencode(ext: str, arr: np.ndarray, params: list[int]) -> bytes:
     return buf.tobytes()
 
 
+def incomplete_image(data: bytes) -> str | None:
+    """Why a JPEG or PNG file is cut short (None when it ends as it should, or is neither format).
+
+    OpenCV decodes a truncated JPEG without an error (it fills the rest with grey and only prints a warning),
+    so the end is checked here: a JPEG must end with its end-of-image marker (trailing zero padding allowed),
+    a PNG with its IEND chunk.
+    """
+    data = bytes(data)
+    if data[:2] == b"\xff\xd8":
+        return None if data.rstrip(b"\0").endswith(b"\xff\xd9") else "truncated JPEG (no end-of-image marker)"
+    if data[:8] == _PNG_MAGIC:
+        return None if data.rstrip(b"\0").endswith(_PNG_END) else "truncated PNG (no IEND chunk)"
+    return None
+
+
 def _image_size(data: bytes, member: str) -> tuple[int, int] | None:
     """(width, height) from a PNG's IHDR or a JPEG's SOF header without decoding; None if not found."""
     if member != IMG:
@@ -202,6 +231,9 @@ def _decode_image(data: bytes, where, key, member: str) -> np.ndarray:
     kind = "JPEG" if member == IMG else "8-bit grey PNG"
     if size is None or not 0 < max(size) <= MAX_IMAGE_SIDE:
         raise DataError(where, _field(key, member), f"not a {kind} of at most {MAX_IMAGE_SIDE} px (header: {size})")
+    problem = incomplete_image(data)
+    if problem:
+        raise DataError(where, _field(key, member), problem)
     flag = cv2.IMREAD_COLOR if member == IMG else cv2.IMREAD_UNCHANGED
     arr = cv2.imdecode(np.frombuffer(data, np.uint8), flag)
     if arr is None:

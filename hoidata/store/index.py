@@ -6,7 +6,8 @@ Layout::
       zarr.json          attributes: hoidata_index (layout version), schema_version, n_records,
                          shards [{number, name, count, sha256, size, first_key, last_key}],
                          label_columns, objects, skipped [{frame_id, reason, path}], config,
-                         provenance {..., git commit as given, hoidata_version}
+                         provenance {..., git commit as given, hoidata_version},
+                         checksums {array path: array_digest} (a lost chunk would read as fill values)
       labels/<column>    one row per record in shard order, chunked along rows: key and other text
                          (variable-length UTF-8), shard int32, joints_3d (N, 21, 3) float32, ...
       objects/<name>/vertices (V, 3) float32, objects/<name>/faces (F, 3) int32
@@ -19,9 +20,9 @@ This module imports nothing from :mod:`hoidata.store` (no import cycle): the sha
 
 from __future__ import annotations
 
+import hashlib
 import os
 import re
-import shutil
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,8 +31,8 @@ import numpy as np
 
 from hoidata.errors import DataError
 from hoidata.schema import META_FIELDS, META_TYPES, RECORD_KINDS, SCHEMA_VERSION, check_key
+from hoidata.store.paths import INDEX_NAME, replaced_dir, resolve_store
 
-INDEX_NAME = "index.zarr"
 INDEX_FORMAT = 1  # layout version of index.zarr, recorded as the attribute "hoidata_index"
 LABEL_CHUNK_ROWS = 32768
 # columns every index holds besides "key" and "shard": name -> dtype; shapes from META_FIELDS
@@ -69,6 +70,20 @@ def to_jsonable(value, where, name: str):
     raise DataError(where, name, f"cannot store a {type(value).__name__} as JSON")
 
 
+def array_digest(arr: np.ndarray) -> str:
+    """sha256 of an index array's values, the same for what write_index stores and what read_index gets back
+    (text as NUL-separated UTF-8, numbers as their bytes, with dtype and shape)."""
+    arr = np.asarray(arr)
+    digest = hashlib.sha256()
+    if arr.dtype.kind in "TUSO":
+        digest.update(f"text{arr.shape}".encode())
+        digest.update("\0".join(str(v) for v in arr.ravel().tolist()).encode("utf-8", "surrogatepass"))
+    else:
+        digest.update(f"{arr.dtype.str}{arr.shape}".encode())
+        digest.update(np.ascontiguousarray(arr).tobytes())
+    return digest.hexdigest()
+
+
 def shard_name(number: int) -> str:
     """File name of shard ``number``: ``shard-%06d.tar``."""
     return f"shard-{number:06d}.tar"
@@ -97,11 +112,14 @@ class ShardInfo:
             raise DataError(where, "shards", f"expected an object per shard, got {type(value).__name__}")
         types = {"number": int, "name": str, "count": int, "sha256": str, "size": int,
                  "first_key": str, "last_key": str}
+        empty = value.get("count") == 0  # every frame of the shard was skipped: no first or last key
         for name, want in types.items():
+            if empty and name in ("first_key", "last_key") and value.get(name) is None:
+                continue
             if not isinstance(value.get(name), want) or isinstance(value.get(name), bool):
                 raise DataError(where, f"shards.{name}", f"expected {want.__name__}, got {value.get(name)!r}")
-        info = cls(**{name: value[name] for name in types})
-        consistent = info.name == shard_name(info.number) and info.count >= 1 and info.size >= 0
+        info = cls(**{name: value.get(name) for name in types})
+        consistent = info.name == shard_name(info.number) and info.count >= 0 and info.size >= 0
         if not consistent or not re.fullmatch(r"[0-9a-f]{64}", info.sha256):
             raise DataError(where, f"shards.{info.name}", f"inconsistent entry {value}")
         return info
@@ -203,7 +221,7 @@ def _check_index_inputs(shards_info, labels: dict, where) -> tuple[list[ShardInf
     _check_keys(keys, n, where)
     start = 0
     for s in shards:
-        if (keys[start], keys[start + s.count - 1]) != (s.first_key, s.last_key):
+        if s.count and (keys[start], keys[start + s.count - 1]) != (s.first_key, s.last_key):
             raise DataError(where, f"shards.{s.name}", "first/last key differ from the key column")
         start += s.count
     columns["shard"] = np.repeat(np.arange(len(shards), dtype=np.int32), [s.count for s in shards])
@@ -229,8 +247,10 @@ def _skip_entry(skip, where) -> dict:
     return {**entry, "sample_index": int(sample)} if sample >= 0 else entry
 
 
-def _write_meshes(group, object_meshes: dict, where) -> None:
-    """Each object's mesh, checked, as objects/<name>/vertices (float32) and objects/<name>/faces (int32)."""
+def _write_meshes(group, object_meshes: dict, where) -> dict[str, str]:
+    """Each object's mesh, checked, as objects/<name>/vertices (float32) and objects/<name>/faces (int32);
+    returns their array_digest checksums."""
+    checksums = {}
     for name, (vertices, faces) in object_meshes.items():
         vertices, faces = np.asarray(vertices, np.float32), np.asarray(faces)
         if not _NODE_RE.match(name) or name in (".", ".."):
@@ -238,8 +258,11 @@ def _write_meshes(group, object_meshes: dict, where) -> None:
         bad_faces = faces.dtype.kind not in "iu" or faces.size and (faces.min() < 0 or faces.max() >= len(vertices))
         if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3 or bad_faces:
             raise DataError(where, f"objects.{name}", "expected (V, 3) vertices and (F, 3) faces indexing them")
+        faces = faces.astype(np.int32)
         group.create_array(f"objects/{name}/vertices", data=vertices)
-        group.create_array(f"objects/{name}/faces", data=faces.astype(np.int32))
+        group.create_array(f"objects/{name}/faces", data=faces)
+        checksums[f"objects/{name}/vertices"], checksums[f"objects/{name}/faces"] = array_digest(vertices), array_digest(faces)
+    return checksums
 
 
 def write_index(store_dir, shards_info: Sequence[ShardInfo | dict], labels: dict[str, np.ndarray],
@@ -264,21 +287,15 @@ def write_index(store_dir, shards_info: Sequence[ShardInfo | dict], labels: dict
              "objects": sorted(object_meshes), "skipped": [_skip_entry(s, where) for s in skipped],
              "config": to_jsonable(config, where, "config"),
              "provenance": to_jsonable({**provenance, "hoidata_version": __version__}, where, "provenance")}
-    # per-process names: two --part jobs finishing together must not write into one temp folder
-    tmp, old = where.with_name(f"{INDEX_NAME}.tmp{os.getpid()}"), where.with_name(f"{INDEX_NAME}.old{os.getpid()}")
-    for leftover in (tmp, old):
-        shutil.rmtree(leftover, ignore_errors=True)
-    group = zarr.open_group(tmp, mode="w", zarr_format=3)
-    for name, arr in columns.items():
-        rows = max(1, min(len(arr), LABEL_CHUNK_ROWS))
-        group.create_array(f"labels/{name}", data=arr, chunks=(rows, *arr.shape[1:]))
-    _write_meshes(group, object_meshes, where)
-    group.attrs.update(attrs)
-    # a directory cannot be renamed over a non-empty one: move the old index aside first
-    if where.exists():
-        os.replace(where, old)
-    os.replace(tmp, where)
-    shutil.rmtree(old, ignore_errors=True)
+    with replaced_dir(where) as tmp:
+        group = zarr.open_group(tmp, mode="w", zarr_format=3)
+        checksums = {}
+        for name, arr in columns.items():
+            rows = max(1, min(len(arr), LABEL_CHUNK_ROWS))
+            group.create_array(f"labels/{name}", data=arr, chunks=(rows, *arr.shape[1:]))
+            checksums[f"labels/{name}"] = array_digest(arr)
+        checksums.update(_write_meshes(group, object_meshes, where))
+        group.attrs.update({**attrs, "checksums": checksums})
     return where
 
 
@@ -311,7 +328,7 @@ def _open_index(store_dir):
     """Open index.zarr and check its attributes; returns (group, attrs, shards, path)."""
     import zarr
 
-    path = Path(store_dir) / INDEX_NAME
+    path = resolve_store(store_dir) / INDEX_NAME
     if not (path / "zarr.json").is_file():
         raise DataError(path, None, "missing (the build did not finish, or this is not a store folder)")
     try:
@@ -335,21 +352,29 @@ def _open_index(store_dir):
     return group, attrs, shards, path
 
 
-def _read_array(group, name: str, path) -> np.ndarray:
-    """One array of the index, read whole; variable-length text comes back as numpy '<U'."""
+def _read_array(group, name: str, path, checksums: dict | None = None) -> np.ndarray:
+    """One array of the index, read whole and compared with its checksum (indexes written since checksums
+    exist); variable-length text comes back as numpy '<U'. zarr returns fill values for a chunk file that
+    is missing, so without the checksum a lost chunk would read as zeros."""
     try:
         arr = group[name][...]
     except Exception as exc:
         raise DataError(path, name, f"unreadable ({type(exc).__name__}: {exc})") from None
     # zarr returns variable-length text as numpy's StringDType; plain '<U' is what the rest of numpy expects
     # (and numpy 2.4 refuses astype(str) from StringDType, hence the list)
-    return np.array(arr.tolist(), dtype=str).reshape(arr.shape) if arr.dtype.kind == "T" else arr
+    arr = np.array(arr.tolist(), dtype=str).reshape(arr.shape) if arr.dtype.kind == "T" else arr
+    if checksums is not None:
+        if checksums.get(name) != array_digest(arr):
+            raise DataError(path, name, "does not match its checksum: a chunk file is missing or damaged "
+                                        "(rerunning the build into this folder rewrites the index)")
+    return arr
 
 
 def _read_labels(group, attrs: dict, shards: list[ShardInfo], path) -> dict[str, np.ndarray]:
     """Every label column, checked: required columns present and shaped, n rows each, shard column consistent."""
     n = attrs["n_records"]
-    labels = {name: _read_array(group, f"labels/{name}", path) for name in attrs["label_columns"]}
+    sums = attrs.get("checksums")
+    labels = {name: _read_array(group, f"labels/{name}", path, sums) for name in attrs["label_columns"]}
     for name in ("key", "shard", "kind", *INDEX_LABELS):
         if name not in labels:
             raise DataError(path, f"labels/{name}", "missing column")
@@ -366,12 +391,12 @@ def _read_labels(group, attrs: dict, shards: list[ShardInfo], path) -> dict[str,
     return labels
 
 
-def _read_meshes(group, names: list, path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+def _read_meshes(group, names: list, path, attrs: dict) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """The object meshes, checked: (V, 3) vertices and (F, 3) integer faces indexing them."""
-    objects = {}
+    objects, sums = {}, attrs.get("checksums")
     for name in names:
-        vertices = _read_array(group, f"objects/{name}/vertices", path)
-        faces = _read_array(group, f"objects/{name}/faces", path)
+        vertices = _read_array(group, f"objects/{name}/vertices", path, sums)
+        faces = _read_array(group, f"objects/{name}/faces", path, sums)
         bad_faces = faces.dtype.kind not in "iu" or faces.size and (faces.min() < 0 or faces.max() >= len(vertices))
         if vertices.ndim != 2 or vertices.shape[1:] != (3,) or faces.ndim != 2 or faces.shape[1:] != (3,) or bad_faces:
             raise DataError(path, f"objects/{name}", f"not a mesh: vertices {vertices.shape}, faces {faces.shape}")
@@ -383,6 +408,6 @@ def read_index(store_dir) -> StoreIndex:
     """Load and check ``store_dir/index.zarr``; a missing or damaged index is a DataError naming it."""
     group, attrs, shards, path = _open_index(store_dir)
     labels = _read_labels(group, attrs, shards, path)
-    objects = _read_meshes(group, attrs["objects"], path)
+    objects = _read_meshes(group, attrs["objects"], path, attrs)
     return StoreIndex(path, labels["key"].tolist(), labels, shards, objects, attrs["skipped"], attrs["config"],
                       attrs["provenance"], attrs["schema_version"])

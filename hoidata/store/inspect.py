@@ -18,13 +18,13 @@ Cells fill ``COLUMNS`` per row, so a grid of k records is ``min(k, COLUMNS) * 2 
 from __future__ import annotations
 
 import math
-import os
 from itertools import pairwise
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from hoidata.atomic import write_atomic
 from hoidata.errors import DataError
 from hoidata.schema import (
     HEATMAP,
@@ -257,13 +257,7 @@ def _write_png_atomic(path: Path, rgb: np.ndarray) -> None:
     ok, buf = cv2.imencode(".png", np.ascontiguousarray(rgb[..., ::-1]))
     if not ok:
         raise RuntimeError(f"OpenCV could not encode a {rgb.shape} grid as PNG")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        tmp.write_bytes(buf.tobytes())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    write_atomic(path, buf.tobytes())
 
 
 def inspect_store(store_dir, n: int = 16, out="grid.png", seed: int = 0) -> Path:

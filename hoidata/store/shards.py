@@ -18,12 +18,12 @@ from __future__ import annotations
 
 import hashlib
 import io
-import json
 import os
 import tarfile
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 
+from hoidata.atomic import write_json_atomic
 from hoidata.errors import DataError
 from hoidata.schema import MEMBERS, kind_of_members
 from hoidata.store.codec import (
@@ -33,7 +33,8 @@ from hoidata.store.codec import (
     _is_key,
     decode_record,
 )
-from hoidata.store.index import INDEX_NAME, ShardInfo, _open_index, shard_name
+from hoidata.store.index import ShardInfo, _open_index, shard_name
+from hoidata.store.paths import INDEX_NAME, resolve_store
 
 # --------------------------------------------------------------------------------------------------
 # shards
@@ -96,8 +97,9 @@ class _OpenShard:
         os.fsync(self._file.fileno())  # the content is on disk before the name says "complete"
         self._file.close()
         os.replace(self.tmp, self.path)
+        first, last = (self.keys[0], self.keys[-1]) if self.keys else (None, None)
         info = ShardInfo(self.number, self.path.name, len(self.keys), self._hash.sha256.hexdigest(),
-                         self._hash.size, self.keys[0], self.keys[-1])
+                         self._hash.size, first, last)
         write_json_atomic(self.path.with_name(sidecar_name(self.number)), info.to_dict())
         return info
 
@@ -115,22 +117,18 @@ def _check_members_to_write(key: str, members: dict[str, bytes]) -> None:
                                    f"got {sorted(members)}")
 
 
-def write_json_atomic(path: Path, value) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(value, sort_keys=True, indent=1) + "\n")
-    os.replace(tmp, path)
-
-
 def write_shard(store_dir, number: int, records: Iterable[tuple[str, dict[str, bytes]]]) -> ShardInfo:
-    """Write one complete shard from (key, members) pairs: the unit of work of a resumable build."""
+    """Write one complete shard from (key, members) pairs: the unit of work of a resumable build.
+
+    No records gives an empty shard (a valid tar holding nothing, count 0): a planned shard whose frames were
+    all skipped still exists, is counted and is indexed, so shard numbers stay 0..S-1.
+    """
     store_dir = Path(store_dir)
     store_dir.mkdir(parents=True, exist_ok=True)
     shard = _OpenShard(store_dir, number)
     try:
         for key, members in records:
             shard.add(key, members)
-        if not shard.keys:
-            raise ValueError(f"shard {number}: no records")
         return shard.finish()
     except BaseException:
         shard.abort()
@@ -235,10 +233,39 @@ def read_shard_members(path) -> Iterator[dict[str, bytes]]:
             yield record
 
 
+def read_checked_shard(path, expected_keys: Sequence[str], expected_size: int | None = None) -> Iterator[dict[str, bytes]]:
+    """:func:`read_shard_members` compared with what the index says the shard holds, as the training loader reads.
+
+    The file's size is checked before anything is read, then every record's key, in order, and at the end the
+    count: a shard cut at a record boundary, zeroed, holding a duplicate, foreign or missing record is a
+    DataError naming the shard (and the key). Member sizes are checked before a member is read (see
+    read_shard_members), so a hostile shard cannot make the reader allocate more than MAX_MEMBER_BYTES.
+    """
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+    except OSError as exc:
+        raise DataError(path, None, f"cannot read the shard ({exc.strerror or exc})") from None
+    if expected_size is not None and size != expected_size:
+        raise DataError(path, None, f"{size} bytes, the index says {expected_size}: the shard is truncated, "
+                                    "damaged or replaced (hoidata verify checks the whole store)")
+    count = 0
+    for members in read_shard_members(path):
+        key = members[KEY]
+        if count >= len(expected_keys) or key != expected_keys[count]:
+            there = repr(expected_keys[count]) if count < len(expected_keys) else "no record"
+            raise DataError(path, key, f"record {count} of the shard, the index has {there} there")
+        count += 1
+        yield members
+    if count != len(expected_keys):
+        raise DataError(path, None, f"{count} records, the index says {len(expected_keys)}: the shard is "
+                                    "truncated or damaged (hoidata verify checks the whole store)")
+
+
 def _shard_paths(source) -> list[Path]:
     """A store folder (its index's shard list, else every shard-*.tar), one shard file, or a list of them."""
     if isinstance(source, (str, os.PathLike)):
-        source = Path(source)
+        source = resolve_store(source)
         if not source.is_dir():
             return [source]
         if (source / INDEX_NAME).exists():

@@ -14,6 +14,7 @@ from hoidata.errors import DataError
 from hoidata.schema import META, META_FIELDS
 from hoidata.store.codec import KEY
 from hoidata.store.index import ShardInfo, StoreIndex, read_index
+from hoidata.store.paths import resolve_store, stale_temps
 from hoidata.store.shards import iter_records, sidecar_name
 
 
@@ -34,7 +35,9 @@ class VerifyReport:
     store_dir: str
     shards: int = 0
     records: int = 0
+    empty_shards: int = 0  # shards whose frames were all skipped at build time (listed in the index's skips)
     problems: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)  # not problems of the store: leftovers safe to delete
 
     @property
     def ok(self) -> bool:
@@ -42,8 +45,9 @@ class VerifyReport:
 
     def __str__(self) -> str:
         state = "OK" if self.ok else f"{len(self.problems)} problem(s)"
-        return "\n".join([f"{self.store_dir}: {self.records} records in {self.shards} shards: {state}",
-                          *(f"  {p}" for p in self.problems)])
+        empty = f" ({self.empty_shards} empty: every frame skipped)" if self.empty_shards else ""
+        return "\n".join([f"{self.store_dir}: {self.records} records in {self.shards} shards{empty}: {state}",
+                          *(f"  {p}" for p in self.problems), *(f"  note: {n}" for n in self.notes)])
 
 
 MAX_LABEL_PROBLEMS = 5  # per shard: one broken conversion would otherwise print a line per record
@@ -99,8 +103,12 @@ def _verify_records(path: Path, info: ShardInfo, index: StoreIndex, report: Veri
 def verify_store(store_dir) -> VerifyReport:
     """Check a whole store: every shard's size, sha256 and record count against the index, every record
     decoded and its key and labels matching the index, in order; shard files the index does not list."""
-    store_dir = Path(store_dir)
     report = VerifyReport(str(store_dir))
+    try:
+        store_dir = resolve_store(store_dir)
+    except DataError as exc:
+        report.problems.append(str(exc))
+        return report
     try:
         index = read_index(store_dir)
     except DataError as exc:
@@ -124,6 +132,11 @@ def verify_store(store_dir) -> VerifyReport:
     listed = {info.name for info in index.shards}
     strays = [p for p in sorted(store_dir.glob("shard-*.tar")) if p.name not in listed]
     report.problems += [f"{p}: shard file not in the index" for p in strays]
+    report.empty_shards = sum(info.count == 0 for info in index.shards)
+    if not report.records and not report.problems:
+        report.problems.append(f"{store_dir}: the store holds no records (every frame was skipped; see the index's skips)")
+    leftovers = [*stale_temps(store_dir), *sorted(store_dir.glob("shard-*.tmp")), *sorted(store_dir.glob(".*.tmp"))]
+    report.notes += [f"{p}: left over from a write that did not finish (safe to delete)" for p in leftovers]
     return report
 
 
@@ -151,7 +164,9 @@ def completed_shards(store_dir, expected: Sequence[ShardInfo], clean: bool = Tru
     store_dir = Path(store_dir)
     if clean:
         for plan in expected:
-            (store_dir / (plan.name + ".tmp")).unlink(missing_ok=True)
+            leftover = store_dir / (plan.name + ".tmp")
+            if leftover.exists():  # unlink only what is there: a complete store may sit on a read-only disk
+                leftover.unlink()
     done = set()
     for plan in expected:
         try:

@@ -156,9 +156,8 @@ def _synth_shard(job):
         except Rejected as e:
             attempts += s.max_tries
             rejected.append({"frame_id": f"{seed}_{index:08d}", "reason": str(e), "path": ""})
-    runner._write_json(Path(out) / f"shard-{number:06d}.synth.json",
-                         {"attempts": attempts, "accepted": len(frames), "rejected_samples": rejected})
-    result = runner._build_shard((number, frames, kept, record, out))
+    stats = {"attempts": attempts, "accepted": len(frames), "rejected_samples": rejected}
+    result = runner._build_shard(runner.ShardJob(number, frames, kept, record, out, extra={"synthetic": stats}))
     return result[0], result[1], result[2] + rejected
 
 
@@ -190,11 +189,13 @@ def render_synthetic(source: Path, out: Path, count: int, mano_dir: Path, models
     if count < 1:
         raise ValueError(f"--count must be at least 1, got {count}")
     files = list_backgrounds(backgrounds)
-    n_grasps = len(load_grasps(source, load_mano(mano_dir, dtype=torch.float64)))  # fail early, in the parent
+    if records_per_shard < 1:
+        raise ValueError(f"--records-per-shard must be at least 1, got {records_per_shard}")
+    grasps = load_grasps(source, load_mano(mano_dir, dtype=torch.float64))  # fail early, in the parent
     keys = [schema.record_key("synthetic", "train", f"{seed}_{i:08d}") for i in range(count)]
     config = {"synthetic": asdict(settings), "record": asdict(record), "source": str(source), "count": count,
               "seed": seed, "backgrounds": [Path(f).name for f in files], "records_per_shard": records_per_shard}
-    runner._check_build_file(out, json.loads(json.dumps(config)), keys)
+    runner._check_build_file(out, json.loads(json.dumps(config)), keys, _inputs(grasps, mano_dir, models_dir, files))
     per = records_per_shard
 
     def make_job(n):
@@ -205,13 +206,38 @@ def render_synthetic(source: Path, out: Path, count: int, mano_dir: Path, models
     summary, numbers, done = runner.run_shards(out, count, per, make_job, _synth_shard, _init, init, workers,
                                                  part, progress, "render-synthetic")
     if done:
-        stats = [json.loads((out / f"shard-{n:06d}.synth.json").read_text()) for n in numbers]
+        stats = [_shard_stats(out, n) for n in numbers]
         attempts = sum(st["attempts"] for st in stats)
         accepted = sum(st["accepted"] for st in stats)
-        synth = {"source_grasps": n_grasps, "attempts": attempts, "accepted": accepted,
+        synth = {"source_grasps": len(grasps), "attempts": attempts, "accepted": accepted,
                  "rejection_rate": round(1.0 - accepted / attempts, 4) if attempts else 0.0}
         rejected = [Skip(r["frame_id"], r["reason"], r["path"]) for st in stats for r in st["rejected_samples"]]
-        runner.write_store_index(out, config, Path(models_dir), numbers, rejected, provenance={"synthetic": synth})
-        summary.index_written = True
+        summary.skipped = runner.finish_store(out, config, Path(models_dir), numbers, rejected, summary,
+                                              provenance={"synthetic": synth})
     summary.seconds = time.perf_counter() - start
     return summary
+
+
+def _shard_stats(out: Path, number: int) -> dict:
+    """The physical-check statistics a shard's skips file holds."""
+    stats = runner.read_shard_skips(out, number).get("synthetic")
+    if not isinstance(stats, dict) or not {"attempts", "accepted", "rejected_samples"} <= set(stats):
+        raise DataError(out / runner._extra_name(number), "synthetic", "missing; rerun render-synthetic to rebuild it")
+    return stats
+
+
+def _inputs(grasps, mano_dir: Path, models_dir: Path, backgrounds: list[str]) -> dict:
+    """What build.json pins besides the settings: the MANO file, the rendered object folders, the grasps and
+    the background images (see hoidata.pipeline.fingerprint)."""
+    import hashlib
+
+    from hoidata.pipeline import fingerprint
+
+    digest = hashlib.sha256()
+    for g in grasps:
+        digest.update(f"{g.key}|{g.object_name}|{g.object_id}|".encode())
+        digest.update(np.concatenate([g.pose, g.betas, g.transl]).astype(np.float64).tobytes())
+    return {"mano": fingerprint.files(mano_dir, fingerprint.MANO_FILES[:1]),
+            "models": fingerprint.models(models_dir, {g.object_name for g in grasps}, whole_folder=True),
+            "grasps": digest.hexdigest(),
+            "backgrounds": {Path(f).name: fingerprint.file_sha256(Path(f)) for f in backgrounds}}

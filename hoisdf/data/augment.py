@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 import torch.nn.functional as F
@@ -45,6 +46,9 @@ class AugmentSettings:
     color: bool = True  # brightness, contrast, saturation U(0.5, 1.5), hue shift U(-0.15, 0.15) of a turn
     blur_max: float = 0.5  # Gaussian blur sigma U(0, blur_max), output pixels (0 disables)
     heatmap_sigma: float = 1.25  # px at the R // 2 resolution
+    LIMITS: ClassVar[dict] = {"input_size": (">= 32",), "context": ("> 0",), "center_jitter": (">= 0",),
+                              "scale_sigma": (">= 0",), "scale_min": ("> 0",), "scale_max": ("> 0",),
+                              "rot_prob": (">= 0", "<= 1"), "blur_max": (">= 0",), "heatmap_sigma": ("> 0",)}
 
     def __post_init__(self):
         if self.rotation not in ROTATIONS:

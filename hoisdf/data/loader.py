@@ -5,11 +5,12 @@ renders with weight 0.6) and yields dicts of batched torch tensors (see :func:`b
 
 How the pieces fit, per store::
 
-    _ShardStream  endless (training) sequence of this rank's shard paths: disjoint shard subsets per
+    ShardStream   endless (training) sequence of this rank's shard paths: disjoint shard subsets per
                   rank when there are enough shards, else a slice of one common sequence of passes
     split_by_worker
                   each DataLoader worker keeps its own slice of the rank's sequence
-    tarfile_to_samples -> _Shuffle (sample buffer) -> _Decode -> _ToArrays (SDF row sampling)
+    ReadShards    hoidata's strict tar reader, compared with the index (size, keys in order, count)
+    -> _Shuffle (sample buffer) -> _Decode -> _ToArrays (SDF row sampling)
 
 then :class:`_Mix` draws the next sample from store ``i`` with probability ``weight_i / sum(weights)``
 and :class:`_Batch` stacks samples into tensors; ``with_epoch`` cuts every worker at the same number of
@@ -23,6 +24,10 @@ worker has data, no sample is invented, and for large stores (many shards) it de
 "disjoint shards per worker". ``wds.ResampledShards`` would also never hang, but draws shards with
 replacement, so within an epoch some shards are read twice and others not at all.
 
+Shards are opened as local files by :func:`hoidata.store.read_checked_shard`, never through webdataset's URL
+opener (which runs ``pipe:`` names as shell commands); an error in a DataLoader worker reaches the caller as
+the same DataError (:func:`make_loader`), not as a worker traceback.
+
 Epochs and workers: :meth:`MixedStores.set_epoch` stores the epoch in a small holder object shared
 by every stage. DataLoader workers receive a pickled copy of the dataset when ``iter(loader)`` is
 called, so call ``dataset.set_epoch(e)`` *before* ``for batch in loader`` each epoch, and do not use
@@ -33,7 +38,6 @@ from __future__ import annotations
 
 import hashlib
 from dataclasses import dataclass
-from itertools import count
 from pathlib import Path
 
 import numpy as np
@@ -43,8 +47,9 @@ from webdataset.utils import pytorch_worker_info
 
 from hoidata import schema
 from hoidata.errors import DataError
-from hoidata.store import KEY, decode_record, read_index
+from hoidata.store import KEY, decode_record
 from hoisdf.data.kinds import check_trainable, fill_absent_labels
+from hoisdf.data.shards import Loader, ReadShards, ShardStream, errors_as_items, store_shards
 
 _MIX_STREAM, _SHUFFLE_STREAM = 1, 2  # distinguish the RNG streams drawn from the same seed
 
@@ -73,40 +78,6 @@ def _worker_seed(seed: int, epoch: int, stream: int, store: int) -> np.random.Ge
 def _key_seed(key: str) -> int:
     """A stable 63-bit integer from a record key (Python's hash() is salted per process)."""
     return int.from_bytes(hashlib.sha1(key.encode("utf-8")).digest()[:8], "little") >> 1
-
-
-class _ShardStream:
-    """Source stage: this rank's ``{"url": shard path}`` dicts, one shuffled pass after another.
-
-    Training with at least as many shards as ranks: every epoch the shard list is shuffled by
-    (seed, epoch) and rank r keeps every world-th shard of it, so ranks read disjoint shards (disjoint
-    samples); passes over the rank's own shards are reshuffled by (seed, epoch, pass, rank). With fewer
-    shards than ranks, all ranks partition one common endless sequence of passes (seeded by
-    (seed, epoch, pass)) by position instead: every rank has data, and ranks read different passes.
-    Evaluation (``repeat=False``): one pass in stored order, split by position. The split_by_worker
-    stage that follows divides the rank's stream between its DataLoader workers the same way.
-    """
-
-    def __init__(self, urls: list[str], seed: int, state: _EpochState, repeat: bool):
-        self.urls, self.seed, self.state, self.repeat = list(urls), seed, state, repeat
-
-    def __call__(self):
-        rank, world, _, _ = pytorch_worker_info()
-        epoch, n = self.state.epoch, len(self.urls)
-        if self.repeat and n >= world:
-            mine = np.random.default_rng([self.seed, epoch]).permutation(n)[rank::world]
-            for p in count():
-                for i in np.random.default_rng([self.seed, epoch, p, rank]).permutation(mine):
-                    yield {"url": self.urls[i]}
-        position = 0
-        for p in count():
-            order = np.random.default_rng([self.seed, epoch, p]).permutation(n) if self.repeat else range(n)
-            for i in order:
-                if position % world == rank:
-                    yield {"url": self.urls[i]}
-                position += 1
-            if not self.repeat:
-                return
 
 
 class _Shuffle:
@@ -305,16 +276,18 @@ class MixedStores(wds.DataPipeline):
             # decided here, not at construction: only now do we know this worker's world layout
             _, world_size, _, num_workers = pytorch_worker_info()
             self.with_epoch(self.batches_per_worker(num_workers, world_size))
-        return super().__iter__()
+        if torch.utils.data.get_worker_info() is None:
+            return super().__iter__()
+        return errors_as_items(super().__iter__())
 
 
-def _store_pipeline(urls: list[str], number: int, seed: int, state: _EpochState, training: bool,
+def _store_pipeline(urls: list[str], expected: dict, number: int, seed: int, state: _EpochState, training: bool,
                     shuffle_buffer: int, to_arrays: _ToArrays) -> wds.DataPipeline:
     """One store's sample stream (see the module docstring for the stages)."""
     return wds.DataPipeline(
-        _ShardStream(urls, seed, state, repeat=training),
+        ShardStream(urls, seed, state, repeat=training),
         wds.split_by_worker,
-        wds.tarfile_to_samples(),
+        ReadShards(expected),
         _Shuffle(shuffle_buffer if training else 0, seed, state, number),
         _Decode(),
         to_arrays,
@@ -383,25 +356,21 @@ def build_dataset(stores: list[StoreSpec], batch_size: int, epoch_samples: int |
     to_arrays = _ToArrays(seed, state, n_hand, n_object, near if training else None)
     pipes, sizes = [], []
     for number, spec in enumerate(stores):
-        index = read_index(spec.path)
+        index, expected = store_shards(spec.path)
         if training:
             check_trainable(spec.path, index)
-        urls = [str(Path(spec.path) / info.name) for info in index.shards]
-        if not urls:
-            raise ValueError(f"{spec.path}: the store has no shards")
-        sizes.append(sum(info.count for info in index.shards))
-        pipes.append(_store_pipeline(urls, number, seed, state, training, shuffle_buffer, to_arrays))
+        sizes.append(sum(len(keys) for keys, _ in expected.values()))
+        pipes.append(_store_pipeline(list(expected), expected, number, seed, state, training, shuffle_buffer, to_arrays))
     if epoch_samples is None and training:
         epoch_samples = max(1, round(sum(n * s.weight for n, s in zip(sizes, stores))))
     mix = _Mix(pipes, [s.weight for s in stores], seed, state, per_epoch=training)
     return MixedStores([mix, _Batch(batch_size, partial=not training)], state, epoch_samples, batch_size)
 
 
-def make_loader(dataset: MixedStores, num_workers: int, pin_memory: bool = False) -> torch.utils.data.DataLoader:
-    """A DataLoader over already-batched ``dataset`` elements (batch_size=None: no re-collation).
+def make_loader(dataset: MixedStores, num_workers: int, pin_memory: bool = False) -> Loader:
+    """A :class:`Loader` (DataLoader, batch_size=None: no re-collation) over ``dataset``.
 
     Workers are not persistent, so a ``dataset.set_epoch(e)`` before each ``iter(loader)`` reaches them.
     """
     dataset.num_workers = num_workers
-    return torch.utils.data.DataLoader(dataset, batch_size=None, num_workers=num_workers,
-                                       pin_memory=pin_memory, persistent_workers=False)
+    return Loader(dataset, num_workers, pin_memory)

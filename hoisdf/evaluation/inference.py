@@ -19,7 +19,7 @@ from hoisdf.config import config_from_dict
 from hoisdf.data import StoreSpec, build_dataset, make_loader
 from hoisdf.data.augment import augment_batch
 from hoisdf.evaluation.submissions import DEXYCB_TIP_JOINTS, HO3D_TIP_VERTICES
-from hoisdf.training.checkpoint import CHECKPOINTS, find_checkpoint, load_checkpoint
+from hoisdf.training.checkpoint import CHECKPOINTS, find_checkpoint, load_checkpoint, load_weights
 from hoisdf.training.losses import hand_targets, mirrored_shape_mano
 
 SDF_KEYS = ("hand_points", "hand_sdf", "obj_points", "obj_sdf", "hand_rows", "obj_rows")
@@ -71,11 +71,11 @@ def load_for_eval(run, mano, device: torch.device, boxes: str | None = None):
 
     path = find_checkpoint(run)
     payload = load_checkpoint(path)
-    config = config_from_dict(payload["config"])
+    config = config_from_dict(payload["config"], path)
     settings = replace(config.model, weights="", **({"test_boxes": boxes} if boxes else {}))
     model = build_model(settings, mano)
-    model.load_state_dict(payload["model"])
-    progress = payload.get("progress", {})
+    load_weights(model, payload["model"], path)
+    progress = payload.get("progress") if isinstance(payload.get("progress"), dict) else {}
     info = {"checkpoint": str(path), "epoch": progress.get("epoch"), "global_step": progress.get("global_step"),
             "test_boxes": settings.test_boxes}
     return model.to(device).eval(), config, info

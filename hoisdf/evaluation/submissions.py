@@ -18,14 +18,13 @@ from __future__ import annotations
 
 import io
 import json
-import os
-import tempfile
 import zipfile
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
+from hoidata.atomic import write_atomic
 from hoidata.errors import DataError
 from hoidata.hand import DEXYCB_TO_MANO, MANO_TO_DEXYCB, TIP_VERTICES
 
@@ -34,19 +33,6 @@ HO3D_TIP_VERTICES = TIP_VERTICES[("ho3d", "right")]  # thumb, index, middle, rin
 DEXYCB_TIP_JOINTS = (4, 8, 12, 16, 20)  # thumb..little tips in DexYCB order
 NUM_JOINTS = 21
 HPE_COLUMNS = 1 + NUM_JOINTS * 3  # 64
-
-
-def write_atomic(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` via a temporary file in the same folder, so it appears whole or not at all."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def _points(x, name: str, count: int | None = None) -> np.ndarray:

@@ -14,9 +14,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from hoidata.atomic import atomic_path, write_atomic
 from hoidata.errors import DataError
 from hoidata.objects import BOX_EDGES, box_corners
-from hoisdf.evaluation.submissions import write_atomic
 
 PRED_COLOR = (255, 80, 40)  # predictions: orange-red
 GT_COLOR = (40, 220, 80)  # ground truth: green
@@ -285,7 +285,7 @@ def plot_training_curve(metrics_csv, png_path) -> Path:
         ax2.legend(fontsize=8)
     fig.tight_layout()
     png_path = Path(png_path)
-    png_path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(png_path, dpi=110)
+    with atomic_path(png_path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
     plt.close(fig)
     return png_path

@@ -8,7 +8,8 @@ A run folder (``python -m hoisdf.train --out RUN``) holds::
     RUN/tb/                    TensorBoard event files
 
 A checkpoint is a dict: ``model`` (state dict; MANO is not in it), ``optimizer``, ``scheduler``, ``rng``
-(torch CPU / CUDA and Python ``random`` states, the augmentation generator), ``progress`` (epoch, step in
+(torch CPU / CUDA and Python ``random`` states, the augmentation generator) of rank 0 and ``rng_ranks`` (the
+same for every rank, in rank order: a DDP resume gives each rank its own), ``progress`` (epoch, step in
 the epoch, global step) and ``config`` (TrainConfig.as_dict()).
 """
 
@@ -20,6 +21,7 @@ from pathlib import Path
 
 import torch
 
+from hoidata.atomic import atomic_path
 from hoidata.errors import DataError
 
 CHECKPOINTS = "checkpoints"
@@ -48,12 +50,43 @@ def set_rng_state(state: dict, generator: torch.Generator | None = None) -> None
 
 def save_checkpoint(path: Path, payload: dict) -> Path:
     """Write ``payload`` to ``path`` atomically (temporary file + rename): a crash never leaves half a file."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(payload, tmp)
-    os.replace(tmp, path)
-    return path
+    with atomic_path(path) as tmp:
+        torch.save(payload, tmp)
+    return Path(path)
+
+
+def _check_rng(state, path, name: str) -> None:
+    """An RNG state dict as rng_state writes it, tried on scratch generators (a bad one is a DataError)."""
+    if not isinstance(state, dict) or "torch" not in state or "python" not in state:
+        raise DataError(path, name, "expected a dict with 'torch' and 'python' random states")
+    try:
+        torch.Generator().set_state(state["torch"])
+        if "generator" in state:
+            torch.Generator().set_state(state["generator"])
+        version, internal, gauss = state["python"]
+        random.Random().setstate((version, tuple(internal), gauss))
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise DataError(path, name, f"not a valid random state ({type(exc).__name__}: {exc})") from None
+
+
+def check_training_payload(payload: dict, path) -> None:
+    """What --resume needs, checked before anything is restored: optimizer, progress and every rank's RNG."""
+    for key in ("optimizer", "progress", "rng"):
+        if key not in payload:
+            raise DataError(path, key, "missing from the checkpoint (it cannot be resumed; evaluate still reads it)")
+    opt, progress = payload["optimizer"], payload["progress"]
+    if not isinstance(opt, dict) or not {"state", "param_groups"} <= set(opt):
+        raise DataError(path, "optimizer", "expected an optimizer state dict ('state', 'param_groups')")
+    if not isinstance(progress, dict) or set(progress) != {"epoch", "step", "global_step"} or not all(
+            isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in progress.values()):
+        raise DataError(path, "progress", f"expected epoch, step and global_step >= 0, got {progress!r}")
+    if progress["step"] > progress["global_step"]:
+        raise DataError(path, "progress", f"step {progress['step']} is past global_step {progress['global_step']}")
+    ranks = payload.get("rng_ranks", [payload["rng"]])
+    if not isinstance(ranks, list) or not ranks:
+        raise DataError(path, "rng_ranks", "expected one random state per training process")
+    for rank, state in enumerate(ranks):
+        _check_rng(state, path, f"rng_ranks[{rank}]" if "rng_ranks" in payload else "rng")
 
 
 def find_checkpoint(run_or_file: str | os.PathLike) -> Path:
@@ -72,10 +105,15 @@ def load_checkpoint(run_or_file: str | os.PathLike, map_location="cpu") -> dict:
     try:
         payload = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as e:
-        raise DataError(path, None, f"cannot read checkpoint: {e}") from e
+        first = (str(e).strip().splitlines() or [type(e).__name__])[0]
+        raise DataError(path, None, f"cannot read checkpoint: {first}") from e
+    if not isinstance(payload, dict):
+        raise DataError(path, None, f"expected a checkpoint dict, got {type(payload).__name__}")
     for key in ("model", "config"):
         if key not in payload:
             raise DataError(path, key, "missing from the checkpoint")
+    if not isinstance(payload["model"], dict) or not all(torch.is_tensor(v) for v in payload["model"].values()):
+        raise DataError(path, "model", "expected a state dict of tensors")
     return payload
 
 
@@ -86,8 +124,19 @@ def load_model(run_or_file: str | os.PathLike, mano, device="cpu"):
     from hoisdf.config import config_from_dict
     from hoisdf.model import build_model
 
-    payload = load_checkpoint(run_or_file)
-    config = config_from_dict(payload["config"])
+    path = find_checkpoint(run_or_file)
+    payload = load_checkpoint(path)
+    config = config_from_dict(payload["config"], path)
     model = build_model(replace(config.model, weights=""), mano)  # the state dict holds every weight
-    model.load_state_dict(payload["model"])
+    load_weights(model, payload["model"], path)
     return model.to(device).eval(), config
+
+
+def load_weights(model, state_dict, path, hint: str = "") -> None:
+    """``model.load_state_dict`` with a mismatch (other architecture, damaged file) as one DataError line."""
+    try:
+        model.load_state_dict(state_dict)
+    except (RuntimeError, KeyError, TypeError, ValueError) as exc:
+        lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+        detail = lines[1] if len(lines) > 1 else (lines[0] if lines else type(exc).__name__)
+        raise DataError(path, "model", f"the weights do not fit this model ({detail[:200]}){hint}") from None

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass, fields
+from typing import ClassVar
 
 import torch
 import torch.nn.functional as F
@@ -36,6 +37,9 @@ class LossWeights:
     shape_reg: float = 1e-6  # IK variant: betas towards 0
     obj_rot: float = 0.7  # SmoothL1 of per-point axis-angles
     obj_trans: float = 100.0  # SmoothL1 of per-point translations, metres
+    LIMITS: ClassVar[dict] = {name: (">= 0",) for name in (
+        "sdf_hand", "sdf_obj", "heatmap", "hand_seg", "obj_seg", "joint_vote", "joint_cls", "joint_all", "mano_verts",
+        "mano_joints", "mano_pose", "mano_shape", "shape_reg", "obj_rot", "obj_trans")}
 
 
 def mirrored_shape_mano(mano) -> nn.Module:

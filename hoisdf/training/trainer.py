@@ -1,17 +1,19 @@
 """The training loop: one step, one epoch, validation, checkpoints, logs. The CLI is :mod:`hoisdf.train`.
 
-Exact resume: a checkpoint holds the model, optimizer, scheduler, every RNG state (torch CPU/CUDA,
-Python ``random``, the augmentation/sampling generator) and the position in the epoch. Resuming
-rebuilds the epoch's loader (its order depends only on seed and epoch), skips the batches already
-trained on without computing anything, and then restores the RNG states, so a run interrupted after
-step k continues exactly as if it had not stopped (on the CPU; cuDNN kernels are not bitwise
-deterministic on GPUs).
+Exact resume: a checkpoint holds the model, optimizer, scheduler, every rank's RNG states (torch CPU/CUDA,
+Python ``random``, the augmentation/sampling generator; gathered from all ranks under DDP, and each rank
+gets its own back) and the position in the epoch. Resuming rebuilds the epoch's loader (its order depends
+only on seed and epoch), skips the batches already trained on without computing anything, and then
+restores the RNG states, so a run interrupted after step k continues exactly as if it had not stopped
+(on the CPU, with any number of processes; cuDNN kernels are not bitwise deterministic on GPUs).
+metrics.csv and TensorBoard drop what was logged after the checkpoint. An epoch's checkpoint is written
+before its validation runs, and validation stores are opened when the trainer is built.
 """
 
 from __future__ import annotations
 
 import csv
-import os
+import io
 import shutil
 import time
 from dataclasses import dataclass
@@ -20,6 +22,8 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from hoidata.atomic import atomic_path, write_atomic
+from hoidata.errors import DataError
 from hoidata.store import read_index
 from hoisdf.config import TrainConfig
 from hoisdf.data import StoreSpec, build_dataset, make_loader
@@ -30,6 +34,8 @@ from hoisdf.model.sampling import noise_scale
 from hoisdf.training.checkpoint import (
     CHECKPOINTS,
     LAST,
+    check_training_payload,
+    load_weights,
     rng_state,
     save_checkpoint,
     set_rng_state,
@@ -60,6 +66,21 @@ def unwrap(model: nn.Module) -> nn.Module:
     return model.module if hasattr(model, "module") else model
 
 
+def trim_log(path: Path, global_step: int) -> None:
+    """Drop the metrics.csv rows logged after ``global_step`` (a resumed run logs those steps again)."""
+    if not path.is_file():
+        return
+    with open(path, newline="") as f:
+        rows = list(csv.reader(f))
+    if not rows:
+        return
+    kept = [rows[0]] + [r for r in rows[1:] if len(r) == 5 and r[2].isdigit() and int(r[2]) <= global_step]
+    if len(kept) != len(rows):
+        text = io.StringIO()
+        csv.writer(text).writerows(kept)
+        write_atomic(path, text.getvalue().encode())
+
+
 class Trainer:
     """Owns the model, loss, optimizer and data of one training run on one rank."""
 
@@ -80,36 +101,60 @@ class Trainer:
                                      t.near, t.shuffle_buffer, training=True)
         self.loader = make_loader(self.dataset, t.workers, pin_memory=device.type == "cuda")
         self.val_stores = list(val_stores)
+        # opened and checked now (index, every shard file), not at the end of the first epoch
+        self.val_data = build_dataset(self.val_stores, t.batch_size, seed=t.seed, n_hand=m.n_hand, n_object=m.n_object,
+                                      training=False) if self.val_stores else None
         for spec in self.val_stores:  # validation losses need every label, as training does
             check_trainable(spec.path, read_index(spec.path))
         self.generator = torch.Generator().manual_seed(t.seed * 1000 + rank)
         self.progress = Progress()
         self.autocast = device.type == "cuda" and t.bf16
         self._writer = None
+        self._purge_step = None  # resumed: TensorBoard drops the events logged after the checkpoint
+        self._checkpoint = self.run_dir / CHECKPOINTS / LAST  # the one resumed from (named in errors)
 
     # --- state ----------------------------------------------------------------------------------------------
-    def state_dict(self) -> dict:
+    def state_dict(self, rng_ranks: list[dict] | None = None) -> dict:
+        """The checkpoint; ``rng_ranks``: every rank's RNG states in rank order (default: this rank's only)."""
         p = self.progress
+        rng_ranks = rng_ranks or [rng_state(self.generator)]
         return {"model": unwrap(self.model).state_dict(), "optimizer": self.optimizer.state_dict(),
-                "rng": rng_state(self.generator), "config": self.config.as_dict(),
+                "rng": rng_ranks[0], "rng_ranks": rng_ranks, "config": self.config.as_dict(),
                 "progress": {"epoch": p.epoch, "step": p.step, "global_step": p.global_step}}
 
     def save(self, name: str = LAST) -> Path | None:
+        """Write the checkpoint (rank 0); every rank must call it, since it gathers every rank's RNG states."""
+        states = [rng_state(self.generator)]
+        if self.world_size > 1:
+            states = [None] * self.world_size
+            torch.distributed.all_gather_object(states, rng_state(self.generator))
         if self.rank != 0:
             return None
-        path = save_checkpoint(self.run_dir / CHECKPOINTS / LAST, self.state_dict())
+        path = save_checkpoint(self.run_dir / CHECKPOINTS / LAST, self.state_dict(states))
         if name != LAST:  # the same bytes under the epoch's name, copied rather than serialised twice
-            copy = self.run_dir / CHECKPOINTS / (name + ".tmp")
-            shutil.copyfile(path, copy)
-            os.replace(copy, self.run_dir / CHECKPOINTS / name)
+            with atomic_path(self.run_dir / CHECKPOINTS / name) as copy:
+                shutil.copyfile(path, copy)
         return path
 
-    def load(self, payload: dict) -> dict:
-        """Restore model, optimizer and progress; returns the RNG states to apply after skipping batches."""
-        unwrap(self.model).load_state_dict(payload["model"])
-        self.optimizer.load_state_dict(payload["optimizer"])
-        self.progress = Progress(**payload["progress"])
-        return payload["rng"]
+    def load(self, payload: dict, path: Path | str = "<checkpoint>") -> dict:
+        """Restore model, optimizer and progress from a checked checkpoint; drop the log rows written after it;
+        returns this rank's RNG states, to apply after skipping batches."""
+        check_training_payload(payload, path)
+        ranks = payload.get("rng_ranks", [payload["rng"]])
+        if len(ranks) != self.world_size:
+            raise DataError(path, "rng_ranks", f"written by {len(ranks)} training process(es), this run has "
+                                               f"{self.world_size}: resume with the same number (torchrun --nproc_per_node)")
+        load_weights(unwrap(self.model), payload["model"], path,
+                     "; model settings cannot change on --resume: start a new run instead")
+        try:
+            self.optimizer.load_state_dict(payload["optimizer"])
+        except (ValueError, KeyError, TypeError, RuntimeError) as exc:
+            raise DataError(path, "optimizer", f"does not fit this model ({exc})") from None
+        self.progress, self._checkpoint = Progress(**payload["progress"]), path
+        if self.rank == 0:
+            trim_log(self.run_dir / CURVE, self.progress.global_step)
+        self._purge_step = self.progress.global_step + 1
+        return ranks[self.rank]
 
     # --- one step -------------------------------------------------------------------------------------------
     def train_step(self, batch: dict, points: str, noise: float) -> dict[str, float]:
@@ -150,6 +195,9 @@ class Trainer:
         self.dataset.set_epoch(p.epoch)
         unwrap(self.model).train()
         n_batches = len(self.dataset)
+        if p.step > n_batches:
+            raise DataError(self._checkpoint, "progress.step",
+                            f"{p.step} is past the end of the epoch ({n_batches} batches with these stores)")
         # resume: a checkpoint from an epoch's end holds the RNG before the next loader starts (it draws its
         # seed from torch's RNG); one from inside an epoch holds it after that draw and the batches done
         if rng_after_skip is not None and p.step == 0:
@@ -178,13 +226,13 @@ class Trainer:
                 break
         if bar is not None:
             bar.close()
-        if p.step >= n_batches:  # a finished epoch: validate, checkpoint, next epoch
+        if p.step >= n_batches:  # a finished epoch: checkpoint, then validate (a failing validation loses nothing)
             epoch = p.epoch
             p.epoch, p.step = p.epoch + 1, 0
-            if t.val_every and self.val_stores and p.epoch % t.val_every == 0 and self.rank == 0:
-                self.log("val", self.validate())
             if t.ckpt_every and p.epoch % t.ckpt_every == 0:
                 self.save(f"epoch-{epoch:03d}.pt")
+            if t.val_every and self.val_data is not None and p.epoch % t.val_every == 0 and self.rank == 0:
+                self.log("val", self.validate())
         if self._done():
             self.save()
 
@@ -207,11 +255,9 @@ class Trainer:
         t, m = self.config.train, self.config.model
         model = unwrap(self.model)
         model.eval()
-        data = build_dataset(self.val_stores, t.batch_size, seed=t.seed, n_hand=m.n_hand, n_object=m.n_object,
-                             training=False)
         sums: dict[str, float] = {}
         count = 0
-        for i, batch in enumerate(data):
+        for i, batch in enumerate(self.val_data):
             if i == t.val_batches:
                 break
             batch = augment_batch(to_device(batch, self.device), self.config.augment, None, train=False)
@@ -247,7 +293,7 @@ class Trainer:
             except ImportError:  # tensorboard is optional; metrics.csv has the same numbers
                 self._writer = False
             else:
-                self._writer = SummaryWriter(str(self.run_dir / "tb"))
+                self._writer = SummaryWriter(str(self.run_dir / "tb"), purge_step=self._purge_step)
         if self._writer:
             for name, value in values.items():
                 self._writer.add_scalar(f"{split}/{name}", value, p.global_step)

@@ -1,0 +1,63 @@
+"""Atomic file writes for every result the project writes: a file appears whole under its name, or not at all.
+
+Each write goes to a unique temporary name in the same folder (``.<name>.<random>.tmp``, so two processes
+writing the same file never share one) and is renamed over the target. The file gets the permissions an
+ordinary ``open(path, "w")`` would give it (0666 minus the umask, usually 0644), not the 0600 of a
+``tempfile`` file: reports, pictures, result files and checkpoints are meant to be read by others.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+
+def _umask() -> int:
+    """The process umask, read without changing it where Linux says it (else set and restored at once)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield a temporary path next to ``path``; when the block ends without error it is renamed to ``path``.
+
+    For writers that want a file name (``torch.save``, ``savefig``); on error the temporary file is removed.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        os.fchmod(fd, 0o666 & ~_umask())
+        os.close(fd)
+        yield Path(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_atomic(path: str | os.PathLike, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically (see the module docstring); returns ``path``."""
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+    return Path(path)
+
+
+def write_json_atomic(path: str | os.PathLike, value) -> Path:
+    """``value`` as indented JSON with sorted keys, written atomically."""
+    return write_atomic(path, (json.dumps(value, sort_keys=True, indent=1) + "\n").encode())
