@@ -93,8 +93,9 @@ def cmd_build_sdf(args: argparse.Namespace) -> int:
     s = build_store(cfg, root, mano, models, Path(args.out), workers=args.workers, part=args.part)
     empty = f" ({s.empty_shards} empty: every frame skipped)" if s.empty_shards else ""
     print(f"{s.store}: {s.records} records written in {s.seconds:.1f} s ({s.frames_per_second:.2f} frames/s), "
-          f"{s.shards_written} shards written{empty}, {s.shards_kept} kept from an earlier run; "
-          f"{len(s.reader_skipped)} frames skipped by the dataset reader, {len(s.skipped)} while building")
+          f"{s.shards_written} shards written{empty}, {s.shards_kept} kept from an earlier run")
+    print(f"skipped: {len(s.reader_skipped)} by the dataset reader (each a frame, or a whole camera or sequence), "
+          f"{len(s.skipped)} frames while building")
     print_skips(s.reader_skipped, "reader")
     print_skips(s.skipped, "build")
     print("index.zarr written" if s.index_written else "index not written yet: other parts still have shards to build")

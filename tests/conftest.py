@@ -106,3 +106,17 @@ def ho3d_small(tmp_path_factory):
     write_toy_ho3d(root, mano_dir, models_dir, ToyHO3DSize(train_sequences=2, eval_sequences=1, frames=3),
                    progress=False)
     return root
+
+
+@pytest.fixture(scope="session")
+def tiny_store_two_shards(tiny_dexycb, tmp_path_factory):
+    """The tiny toy DexYCB train split in 2 shards of 8 records (128 px crops): for 2-process (DDP) tests."""
+    from hoidata.pipeline.runner import build_store
+    from hoidata.pipeline.settings import load_build_config
+
+    out = tmp_path_factory.mktemp("tiny_store_two_shards") / "store"
+    overrides = ['dataset.splits=["train"]', "record.crop_size=128", "record.n_hand=256", "record.n_object=128",
+                 "store.records_per_shard=8"]
+    build_store(load_build_config("toy", overrides), tiny_dexycb, tiny_dexycb / "mano", tiny_dexycb / "models",
+                out, workers=1, part=(0, 1), progress=False)
+    return out

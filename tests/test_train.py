@@ -221,15 +221,8 @@ def test_mixed_real_and_synthetic_training_reads_the_requested_ratio(tiny_store,
     assert len(keys) == 160 and abs(synthetic - 0.6 / 1.6) < 0.15, synthetic
 
 
-def test_ddp_two_processes_gloo_see_disjoint_samples(tiny_dexycb, mano_dir, tmp_path):
-    from hoidata.pipeline.runner import build_store
-    from hoidata.pipeline.settings import load_build_config
-
-    store = tmp_path / "store"
-    overrides = ['dataset.splits=["train"]', "record.crop_size=128", "record.n_hand=256", "record.n_object=128",
-                 "store.records_per_shard=8"]
-    build_store(load_build_config("toy", overrides), tiny_dexycb, tiny_dexycb / "mano", tiny_dexycb / "models",
-                store, workers=1, part=(0, 1), progress=False)
+def test_ddp_two_processes_gloo_see_disjoint_samples(tiny_store_two_shards, mano_dir, tmp_path):
+    store = tiny_store_two_shards
     run = tmp_path / "run"
     cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", "29517",
            "-m", "hoisdf.train", "--shards", str(store), "--mano", str(mano_dir), "--out", str(run), "--device", "cpu",

@@ -80,6 +80,12 @@ class HOISDF(nn.Module):
             raise ValueError(f"model.token_hidden must be positive layer widths, got {list(token_hidden)}")
         if 6 * n_freq + 3 != POINT_DIM:
             raise ValueError(f"model.n_freq must be 5 (tokens carry a {POINT_DIM}-dim point code), got {n_freq}")
+        if d_model <= POINT_DIM + 1 or d_model % heads:
+            raise ValueError(f"model.d_model must exceed {POINT_DIM + 1} (a token holds the {POINT_DIM}-dim point code) "
+                             f"and be a multiple of model.heads ({heads}), got {d_model}")
+        if sdf_hidden <= sdf_features + POINT_DIM:
+            raise ValueError(f"model.sdf_hidden must exceed model.sdf_features + {POINT_DIM} "
+                             f"({sdf_features + POINT_DIM}: the decoder's skip connection), got {sdf_hidden}")
         self._mano = [mano]  # a list: not a registered submodule, so not in state_dict()
         self.image_size, self.scale, self.clamp = image_size, sdf_scale, sdf_clamp
         self.n_freq, self.n_hand, self.n_object = n_freq, n_hand, n_object
