@@ -39,7 +39,7 @@ def user_message(exc: BaseException) -> str | None:
     """The one-line message of an error the user can act on, or None for a bug (which keeps its traceback).
 
     DataError and ValueError: their text; OSError (disk full, read-only folder, permission): the file and the
-    system's reason; MemoryError: "out of memory".
+    system's reason; MemoryError: "out of memory"; ImportError: the missing package.
     """
     if isinstance(exc, (DataError, ValueError)):
         lines = [line for line in str(exc).splitlines() if line.strip()]
@@ -50,6 +50,8 @@ def user_message(exc: BaseException) -> str | None:
         return ": ".join([" -> ".join(names), reason] if names else [reason])
     if isinstance(exc, MemoryError):
         return "out of memory" + (f" ({exc})" if str(exc) else "")
+    if isinstance(exc, ImportError):  # an install without a package (or its system library, e.g. EGL)
+        return f"cannot import a required package: {exc}"
     return None
 
 
