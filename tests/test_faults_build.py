@@ -150,6 +150,23 @@ def test_a_lost_or_corrupt_skips_file_is_rebuilt(dexycb_copy, tmp_path):
     assert {p.name: p.read_bytes() for p in out.glob("shard-*.tar")} == shards and store.verify_store(out).ok
 
 
+def test_rebuilding_a_finished_store_writes_nothing(dexycb_copy, tmp_path, monkeypatch):
+    import errno
+
+    import hoidata.atomic
+
+    out = tmp_path / "s"
+    _build(dexycb_copy, out)
+
+    def read_only(*args, **kwargs):
+        raise OSError(errno.EROFS, "Read-only file system", str(out))
+
+    for module, name in ((store, "write_index"), (hoidata.atomic, "write_atomic"), (Path, "unlink")):
+        monkeypatch.setattr(module, name, read_only)  # a finished store on a read-only disk
+    summary = _build(dexycb_copy, out)
+    assert summary.shards_kept == 4 and summary.shards_written == 0 and summary.index_written
+
+
 # --- 3. nothing silent ---------------------------------------------------------------------------------------
 
 
