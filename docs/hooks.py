@@ -63,10 +63,12 @@ def _section_table(name: str, cls) -> str:
     doc = cls.__doc__ or ""
     doc = "" if doc.startswith(f"{cls.__name__}(") else inspect.cleandoc(doc)  # not the generated signature
     lines = [f"### `[{name}]`", "", f"From `{cls.__module__}.{cls.__qualname__}`. {doc.splitlines()[0] if doc else ''}",
-             "", "| key | type | default | meaning |", "|---|---|---|---|"]
+             "", "| key | type | default | allowed | meaning |", "|---|---|---|---|---|"]
+    limits = getattr(cls, "LIMITS", {})  # the ranges settings.section checks (floats must also be finite)
     for f in dataclasses.fields(cls):
         meaning = comments.get(f.name, "").replace("|", "\\|")
-        lines.append(f"| `{name}.{f.name}` | {_type_name(cls, f)} | {_default(f)} | {meaning} |")
+        allowed = ", ".join(limits.get(f.name, ())).replace(">", "&gt;").replace("<", "&lt;")
+        lines.append(f"| `{name}.{f.name}` | {_type_name(cls, f)} | {_default(f)} | {allowed} | {meaning} |")
     return "\n".join(lines) + "\n"
 
 
