@@ -120,3 +120,23 @@ def tiny_store_two_shards(tiny_dexycb, tmp_path_factory):
     build_store(load_build_config("toy", overrides), tiny_dexycb, tiny_dexycb / "mano", tiny_dexycb / "models",
                 out, workers=1, part=(0, 1), progress=False)
     return out
+
+
+@pytest.fixture(scope="session")
+def untrained_run(tmp_path_factory, mano_dir):
+    """A run folder holding an untrained tiny HOISDF's checkpoint (for evaluation plumbing tests)."""
+    import torch
+
+    from hoidata.hand import load_mano
+    from hoisdf.config import load_train_config
+    from hoisdf.model import build_model
+    from hoisdf.training.checkpoint import save_checkpoint
+
+    cfg = load_train_config(None, ["model.depth=18", "model.image_size=64", "model.n_hand=32", "model.n_object=16",
+                                   "model.grid_resolution=16", "model.hand_layers=1", "model.decoder_layers=1",
+                                   "model.object_layers=1"])
+    torch.manual_seed(0)
+    run = tmp_path_factory.mktemp("run")
+    save_checkpoint(run / "checkpoints" / "last.pt", {"model": build_model(cfg.model, load_mano(mano_dir)).state_dict(),
+                                                      "config": cfg.as_dict(), "progress": {}})
+    return run

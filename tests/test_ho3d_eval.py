@@ -45,23 +45,6 @@ def eval_store(ho3d_root, tmp_path_factory):
     return out
 
 
-@pytest.fixture(scope="module")
-def run_dir(tmp_path_factory, mano_dir):
-    from hoidata.hand import load_mano
-    from hoisdf.config import load_train_config
-    from hoisdf.model import build_model
-    from hoisdf.training.checkpoint import save_checkpoint
-
-    cfg = load_train_config(None, ["model.depth=18", "model.image_size=64", "model.n_hand=32", "model.n_object=16",
-                                   "model.grid_resolution=16", "model.hand_layers=1", "model.decoder_layers=1",
-                                   "model.object_layers=1"])
-    torch.manual_seed(0)
-    run = tmp_path_factory.mktemp("run")
-    save_checkpoint(run / "checkpoints" / "last.pt", {"model": build_model(cfg.model, load_mano(mano_dir)).state_dict(),
-                                                      "config": cfg.as_dict(), "progress": {}})
-    return run
-
-
 # ---------------------------------------------------------------- the store
 
 def test_eval_records_hold_only_what_the_split_gives(eval_store, ho3d_root):
@@ -224,17 +207,17 @@ def _oracle(ho3d_root, offset=(0.0, 0.0, 0.0), noise: float = 0.0):
     return forward
 
 
-def _evaluate(run_dir, eval_store, ho3d_root, mano_dir, out, monkeypatch, **oracle):
+def _evaluate(untrained_run, eval_store, ho3d_root, mano_dir, out, monkeypatch, **oracle):
     from hoisdf.evaluate import evaluate
     from hoisdf.model.hoisdf import HOISDF
 
     monkeypatch.setattr(HOISDF, "forward", _oracle(ho3d_root, **oracle))
-    return evaluate(run_dir, [eval_store], mano_dir, out, batch_size=3, plausibility=0, progress=False, workers=0,
+    return evaluate(untrained_run, [eval_store], mano_dir, out, batch_size=3, plausibility=0, progress=False, workers=0,
                     ho3d_order=ho3d_root / "evaluation.txt", ho3d_gt=ho3d_root)
 
 
-def test_oracle_submission_scores_zero(run_dir, eval_store, ho3d_root, mano_dir, tmp_path, monkeypatch):
-    result = _evaluate(run_dir, eval_store, ho3d_root, mano_dir, tmp_path, monkeypatch)
+def test_oracle_submission_scores_zero(untrained_run, eval_store, ho3d_root, mano_dir, tmp_path, monkeypatch):
+    result = _evaluate(untrained_run, eval_store, ho3d_root, mano_dir, tmp_path, monkeypatch)
     scores = json.loads((tmp_path / "metrics.json").read_text())["ho3d_challenge"]
     assert scores == pytest.approx(result["ho3d_challenge"]) and scores["samples"] == SIZE["frames"]
     for name in ("xyz_mean3d", "xyz_procrustes_al_mean3d", "xyz_scale_trans_al_mean3d", "mesh_mean3d", "mesh_al_mean3d"):
@@ -248,8 +231,8 @@ def test_oracle_submission_scores_zero(run_dir, eval_store, ho3d_root, mano_dir,
     assert np.isfinite(result["overall"]["oce"]) and result["overall"]["oce"] < 1e-3  # the object pose is given
 
 
-def test_offset_submission_scores_the_offset(run_dir, eval_store, ho3d_root, mano_dir, tmp_path, monkeypatch):
-    scores = _evaluate(run_dir, eval_store, ho3d_root, mano_dir, tmp_path, monkeypatch,
+def test_offset_submission_scores_the_offset(untrained_run, eval_store, ho3d_root, mano_dir, tmp_path, monkeypatch):
+    scores = _evaluate(untrained_run, eval_store, ho3d_root, mano_dir, tmp_path, monkeypatch,
                        offset=(0.006, -0.008, 0.0))["ho3d_challenge"]  # 1 cm
     assert scores["xyz_mean3d"] == pytest.approx(1.0, abs=1e-5) and scores["mesh_mean3d"] == pytest.approx(1.0, abs=1e-5)
     thresholds = np.linspace(0, 0.05, 100)
@@ -259,13 +242,13 @@ def test_offset_submission_scores_the_offset(run_dir, eval_store, ho3d_root, man
     assert scores["f_al_score_5"] == pytest.approx(1.0) and scores["f_score_5"] < 1.0
 
 
-def test_submission_files_are_what_eval_py_reads_and_scores(run_dir, eval_store, ho3d_root, mano_dir, tmp_path,
+def test_submission_files_are_what_eval_py_reads_and_scores(untrained_run, eval_store, ho3d_root, mano_dir, tmp_path,
                                                             monkeypatch):
     """A noisy oracle's pred.zip, unpacked into res/ beside the ground truth in ref/ (the server's layout), gives
     the restated eval.py's numbers, and ours equal them."""
     import shutil
 
-    ours = _evaluate(run_dir, eval_store, ho3d_root, mano_dir, tmp_path / "out", monkeypatch, noise=0.004,
+    ours = _evaluate(untrained_run, eval_store, ho3d_root, mano_dir, tmp_path / "out", monkeypatch, noise=0.004,
                      offset=(0.004, 0.0, 0.003))["ho3d_challenge"]
     with zipfile.ZipFile(tmp_path / "out" / "pred.zip") as zf:
         assert zf.namelist() == ["pred.json"]  # flat: the server's search does not look into folders
@@ -283,13 +266,13 @@ def test_submission_files_are_what_eval_py_reads_and_scores(run_dir, eval_store,
     assert challenge_eval(tmp_path / "ref", tmp_path / "ref") == official
 
 
-def test_ho3d_gt_needs_the_order_and_matching_lengths(run_dir, eval_store, ho3d_root, mano_dir, tmp_path):
+def test_ho3d_gt_needs_the_order_and_matching_lengths(untrained_run, eval_store, ho3d_root, mano_dir, tmp_path):
     from hoisdf.evaluate import evaluate
     from hoisdf.evaluation.official import score_ho3d_submission
     from hoisdf.evaluation.submissions import write_ho3d_pred
 
     with pytest.raises(ValueError, match="--ho3d-order"):
-        evaluate(run_dir, [eval_store], mano_dir, tmp_path, progress=False, ho3d_gt=ho3d_root)
+        evaluate(untrained_run, [eval_store], mano_dir, tmp_path, progress=False, ho3d_gt=ho3d_root)
     pred = write_ho3d_pred(tmp_path / "pred.json", ["SM1/0000"], np.full((1, 21, 3), 0.5), np.full((1, 778, 3), 0.5))
     with pytest.raises(DataError, match="1 samples, the ground truth .* has 4"):
         score_ho3d_submission(pred, ho3d_root)

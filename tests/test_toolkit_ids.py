@@ -153,26 +153,6 @@ def hpe_eval(root, split: str, res_file) -> dict:
 
 
 @pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory, mano_dir):
-    """A run folder with an untrained tiny model's checkpoint."""
-    import torch
-
-    from hoidata.hand import load_mano
-    from hoisdf.config import load_train_config
-    from hoisdf.model import build_model
-    from hoisdf.training.checkpoint import save_checkpoint
-
-    cfg = load_train_config(None, ["model.depth=18", "model.image_size=64", "model.n_hand=32", "model.n_object=16",
-                                   "model.grid_resolution=16", "model.hand_layers=1", "model.decoder_layers=1",
-                                   "model.object_layers=1"])
-    torch.manual_seed(0)
-    run = tmp_path_factory.mktemp("run")
-    save_checkpoint(run / "checkpoints" / "last.pt", {"model": build_model(cfg.model, load_mano(mano_dir)).state_dict(),
-                                                      "config": cfg.as_dict(), "progress": {}})
-    return run
-
-
-@pytest.fixture(scope="module")
 def store_8cam(dexycb_8cam, tmp_path_factory):
     """Every valid frame of the 8-camera toy's s0_train (dexycb_full selection), small records."""
     from hoidata.pipeline.runner import build_store
@@ -185,12 +165,12 @@ def store_8cam(dexycb_8cam, tmp_path_factory):
     return out
 
 
-def test_hpe_file_of_a_whole_split_is_accepted_by_the_toolkit(store_8cam, dexycb_8cam, tiny_run, mano_dir, tmp_path):
+def test_hpe_file_of_a_whole_split_is_accepted_by_the_toolkit(store_8cam, dexycb_8cam, untrained_run, mano_dir, tmp_path):
     import json
 
     from hoisdf.evaluate import evaluate
 
-    result = evaluate(tiny_run, [store_8cam], mano_dir, tmp_path, batch_size=16, plausibility=0, progress=False,
+    result = evaluate(untrained_run, [store_8cam], mano_dir, tmp_path, batch_size=16, plausibility=0, progress=False,
                       workers=0)
     assert [p.name for p in tmp_path.glob("dexycb_hpe*")] == ["dexycb_hpe_s0_train.txt"]  # complete: no "_subset"
     official = hpe_eval(dexycb_8cam, "train", tmp_path / "dexycb_hpe_s0_train.txt")
@@ -205,10 +185,10 @@ def test_hpe_file_of_a_whole_split_is_accepted_by_the_toolkit(store_8cam, dexycb
         assert overall[key] == pytest.approx(official[name]["mpjpe"], abs=1e-3), key
 
 
-def test_hpe_file_of_a_subset_says_so(store_8cam, dexycb_8cam, tiny_run, mano_dir, tmp_path, capsys):
+def test_hpe_file_of_a_subset_says_so(store_8cam, dexycb_8cam, untrained_run, mano_dir, tmp_path, capsys):
     from hoisdf.evaluate import evaluate
 
-    evaluate(tiny_run, [store_8cam], mano_dir, tmp_path, limit=10, plausibility=0, progress=False, workers=0)
+    evaluate(untrained_run, [store_8cam], mano_dir, tmp_path, limit=10, plausibility=0, progress=False, workers=0)
     printed = capsys.readouterr().out
     assert [p.name for p in tmp_path.glob("dexycb_hpe*")] == ["dexycb_hpe_s0_train_subset.txt"]
     assert printed.count("dexycb_hpe_s0_train_subset.txt: a subset of s0_train (30 of the split's 48") == 1
