@@ -126,8 +126,8 @@ def sample_query_points(hand_vertices, hand_faces, obj_vertices, obj_faces, hand
 
 
 def compute_sdf_samples(points, hand_vertices, hand_faces, hand_face_parts, obj_vertices, obj_faces,
-                        obj_watertight: bool, part_radius: float = 0.05, hand_pseudonormal: bool = False
-                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                        obj_watertight: bool, part_radius: float = 0.05, hand_pseudonormal: bool = False,
+                        backend: str = "bvh") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Exact signed distances of query points to the hand and the object, and hand part labels.
 
     Args:
@@ -144,6 +144,7 @@ def compute_sdf_samples(points, hand_vertices, hand_faces, hand_face_parts, obj_
             bent joints), and there the pseudonormal puts points on the wrong side (toy MANO:
             0.1-0.6% of near-surface points, up to 1 cm deep); the default winding-number sign
             gets the union of the overlapping parts right.
+        backend: ``"bvh"`` or ``"igl"`` (:func:`hoidata.geometry.sdf.signed_distance`; same values).
 
     Returns:
         sdf_hand (N,) float64 m, sdf_object (N,) float64 m (negative inside), and part (N,) int8:
@@ -156,8 +157,8 @@ def compute_sdf_samples(points, hand_vertices, hand_faces, hand_face_parts, obj_
                          f"got {parts.dtype} {parts.shape}")
     if not float(part_radius) >= 0:
         raise ValueError(f"part_radius must be >= 0 metres, got {part_radius!r}")
-    sdf_hand, hand_face = signed_distance(points, hand_vertices, hand_faces, watertight=bool(hand_pseudonormal))
-    sdf_object, _ = signed_distance(points, obj_vertices, obj_faces, watertight=bool(obj_watertight))
+    sdf_hand, hand_face = signed_distance(points, hand_vertices, hand_faces, bool(hand_pseudonormal), backend)
+    sdf_object, _ = signed_distance(points, obj_vertices, obj_faces, bool(obj_watertight), backend)
     part = np.where(np.abs(sdf_hand) <= float(part_radius), parts[hand_face], NO_PART).astype(np.int8)
     return sdf_hand, sdf_object, part
 
