@@ -10,7 +10,7 @@ Compiled with numba, single-threaded (a build worker is one core), float64 throu
   distance exceeds the best one found, so the minimum is over all faces. On ties the lowest face
   index wins (the reference's rule).
 - :meth:`MeshBVH.crossings` gives each point's signed count of crossings of the mesh by the ray from
-  the point along :data:`RAY` (+1 where the ray passes a face from its back to its front): for a
+  the point along one of :data:`RAYS` (+1 where the ray passes a face from its back to its front): for a
   closed, consistently oriented mesh this is the winding number. The ray/triangle test is the
   watertight one of Woop, Benthin and Wald (JCGT 2013): an edge's edge function is computed from its
   two transformed vertices alone and flips sign exactly between the two faces that share it, so a ray
@@ -31,8 +31,12 @@ import numpy as np
 
 LEAF_SIZE = 4
 PAD = 1e-9  # box padding, relative to the mesh's bounding-box diagonal
-RAY = np.array([0.5773502691896258, 0.6172133998483676, -0.5345224838248488])  # off every axis and diagonal
-RAY = RAY / np.linalg.norm(RAY)
+# The rays of MeshBVH.crossings: each point casts the one that leaves the mesh's box soonest, mostly
+# along +x, -x, +y, -y, +z or -z, tilted off every axis and diagonal (unit vectors).
+_TILT = (0.1234567, -0.0765432)
+RAYS = np.array([[s * (1.0 if d == k else _TILT[(d - k) % 3 - 1]) for d in range(3)]
+                 for k in range(3) for s in (1.0, -1.0)])
+RAYS = RAYS / np.linalg.norm(RAYS, axis=1, keepdims=True)
 
 # Feature codes of MeshBVH.closest: the part of face (a, b, c) the closest point lies on.
 CORNER_A, CORNER_B, EDGE_AB, CORNER_C, EDGE_AC, EDGE_BC, INTERIOR = range(7)
@@ -65,10 +69,11 @@ class MeshBVH:
         return dist, self.order[face], weights, feature
 
     def crossings(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Signed crossing count (N,) int64 along :data:`RAY`, and undecided (N,) bool."""
+        """Signed crossing count (N,) int64 along a ray from each point (the one of :data:`RAYS` that
+        leaves the mesh's box soonest), and undecided (N,) bool."""
         n = len(points)
         count, undecided = np.zeros(n, np.int64), np.zeros(n, np.bool_)
-        _crossings(points, RAY, self.boxes, self.left, self.start, self.count, self.tri, count, undecided)
+        _crossings(points, RAYS, self.boxes, self.left, self.start, self.count, self.tri, count, undecided)
         return count, undecided
 
 
@@ -76,10 +81,15 @@ _TOPOLOGIES: OrderedDict = OrderedDict()
 KEEP_TOPOLOGIES = 32  # face arrays whose tree shape is kept (least recently used dropped first)
 
 
+def mesh_key(vertices: np.ndarray, faces: np.ndarray) -> tuple[int, bytes]:
+    """What a cache of per-face-array data is keyed by: the vertex count and a digest of the faces."""
+    return len(vertices), hashlib.blake2b(np.ascontiguousarray(faces).tobytes(), digest_size=16).digest()
+
+
 def topology(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(order, left, start, count) of the tree over these faces: built from ``vertices`` the first
     time a face array (by content, with the vertex count) is seen, then reused."""
-    key = (len(vertices), hashlib.blake2b(faces.tobytes(), digest_size=16).digest())
+    key = mesh_key(vertices, faces)
     if key in _TOPOLOGIES:
         _TOPOLOGIES.move_to_end(key)
         return _TOPOLOGIES[key]
@@ -294,24 +304,32 @@ def _closest(points, visit, order, boxes, left_of, start_of, count_of, tri, dist
 
 
 @numba.njit(cache=True)
-def _crossings(points, ray, boxes, left_of, start_of, count_of, tri, count, undecided):
-    # Permute the axes so the ray's largest component is z (swapping x, y keeps the handedness when
-    # it is negative), then shear the triangles so the ray becomes +z (Woop et al., section 3).
-    kz = np.argmax(np.abs(ray))
-    kx, ky = (kz + 1) % 3, (kz + 2) % 3
-    if ray[kz] < 0:
-        kx, ky = ky, kx
-    sx, sy, sz = ray[kx] / ray[kz], ray[ky] / ray[kz], 1.0 / ray[kz]
-    inv = 1.0 / ray
+def _crossings(points, rays, boxes, left_of, start_of, count_of, tri, count, undecided):
     stack = np.empty(128, np.int64)
     for i in range(len(points)):
         p = points[i]
+        # the ray leaving the root box soonest: the shortest path through the tree
+        pick, shortest = 0, np.inf
+        for d in range(3):
+            for side in range(2):  # rays[2 d] runs along +d, rays[2 d + 1] along -d
+                gap = boxes[0, 3 + d] - p[d] if side == 0 else p[d] - boxes[0, d]
+                if gap < shortest:
+                    pick, shortest = 2 * d + side, gap
+        ray = rays[pick]
+        # Permute the axes so the ray's largest component is z (swapping x, y keeps the handedness
+        # when it is negative), then shear the triangles so the ray becomes +z (Woop et al., 3).
+        kz = np.argmax(np.abs(ray))
+        kx, ky = (kz + 1) % 3, (kz + 2) % 3
+        if ray[kz] < 0:
+            kx, ky = ky, kx
+        sx, sy, sz = ray[kx] / ray[kz], ray[ky] / ray[kz], 1.0 / ray[kz]
+        inv = 1.0 / ray
         total, flag = 0, False
         stack[0], top = 0, 1
         while top:
             top -= 1
             node = stack[top]
-            t0, t1 = 0.0, np.inf  # slab test: does the ray p + t RAY, t >= 0, meet the box?
+            t0, t1 = 0.0, np.inf  # slab test: does the ray p + t ray, t >= 0, meet the box?
             for d in range(3):
                 ta, tb = (boxes[node, d] - p[d]) * inv[d], (boxes[node, 3 + d] - p[d]) * inv[d]
                 t0, t1 = max(t0, min(ta, tb)), min(t1, max(ta, tb))

@@ -2,83 +2,116 @@
 
 - :func:`pseudonormal_outside`: the angle-weighted pseudonormal test (Baerentzen and Aanaes 2005) at
   each point's closest feature, as libigl's ``SIGNED_DISTANCE_TYPE_PSEUDONORMAL`` does it: the face
-  normal inside a face, the mean of the adjacent faces' normals on an edge, the angle-weighted vertex
-  normal at a corner; outside where (p - closest point) . normal >= 0. Exact for a closed mesh that
-  does not pass through itself.
-- :func:`winding_numbers`: the generalized winding number. For a closed mesh (every directed edge
-  matched by its reverse, :func:`is_closed`) it is an integer away from the surface, the signed ray
-  crossing count of :meth:`MeshBVH.crossings`; the few points where that test cannot decide, and
-  every point of an open mesh, get libigl's winding number instead (:func:`hoidata.geometry.sdf.winding_inside`
-  keeps the fast-approximation path for open meshes).
+  normal inside a face, the sum of the unit normals of the faces on an edge, the corner-angle-weighted
+  sum around a vertex; outside where (p - closest point) . normal >= 0. Exact for a closed mesh that
+  does not pass through itself. Only the normals at the points' own features are computed.
+- :func:`winding_numbers`: the generalized winding number of a closed mesh (every directed edge
+  matched by its reverse, :func:`is_closed`): an integer away from the surface, the signed ray
+  crossing count of :meth:`MeshBVH.crossings`; the rare points where that test cannot decide get
+  libigl's exact winding number.
 
 All positions share one frame and unit (metres in ``hoidata``); meshes are validated (float64, int64).
 """
 
 from __future__ import annotations
 
+from collections import OrderedDict
+
 import igl
+import numba
 import numpy as np
 
-from hoidata.geometry.bvh import CORNER_A, CORNER_B, CORNER_C, EDGE_AB, EDGE_AC, EDGE_BC, MeshBVH
+from hoidata.geometry.bvh import EDGE_AB, EDGE_AC, EDGE_BC, INTERIOR, MeshBVH, mesh_key
 
-# (corner, corner) of each edge feature, and the corner of each corner feature
-_EDGE_CORNERS = {EDGE_AB: (0, 1), EDGE_AC: (0, 2), EDGE_BC: (1, 2)}
-_CORNERS = {CORNER_A: 0, CORNER_B: 1, CORNER_C: 2}
-# the same as lookup tables indexed by feature code (-1: not that kind of feature)
-_CORNER_OF = np.array([_CORNERS.get(k, -1) for k in range(7)])
-_EDGE_FIRST = np.array([_EDGE_CORNERS.get(k, (-1, -1))[0] for k in range(7)])
-_EDGE_SECOND = np.array([_EDGE_CORNERS.get(k, (-1, -1))[1] for k in range(7)])
+_ADJACENCY: OrderedDict = OrderedDict()
+KEEP_ADJACENCY = 32  # face arrays whose edge and vertex incidence is kept (least recently used dropped first)
 
 
-def _unit(x: np.ndarray) -> np.ndarray:
-    norm = np.linalg.norm(x, axis=-1, keepdims=True)
-    return np.divide(x, norm, out=np.zeros_like(x), where=norm > 0)
+def adjacency(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Incidence of a face array, computed once per face array (:func:`hoidata.geometry.bvh.mesh_key`):
 
-
-def closest_points(vertices: np.ndarray, faces: np.ndarray, face: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """(N, 3) points a + v (b - a) + w (c - a) of faces (N,) with barycentric weights (N, 2)."""
-    a, b, c = (vertices[faces[face, k]] for k in range(3))
-    return a + weights[:, :1] * (b - a) + weights[:, 1:] * (c - a)
+    - edge_of (F, 3): undirected edge index of each face's edges ab, ac, bc;
+    - edge_ptr (E + 1,), edge_faces: the faces on edge e are edge_faces[edge_ptr[e]:edge_ptr[e + 1]];
+    - vertex_ptr (V + 1,), vertex_faces, vertex_corner: the faces around vertex i and the corner
+      (0, 1, 2) it is in each of them.
+    """
+    key = mesh_key(vertices, faces)
+    if key not in _ADJACENCY:
+        n_f, n_v = len(faces), len(vertices)
+        pairs = [(0, 1), (0, 2), (1, 2)]  # slot order: ab, ac, bc
+        lo = np.stack([np.minimum(faces[:, i], faces[:, j]) for i, j in pairs], axis=1)
+        hi = np.stack([np.maximum(faces[:, i], faces[:, j]) for i, j in pairs], axis=1)
+        unique, edge_of = np.unique((lo * n_v + hi).reshape(-1), return_inverse=True)
+        edge_of = edge_of.reshape(n_f, 3)
+        by_edge = np.argsort(edge_of.reshape(-1), kind="stable")
+        edge_ptr = np.concatenate([[0], np.cumsum(np.bincount(edge_of.reshape(-1), minlength=len(unique)))])
+        by_vertex = np.argsort(faces.reshape(-1), kind="stable")
+        vertex_ptr = np.concatenate([[0], np.cumsum(np.bincount(faces.reshape(-1), minlength=n_v))])
+        _ADJACENCY[key] = (edge_of, edge_ptr, by_edge // 3, vertex_ptr, by_vertex // 3, by_vertex % 3)
+        while len(_ADJACENCY) > KEEP_ADJACENCY:
+            _ADJACENCY.popitem(last=False)
+    _ADJACENCY.move_to_end(key)
+    return _ADJACENCY[key]
 
 
 def pseudonormal_outside(points, vertices, faces, face, weights, feature) -> np.ndarray:
-    """(N,) bool: the pseudonormal test at each point's closest feature (from :meth:`MeshBVH.closest`)."""
-    tri = vertices[faces]
-    face_n = _unit(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]))  # (F, 3)
-    normal = face_n[face]
-    at_edge = np.isin(feature, list(_EDGE_CORNERS))
-    if at_edge.any():
-        normal[at_edge] = _edge_normals(faces, face_n, face[at_edge], feature[at_edge])
-    at_corner = np.isin(feature, list(_CORNERS))
-    if at_corner.any():
-        corner = _CORNER_OF[feature[at_corner]]
-        normal[at_corner] = _vertex_normals(tri, faces, face_n, len(vertices))[faces[face[at_corner], corner]]
-    offset = points - closest_points(vertices, faces, face, weights)
-    return np.einsum("ij,ij->i", offset, normal) >= 0
-
-
-def _vertex_normals(tri: np.ndarray, faces: np.ndarray, face_n: np.ndarray, n_vertices: int) -> np.ndarray:
-    """(V, 3) sums of the unit normals of the faces around each vertex, weighted by the corner angle."""
-    out = np.zeros((n_vertices, 3))
-    for k in range(3):
-        e1, e2 = tri[:, (k + 1) % 3] - tri[:, k], tri[:, (k + 2) % 3] - tri[:, k]
-        angle = np.arctan2(np.linalg.norm(np.cross(e1, e2), axis=1), np.einsum("ij,ij->i", e1, e2))
-        np.add.at(out, faces[:, k], angle[:, None] * face_n)
+    """(N,) bool: the pseudonormal test at each point's closest feature (from :meth:`MeshBVH.closest`:
+    faces (N,), barycentric weights (N, 2), feature codes (N,))."""
+    out = np.empty(len(points), np.bool_)
+    _pseudonormal_outside(points, vertices, faces, face, weights, feature, *adjacency(vertices, faces), out)
     return out
 
 
-def _edge_normals(faces, face_n, face, feature) -> np.ndarray:
-    """(M, 3) sums of the unit normals of all faces that share the closest edge of each face (M,)."""
-    lo, hi = np.minimum, np.maximum
-    n_v = int(faces.max()) + 1
-    keys = np.concatenate([lo(faces[:, i], faces[:, j]) * n_v + hi(faces[:, i], faces[:, j])
-                           for i, j in ((0, 1), (0, 2), (1, 2))])
-    normals = np.tile(face_n, (3, 1))
-    unique, inverse = np.unique(keys, return_inverse=True)
-    sums = np.zeros((len(unique), 3))
-    np.add.at(sums, inverse, normals)
-    a, b = faces[face, _EDGE_FIRST[feature]], faces[face, _EDGE_SECOND[feature]]
-    return sums[np.searchsorted(unique, lo(a, b) * n_v + hi(a, b))]
+@numba.njit(cache=True, inline="always")
+def _unit_normal(vertices, faces, f):
+    """Unit normal (x, y, z) of face f, (0, 0, 0) for a face of zero area."""
+    i, j, k = faces[f, 0], faces[f, 1], faces[f, 2]
+    u0, u1, u2 = vertices[j, 0] - vertices[i, 0], vertices[j, 1] - vertices[i, 1], vertices[j, 2] - vertices[i, 2]
+    v0, v1, v2 = vertices[k, 0] - vertices[i, 0], vertices[k, 1] - vertices[i, 1], vertices[k, 2] - vertices[i, 2]
+    n0, n1, n2 = u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0
+    norm = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+    if norm > 0:
+        return n0 / norm, n1 / norm, n2 / norm
+    return 0.0, 0.0, 0.0
+
+
+@numba.njit(cache=True, inline="always")
+def _corner_angle(vertices, faces, g, corner):
+    """Interior angle (radians) of face g at its corner 0, 1 or 2."""
+    h, i, j = faces[g, corner], faces[g, (corner + 1) % 3], faces[g, (corner + 2) % 3]
+    u0, u1, u2 = vertices[i, 0] - vertices[h, 0], vertices[i, 1] - vertices[h, 1], vertices[i, 2] - vertices[h, 2]
+    v0, v1, v2 = vertices[j, 0] - vertices[h, 0], vertices[j, 1] - vertices[h, 1], vertices[j, 2] - vertices[h, 2]
+    c0, c1, c2 = u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0
+    return np.arctan2(np.sqrt(c0 * c0 + c1 * c1 + c2 * c2), u0 * v0 + u1 * v1 + u2 * v2)
+
+
+@numba.njit(cache=True)
+def _pseudonormal_outside(points, vertices, faces, face, weights, feature, edge_of, edge_ptr, edge_faces,
+                          vertex_ptr, vertex_faces, vertex_corner, out):
+    for i in range(len(points)):
+        f, kind = face[i], feature[i]
+        n0, n1, n2 = 0.0, 0.0, 0.0
+        if kind == INTERIOR:
+            n0, n1, n2 = _unit_normal(vertices, faces, f)
+        elif kind == EDGE_AB or kind == EDGE_AC or kind == EDGE_BC:
+            e = edge_of[f, 0 if kind == EDGE_AB else (1 if kind == EDGE_AC else 2)]
+            for k in range(edge_ptr[e], edge_ptr[e + 1]):
+                m0, m1, m2 = _unit_normal(vertices, faces, edge_faces[k])
+                n0, n1, n2 = n0 + m0, n1 + m1, n2 + m2
+        else:  # a corner: CORNER_A = 0, CORNER_B = 1, CORNER_C = 3
+            vertex = faces[f, 0 if kind == 0 else (1 if kind == 1 else 2)]
+            for k in range(vertex_ptr[vertex], vertex_ptr[vertex + 1]):
+                g = vertex_faces[k]
+                angle = _corner_angle(vertices, faces, g, vertex_corner[k])
+                m0, m1, m2 = _unit_normal(vertices, faces, g)
+                n0, n1, n2 = n0 + angle * m0, n1 + angle * m1, n2 + angle * m2
+        a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+        v, w = weights[i, 0], weights[i, 1]
+        dot = 0.0
+        for d, n_d in ((0, n0), (1, n1), (2, n2)):
+            closest = vertices[a, d] + v * (vertices[b, d] - vertices[a, d]) + w * (vertices[c, d] - vertices[a, d])
+            dot += (points[i, d] - closest) * n_d
+        out[i] = dot >= 0
 
 
 def is_closed(faces: np.ndarray) -> bool:
@@ -97,4 +130,3 @@ def winding_numbers(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
     if undecided.any():
         winding[undecided] = igl.winding_number(vertices, faces, np.ascontiguousarray(points[undecided]))
     return winding
-
