@@ -1,10 +1,12 @@
 """Whole build-sdf throughput and bytes per frame, against the AlignSDF/HOISDF sample layout.
 
-Usage: python bench/bench_build.py [--frames 60] [--root DIR]
+Usage: python bench/bench_build.py [--frames 60] [--root DIR] [--rounds 2]
 
 Writes a small toy DexYCB (unless --root points at one), then in one run:
 - builds --frames frames with 1 worker (the per-core rate; the first shard's start-up included)
-  and, on the same frames, with 2 workers;
+  and, on the same frames, with 2 workers, each with the SDF backend build-sdf uses
+  (``record.sdf_backend="bvh"``) and with the previous one as the baseline (``"igl"``), interleaved
+  over --rounds rounds (medians reported; the machine's load average is printed with them);
 - measures the bytes per record in the store, split by member, against the layout HOISDF trains from:
   20,000 float32 samples per mesh (hand file and object file, 6 columns each) per frame.
 """
@@ -12,6 +14,7 @@ Writes a small toy DexYCB (unless --root points at one), then in one run:
 from __future__ import annotations
 
 import argparse
+import os
 import shutil
 import tempfile
 import time
@@ -25,6 +28,7 @@ from hoidata.datasets.toy_dexycb import ToyDexYCBSize, write_toy_dexycb
 from hoidata.pipeline.runner import build_store
 from hoidata.pipeline.settings import load_build_config
 
+BACKENDS = ("bvh", "igl")  # record.sdf_backend: build-sdf's, then the baseline
 ALIGNSDF_BYTES = 2 * 20_000 * 6 * 4  # two files (hand, object) of 20k float32 rows of 6 columns, per frame
 
 
@@ -36,8 +40,10 @@ def toy_root(frames: int, work: Path) -> Path:
     return root
 
 
-def timed_build(root: Path, out: Path, frames: int, workers: int) -> tuple[float, int]:
-    cfg = load_build_config("toy", ['dataset.splits=["train", "val"]', "store.records_per_shard=8"])
+def timed_build(root: Path, out: Path, workers: int, backend: str) -> tuple[float, int]:
+    cfg = load_build_config("toy", ['dataset.splits=["train", "val"]', "store.records_per_shard=8",
+                                    f'record.sdf_backend="{backend}"'])
+    shutil.rmtree(out, ignore_errors=True)
     start = time.perf_counter()
     summary = build_store(cfg, root, root / "mano", root / "models", out, workers=workers, progress=False)
     return time.perf_counter() - start, summary.records
@@ -56,24 +62,35 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--frames", type=int, default=60)
     parser.add_argument("--root", default=None)
+    parser.add_argument("--rounds", type=int, default=2)
     args = parser.parse_args()
     work = Path(tempfile.mkdtemp(prefix="bench_build_"))
     try:
         root = Path(args.root) if args.root else toy_root(args.frames, work)
-        rows = []
+        seconds, records = {}, {}
+        runs = [(b, w) for w in (1, 2) for b in BACKENDS]
+        for _ in range(args.rounds):
+            for backend, workers in runs:
+                t, records[backend, workers] = timed_build(root, work / f"store-{backend}{workers}", workers, backend)
+                seconds.setdefault((backend, workers), []).append(t)
+        load = " ".join(f"{x:.2f}" for x in os.getloadavg())
+        print(f"median of {args.rounds} interleaved rounds; load average after the runs {load} (1, 5, 15 min)")
+        print(f"{'backend':>8} {'workers':>7} {'records':>8} {'seconds':>8} {'frames/s':>9} {'per core':>9}  runs (s)")
+        for backend, workers in sorted(runs, key=lambda r: (r[1], BACKENDS.index(r[0]))):
+            t = float(np.median(seconds[backend, workers]))
+            fps = records[backend, workers] / t
+            print(f"{backend:>8} {workers:>7} {records[backend, workers]:>8} {t:>8.1f} {fps:>9.2f} {fps / workers:>9.2f}  "
+                  + " ".join(f"{x:.1f}" for x in seconds[backend, workers]))
         for workers in (1, 2):
-            seconds, records = timed_build(root, work / f"store{workers}", args.frames, workers)
-            rows.append((workers, records, seconds, records / seconds))
-        sizes = member_bytes(work / "store1")
+            print(f"{workers} worker(s): bvh {np.median(seconds['igl', workers]) / np.median(seconds['bvh', workers]):.2f}x "
+                  "the igl baseline's frames/s")
+        sizes = member_bytes(work / "store-bvh1")
         total = sum(sizes.values())
-        print(f"{'workers':>7} {'records':>8} {'seconds':>8} {'frames/s':>9} {'per core':>9}")
-        for w, r, s, fps in rows:
-            print(f"{w:>7} {r:>8} {s:>8.1f} {fps:>9.2f} {fps / w:>9.2f}")
         print("\nbytes per record: " + ", ".join(f"{m} {v / 1e3:.1f} kB" for m, v in sizes.items())
               + f", total {total / 1e3:.1f} kB")
         print(f"sdf.npy {sizes[schema.SDF] / 1e3:.1f} kB vs AlignSDF/HOISDF samples {ALIGNSDF_BYTES / 1e3:.0f} kB: "
               f"{sizes[schema.SDF] / ALIGNSDF_BYTES:.3f}x; whole record {total / ALIGNSDF_BYTES:.3f}x")
-        print(f"(store checks: {store.verify_store(work / 'store1')})")
+        print(f"(store checks: {store.verify_store(work / 'store-bvh1')})")
         assert np.isfinite(total)
     finally:
         shutil.rmtree(work, ignore_errors=True)

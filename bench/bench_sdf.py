@@ -1,25 +1,30 @@
-"""Benchmark of the ``hoidata build-sdf`` SDF stage against trimesh, on toy frames.
+"""Benchmark of the ``hoidata build-sdf`` SDF stage against its previous path and trimesh, on toy frames.
 
 Each frame: the closed toy MANO hand (float64) in one pose (finger curl times the toy grasp mean,
 random global rotation, 0.55 m from the camera) and one toy object (repaired, randomly rotated,
 centred 5 cm from the hand centroid); 6144 query points from ``sample_query_points``. On the
 same points and meshes, side by side, it times
 
-- ``compute_sdf_samples`` as used by build-sdf (hand sign: winding number, the default),
-- the same with ``hand_pseudonormal=True`` (hand sign: pseudonormal),
+- ``compute_sdf_samples`` as build-sdf calls it: the ``bvh`` backend (hand sign: winding number);
+- the baseline, the same call with ``backend="igl"`` (the libigl path build-sdf used before);
 - ``trimesh.proximity.signed_distance`` for the hand and the object (fresh Trimesh objects per
-  call, as for a new frame; trimesh's sign is positive inside, so it is negated),
+  call, as for a new frame; trimesh's sign is positive inside, so it is negated).
 
-reporting the median wall-clock ms per frame (after one warm-up of every method),
-the speed-up, max |difference| to trimesh and sign disagreements. Where signs disagree, the
-brute-force reference (:func:`hoidata.geometry.sdf.brute_force_signed_distance`) says who is right.
+The methods run interleaved, frame by frame, in ``--rounds`` rounds (after one warm-up of each,
+which also builds the kept tree shapes, as a build worker's first frames do), so load from other
+jobs hits all of them alike; it reports per-frame medians, the speed-ups, and the spread of the
+whole-set speed-up over the rounds. Everything runs on one core (numba and libigl single-threaded
+here; trimesh is). Checks on every frame: max |bvh - igl| and |bvh - brute force| on distances,
+sign disagreements between bvh and igl, and against trimesh (decided by the brute-force reference,
+:func:`hoidata.geometry.sdf.brute_force_signed_distance`).
 
-Run: ``/work/venv/bin/python bench/bench_sdf.py`` (about 1-2 minutes on 2 cores).
+Run: ``python bench/bench_sdf.py`` (about 1-2 minutes on 2 cores).
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import tempfile
 import time
 
@@ -43,11 +48,13 @@ CURLS = (0.0, 0.5, 0.8, 1.0, 1.2)
 CAMERA_T = np.array([0.03, -0.02, 0.55])
 
 
-LEGEND = """ours: compute_sdf_samples (hand sign by winding number); ours-pn: hand_pseudonormal=True;
-x, x-pn: trimesh time / ours time. |d|-gap: max over both meshes of ||ours| - |trimesh||;
-ours-ref: max ||ours| - |brute force|| on the 20 points per mesh with the largest gap.
-signs: 'n/k' = n points whose sign differs from trimesh, k of them decided for ours by the
-brute-force reference; hand (winding), hand (pseudonormal), object."""
+LEGEND = """bvh: compute_sdf_samples (backend 'bvh', hand sign by winding number); igl: the same call with
+backend='igl' (the previous path, the baseline); trimesh: trimesh.proximity.signed_distance, hand and object.
+x: trimesh / bvh, x-igl: trimesh / igl, bvh/igl: igl / bvh (time ratios of per-frame medians).
+|bvh-igl|, |bvh-ref|: max distance difference in metres to the baseline (all points) and to the
+brute-force reference (every 4th point), both meshes. signs: 'd i/k' = d points whose sign differs between
+bvh and igl; i whose sign differs from trimesh, k of them decided for bvh by the brute-force reference
+(hand, then object)."""
 
 
 def toy_frames(workdir: str, n_frames: int) -> list[dict]:
@@ -73,10 +80,11 @@ def toy_frames(workdir: str, n_frames: int) -> list[dict]:
     return frames
 
 
-def ours(frame: dict, points: np.ndarray, hand_pseudonormal: bool) -> tuple[np.ndarray, np.ndarray]:
+def sdf_samples(frame: dict, points: np.ndarray, backend: str) -> tuple[np.ndarray, np.ndarray]:
+    """compute_sdf_samples as build-sdf calls it (default settings), with the given backend."""
     sdf_hand, sdf_obj, _ = compute_sdf_samples(points, frame["hand"], frame["hand_faces"], frame["parts"],
                                                frame["obj"], frame["obj_faces"], frame["watertight"],
-                                               hand_pseudonormal=hand_pseudonormal)
+                                               backend=backend)
     return sdf_hand, sdf_obj
 
 
@@ -87,14 +95,11 @@ def with_trimesh(frame: dict, points: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return -trimesh.proximity.signed_distance(hand, points), -trimesh.proximity.signed_distance(obj, points)
 
 
-def timed(fn, repeats: int):
-    """(result of the last call, median wall time in ms)."""
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        result = fn()
-        times.append(time.perf_counter() - start)
-    return result, 1e3 * float(np.median(times))
+def timed(fn) -> tuple[object, float]:
+    """(result, wall time in ms) of one call."""
+    start = time.perf_counter()
+    result = fn()
+    return result, 1e3 * (time.perf_counter() - start)
 
 
 def referee(points, ours_sdf, other_sdf, vertices, faces) -> tuple[int, int]:
@@ -106,31 +111,37 @@ def referee(points, ours_sdf, other_sdf, vertices, faces) -> tuple[int, int]:
     return len(differ), int(np.sum((ref < 0) == (ours_sdf[differ] < 0)))
 
 
-def magnitude_check(points, ours_sdf, other_sdf, vertices, faces, n_worst: int = 20) -> tuple[float, float]:
-    """(max ||ours| - |trimesh||, max |ours| - |reference| error on the n_worst points of that)."""
-    gap = np.abs(np.abs(ours_sdf) - np.abs(other_sdf))
-    worst = np.argsort(gap)[-n_worst:]
-    ref, _ = brute_force_signed_distance(points[worst], vertices, faces)
-    return float(gap.max()), float(np.abs(np.abs(ours_sdf[worst]) - np.abs(ref)).max())
+METHODS = ("bvh", "igl", "trimesh")
 
 
-def bench_frame(frame: dict, points: np.ndarray, repeats: int, repeats_ours: int) -> dict:
-    (h, o), t_ours = timed(lambda: ours(frame, points, False), repeats_ours)
-    (hp, _), t_pseudo = timed(lambda: ours(frame, points, True), repeats_ours)
-    (th, to), t_tm = timed(lambda: with_trimesh(frame, points), repeats)
-    hand, obj = (frame["hand"], frame["hand_faces"]), (frame["obj"], frame["obj_faces"])
-    gap_h, err_h = magnitude_check(points, h, th, *hand)
-    gap_o, err_o = magnitude_check(points, o, to, *obj)
-    signs = [referee(points, h, th, *hand), referee(points, hp, th, *hand), referee(points, o, to, *obj)]
-    return dict(ours=t_ours, pseudo=t_pseudo, trimesh=t_tm, gap=max(gap_h, gap_o), err=max(err_h, err_o),
-                signs=" ".join(f"{n}/{k}" for n, k in signs))
+def run_method(name: str, frame: dict, points: np.ndarray):
+    return with_trimesh(frame, points) if name == "trimesh" else sdf_samples(frame, points, name)
+
+
+def checks(frame: dict, points: np.ndarray, results: dict) -> dict:
+    """Distance differences and sign disagreements of one frame (see LEGEND)."""
+    meshes = ((frame["hand"], frame["hand_faces"]), (frame["obj"], frame["obj_faces"]))
+    gap_igl = max(float(np.abs(b - i).max()) for b, i in zip(results["bvh"], results["igl"]))
+    gap_ref = 0.0
+    for got, (v, f) in zip(results["bvh"], meshes):
+        ref, _ = brute_force_signed_distance(points[::4], v, f)
+        gap_ref = max(gap_ref, float(np.abs(got[::4] - ref).max()))
+    signs = []
+    for k, (v, f) in enumerate(meshes):
+        bvh, igl, tm = results["bvh"][k], results["igl"][k], results["trimesh"][k]
+        n, decided = referee(points, bvh, tm, v, f)
+        signs.append(f"{int(np.sum((bvh < 0) != (igl < 0)))} {n}/{decided}")
+    return {"gap_igl": gap_igl, "gap_ref": gap_ref, "signs": " ".join(signs)}
+
+
+def spread(values) -> str:
+    return f"{np.median(values):.0f} ({np.min(values):.0f}-{np.max(values):.0f})"
 
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=5)
-    parser.add_argument("--repeats", type=int, default=3, help="timed runs of trimesh per frame")
-    parser.add_argument("--repeats-ours", type=int, default=9, help="timed runs of ours per frame (cheap)")
+    parser.add_argument("--rounds", type=int, default=5, help="interleaved timed rounds over all frames")
     parser.add_argument("--n-hand", type=int, default=4096)
     parser.add_argument("--n-object", type=int, default=2048)
     args = parser.parse_args(argv)
@@ -139,21 +150,34 @@ def main(argv=None) -> None:
     clouds = [sample_query_points(f["hand"], f["hand_faces"], f["obj"], f["obj_faces"], f["root"],
                                   np.random.default_rng(k), args.n_hand, args.n_object)[0]
               for k, f in enumerate(frames)]
-    ours(frames[0], clouds[0], False), ours(frames[0], clouds[0], True), with_trimesh(frames[0], clouds[0])  # warm-up
-    print(f"{len(clouds[0])} points per frame; ms per frame, median of {args.repeats_ours} (ours) "
-          f"and {args.repeats} (trimesh) runs")
-    head = (f"{'frame':<38}{'ours':>8}{'ours-pn':>9}{'trimesh':>9}{'x':>6}{'x-pn':>6}"
-            f"{'|d|-gap m':>11}{'ours-ref m':>12}  signs")
-    print(head + "\n" + "-" * (len(head) + 20))
-    rows = []
-    for frame, points in zip(frames, clouds, strict=True):
-        r = bench_frame(frame, points, args.repeats, args.repeats_ours)
-        rows.append(r)
-        print(f"{frame['name']:<38}{r['ours']:8.1f}{r['pseudo']:9.1f}{r['trimesh']:9.0f}{r['trimesh'] / r['ours']:6.0f}"
-              f"{r['trimesh'] / r['pseudo']:6.0f}{r['gap']:11.1e}{r['err']:12.1e}  {r['signs']}")
-    total = {k: sum(r[k] for r in rows) for k in ("ours", "pseudo", "trimesh")}
-    print(f"{'all frames (sum of medians)':<38}{total['ours']:8.1f}{total['pseudo']:9.1f}{total['trimesh']:9.0f}"
-          f"{total['trimesh'] / total['ours']:6.0f}{total['trimesh'] / total['pseudo']:6.0f}")
+    for frame, points in zip(frames, clouds, strict=True):  # warm-up: compile, kept tree shapes
+        for name in METHODS:
+            run_method(name, frame, points)
+    times = {name: np.zeros((args.rounds, len(frames))) for name in METHODS}
+    results = [{} for _ in frames]
+    for r in range(args.rounds):
+        for j, (frame, points) in enumerate(zip(frames, clouds, strict=True)):
+            for name in METHODS:
+                results[j][name], times[name][r, j] = timed(lambda n=name, f=frame, p=points: run_method(n, f, p))
+    print(f"{len(clouds[0])} points per frame; ms per frame, median of {args.rounds} interleaved rounds; "
+          f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())} (1, 5, 15 min)")
+    head = (f"{'frame':<36}{'bvh':>7}{'igl':>7}{'trimesh':>9}{'x':>6}{'x-igl':>7}{'bvh/igl':>9}"
+            f"{'|bvh-igl|':>11}{'|bvh-ref|':>11}  signs")
+    print(head + "\n" + "-" * (len(head) + 12))
+    med = {name: np.median(t, axis=0) for name, t in times.items()}
+    for j, frame in enumerate(frames):
+        c = checks(frame, clouds[j], results[j])
+        b, i, t = med["bvh"][j], med["igl"][j], med["trimesh"][j]
+        print(f"{frame['name']:<36}{b:7.1f}{i:7.1f}{t:9.0f}{t / b:6.0f}{t / i:7.0f}{i / b:9.2f}"
+              f"{c['gap_igl']:11.1e}{c['gap_ref']:11.1e}  {c['signs']}")
+    b, i, t = (med[name].sum() for name in METHODS)
+    print(f"{'all frames (sum of medians)':<36}{b:7.1f}{i:7.1f}{t:9.0f}{t / b:6.0f}{t / i:7.0f}{i / b:9.2f}")
+    per_round = {name: t.sum(axis=1) for name, t in times.items()}
+    print(f"whole-set speed-up per round, median (min-max) over {args.rounds} rounds: "
+          f"trimesh/bvh {spread(per_round['trimesh'] / per_round['bvh'])}, "
+          f"trimesh/igl {spread(per_round['trimesh'] / per_round['igl'])}, "
+          f"igl/bvh {np.median(per_round['igl'] / per_round['bvh']):.2f} "
+          f"({np.min(per_round['igl'] / per_round['bvh']):.2f}-{np.max(per_round['igl'] / per_round['bvh']):.2f})")
     print(LEGEND)
 
 

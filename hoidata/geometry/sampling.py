@@ -166,7 +166,8 @@ def compute_sdf_samples(points, hand_vertices, hand_faces, hand_face_parts, obj_
 def build_sdf_record(hand_vertices, hand_faces, hand_face_parts, obj_vertices, obj_faces, obj_watertight: bool,
                      hand_root, rng: np.random.Generator, n_hand: int = 4096, n_object: int = 2048,
                      uniform_fraction: float = 0.1, cube: float = 0.64, sigmas=DEFAULT_SIGMAS,
-                     part_radius: float = 0.05, hand_pseudonormal: bool = False) -> tuple[np.ndarray, np.ndarray]:
+                     part_radius: float = 0.05, hand_pseudonormal: bool = False, backend: str = "bvh"
+                     ) -> tuple[np.ndarray, np.ndarray]:
     """The ``sdf.npy`` array of one frame: sample, compute exact SDFs and quantize.
 
     Arguments as in :func:`sample_query_points` and :func:`compute_sdf_samples` (camera frame,
@@ -178,6 +179,6 @@ def build_sdf_record(hand_vertices, hand_faces, hand_face_parts, obj_vertices, o
                                          n_hand, n_object, uniform_fraction, cube, sigmas)
     sdf_hand, sdf_object, part = compute_sdf_samples(points, hand_vertices, hand_faces, hand_face_parts,
                                                      obj_vertices, obj_faces, obj_watertight, part_radius,
-                                                     hand_pseudonormal)
+                                                     hand_pseudonormal, backend)
     xyz = points - np.asarray(hand_root, dtype=np.float64)
     return quantize_sdf(xyz, sdf_hand, sdf_object, part), counts

@@ -39,6 +39,7 @@ class RecordSettings:
     sigmas: tuple[float, float] = (0.010, 0.003)
     part_radius: float = 0.05
     heatmap_sigma: float = schema.HEATMAP_SIGMA
+    sdf_backend: str = "bvh"  # hoidata.geometry.sdf.signed_distance backend: "bvh", or "igl" (the previous path)
     LIMITS: ClassVar[dict] = {"crop_size": (">= 32", "<= 4096"), "context": ("> 0",), "n_hand": (">= 1",),
                               "n_object": (">= 1",), "uniform_fraction": (">= 0", "<= 1"), "cube": ("> 0",),
                               "sigmas": ("> 0",), "part_radius": ("> 0",), "heatmap_sigma": ("> 0",)}
@@ -142,7 +143,7 @@ def build_record(frame: Frame, mano, obj: ObjectAsset, renderer, key: str, setti
     sdf, counts = build_sdf_record(hand, faces, mano.closed_face_parts, obj_verts, obj_faces, obj.watertight,
                                    frame.root_3d, np.random.default_rng(frame_seed(key)), settings.n_hand,
                                    settings.n_object, settings.uniform_fraction, settings.cube, settings.sigmas,
-                                   settings.part_radius)
+                                   settings.part_radius, backend=settings.sdf_backend)
     meta = record_meta(frame, key, box, K_crop, hand, obj_verts, counts)
     meta["seg_iou"] = dataset_mask_iou(frame, labels, crop_ops.resize_affine(size, half) @ to_crop)
     return {

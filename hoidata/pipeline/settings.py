@@ -15,6 +15,7 @@ import tomllib
 
 from hoidata.datasets.dexycb import DexYCBSetting
 from hoidata.errors import DataError
+from hoidata.geometry.sdf import BACKENDS as SDF_BACKENDS
 from hoidata.pipeline.records import RecordSettings
 
 # A checkout's pipelines/ folder; an installed wheel carries the same files as the package hoidata.presets.
@@ -198,6 +199,8 @@ def load_build_config(name_or_path: str, overrides: list[str] = ()) -> BuildConf
         raise DataError(path, "dataset.frame_list", "a frame list holds the toolkit ids of one DexYCB split: set "
                                                     'dataset.splits to that split, e.g. dataset.splits=["test"]')
     _check_selection(dataset, path)
+    if record.sdf_backend not in SDF_BACKENDS:
+        raise DataError(path, "record.sdf_backend", f"unknown backend {record.sdf_backend!r}; expected one of {SDF_BACKENDS}")
     return BuildConfig(dataset,
                        replace(record, sigmas=tuple(record.sigmas)),
                        section(StoreConfig, data.get("store", {}), path, "store"))
