@@ -15,6 +15,7 @@ from hoisdf.data.augment import (
     adjust_hue,
     augment_batch,
     color_jitter,
+    float_image,
     gaussian_blur,
     rotation_z,
 )
@@ -143,7 +144,7 @@ def test_image_and_masks_follow_the_new_intrinsics(batch, augmented):
     compared, inside, hand_pixels = 0, [], 0
     for i in range(4):
         to_source = _output_to_source(out, i)
-        source_img, source_seg = batch["img"][i].double().numpy(), batch["seg"][i].numpy()
+        source_img, source_seg = float_image(batch["img"])[i].double().numpy(), batch["seg"][i].numpy()
         # the image at each joint's pixel is the stored image at the matching source pixel
         for u, v in out["joints_2d"][i].round().long().tolist():
             if 0 <= u < size and 0 <= v < size:
@@ -176,9 +177,9 @@ def test_image_and_masks_follow_the_new_intrinsics(batch, augmented):
 
 def test_eval_is_the_central_crop(batch):
     out = augment_batch(batch, AugmentSettings(input_size=64), None, train=False)
-    torch.testing.assert_close(out["img"], batch["img"][:, :, 32:96, 32:96], atol=1e-5, rtol=0)
+    torch.testing.assert_close(out["img"], float_image(batch["img"])[:, :, 32:96, 32:96], atol=1e-5, rtol=0)
     assert torch.equal(out["seg"], batch["seg"][:, :, 16:48, 16:48].float())
-    torch.testing.assert_close(out["heatmap"], batch["heatmap"][:, :, 16:48, 16:48], atol=0.01, rtol=0)
+    torch.testing.assert_close(out["heatmap"], float_image(batch["heatmap"])[:, :, 16:48, 16:48], atol=0.01, rtol=0)
     shift = torch.tensor([[1.0, 0, -32], [0, 1, -32], [0, 0, 1]])
     torch.testing.assert_close(out["K"], shift @ batch["K"])
     torch.testing.assert_close(out["joints_2d"], batch["joints_2d"] - 32)

@@ -16,6 +16,8 @@ from hoidata.pipeline.runner import build_store
 from hoidata.pipeline.settings import load_build_config
 from hoidata.synth.render_synthetic import render_synthetic
 from hoisdf.data import StoreSpec, build_dataset, make_loader
+from hoisdf.data.augment import float_image
+from hoisdf.data.loader import _key_seed, sample_sdf
 
 CROP, N_HAND, N_OBJECT, NEAR = 128, 32, 16, 0.05
 # one shard per store on purpose: the two-worker test needs fewer shards than workers
@@ -63,8 +65,8 @@ def test_batch_shapes_and_dtypes(stores):
     b, h = 4, CROP // 2
     batch = next(iter(_dataset(stores, batch_size=b)))
     expected = {
-        "img": ((b, 3, CROP, CROP), torch.float32), "seg": ((b, 4, h, h), torch.bool),
-        "heatmap": ((b, 1, h, h), torch.float32),
+        "img": ((b, 3, CROP, CROP), torch.uint8), "seg": ((b, 4, h, h), torch.bool),
+        "heatmap": ((b, 1, h, h), torch.uint8),
         "hand_points": ((b, N_HAND, 3), torch.float32), "hand_sdf": ((b, N_HAND), torch.float32),
         "obj_points": ((b, N_OBJECT, 3), torch.float32), "obj_sdf": ((b, N_OBJECT), torch.float32),
         "hand_near_points": ((b, N_HAND, 3), torch.float32), "hand_near_sdf": ((b, N_HAND), torch.float32),
@@ -82,8 +84,9 @@ def test_batch_shapes_and_dtypes(stores):
     for name, (shape, dtype) in expected.items():
         assert tuple(batch[name].shape) == shape and batch[name].dtype == dtype, name
     assert isinstance(batch["key"], list) and len(batch["key"]) == b and all(isinstance(k, str) for k in batch["key"])
-    assert 0 <= batch["img"].min() and batch["img"].max() <= 1 and batch["img"].max() > 0
-    assert 0 <= batch["heatmap"].min() and batch["heatmap"].max() <= 1
+    assert batch["img"].max() > 0 and batch["heatmap"].max() > 200
+    assert batch["img"].is_contiguous(memory_format=torch.channels_last)
+    assert float_image(batch["img"]).dtype == torch.float32 and float_image(batch["img"]).max() <= 1
     assert batch["seg"][:, 2].sum() >= batch["seg"][:, 0].sum()  # amodal hand covers the visible hand
 
 
@@ -103,7 +106,7 @@ def test_values_match_the_store(stores, records):
                 uniform_drawn += len(set(rows.tolist()) & uniform)
                 np.testing.assert_array_equal(batch[f"{name}_points"][i].numpy(), xyz[rows])
                 np.testing.assert_array_equal(batch[f"{name}_sdf"][i].numpy(), dist[rows])
-        np.testing.assert_array_equal(batch["img"][i].permute(1, 2, 0).numpy(), rec[schema.IMG] / np.float32(255))
+        np.testing.assert_array_equal(batch["img"][i].permute(1, 2, 0).numpy(), rec[schema.IMG])
         np.testing.assert_array_equal(batch["seg"][i, 1].numpy(), (rec[schema.SEG] & 2) > 0)
         np.testing.assert_allclose(batch["joints_3d"][i].numpy(), meta["joints_3d"], rtol=1e-6)
         np.testing.assert_allclose(batch["object_pose"][i].numpy(), meta["object_pose"], rtol=1e-6)
@@ -179,3 +182,39 @@ def test_two_workers_with_one_shard_per_store(stores):
     assert len(batches) == len(loader) == 10  # 40 // (4 * 2) = 5 batches from each worker
     assert all(len(b["key"]) == 4 for b in batches)
     assert len({k for b in batches for k in b["key"]}) > 6  # both workers read, from both stores
+
+
+def _previous_batch(records, keys, seed, epoch):
+    """The batch the loader gave before images and heatmaps stayed uint8 (float32 / 255, CHW), built
+    here from the decoded records with that conversion, for the given keys."""
+    samples = []
+    for key in keys:
+        rec, meta = records[key], records[key][schema.META]
+        rng = np.random.default_rng([seed, epoch, _key_seed(key)])
+        out = sample_sdf(rec[schema.SDF], meta["sdf_counts"], rng, N_HAND, N_OBJECT, NEAR)
+        f32 = {name: np.asarray(meta[name], dtype=np.float32) for name in
+               ("K", "hand_root", "joints_3d", "joints_2d", "mano_pose", "mano_betas", "object_pose",
+                "hand_box", "object_box")}
+        out.update(f32, img=np.ascontiguousarray(rec[schema.IMG].transpose(2, 0, 1), dtype=np.float32) / 255.0,
+                   seg=((rec[schema.SEG][None] >> np.arange(4, dtype=np.uint8)[:, None, None]) & 1).astype(bool),
+                   heatmap=rec[schema.HEATMAP][None].astype(np.float32) / 255.0,
+                   object_id=np.int64(meta["object_id"]), mirrored=np.bool_(meta["mirrored"]),
+                   is_synthetic=np.bool_(meta["dataset"] == "synthetic"))
+        samples.append(out)
+    return {name: torch.from_numpy(np.stack([s[name] for s in samples])) for name in samples[0]}
+
+
+@pytest.mark.parametrize("workers", [0, 1])
+def test_batches_equal_the_previous_loader_for_a_fixed_seed(stores, records, workers):
+    """Same keys and values as the loader gave before uint8 images (float_image restores the float32
+    values exactly), in the main process and through a worker's shared-memory collation."""
+    dataset = _dataset(stores, batch_size=4, seed=5, epoch_samples=8)
+    dataset.set_epoch(3)
+    batches = list(make_loader(dataset, workers))
+    assert len(batches) == 2
+    for batch in batches:
+        expected = _previous_batch(records, batch["key"], seed=5, epoch=3)
+        assert set(batch) == set(expected) | {"key"}
+        for name, value in expected.items():
+            got = float_image(batch[name]) if name in ("img", "heatmap") else batch[name]
+            assert got.dtype == value.dtype and torch.equal(got, value), name

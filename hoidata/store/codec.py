@@ -238,7 +238,7 @@ def _decode_image(data: bytes, where, key, member: str) -> np.ndarray:
     arr = cv2.imdecode(np.frombuffer(data, np.uint8), flag)
     if arr is None:
         raise DataError(where, _field(key, member), f"OpenCV cannot decode this {kind}")
-    return np.ascontiguousarray(arr[..., ::-1]) if member == IMG else arr
+    return cv2.cvtColor(arr, cv2.COLOR_BGR2RGB) if member == IMG else arr  # same values as arr[..., ::-1], faster
 
 
 def _decode_sdf(data: bytes, where, key) -> np.ndarray:

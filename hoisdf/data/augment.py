@@ -211,6 +211,12 @@ def rotate_mano_global(pose: torch.Tensor, rot: torch.Tensor) -> torch.Tensor:
     return torch.cat([glob, pose[:, 3:]], 1)
 
 
+def float_image(img: torch.Tensor) -> torch.Tensor:
+    """A loader image batch (B, 3, S, S) uint8 in [0, 255] -> float32 in [0, 1] (img / 255, on img's device);
+    a float batch (already in [0, 1]) passes through as float32."""
+    return img.float() / 255.0 if img.dtype == torch.uint8 else img.float()
+
+
 def augment_batch(batch: dict, settings: AugmentSettings, generator: torch.Generator | None, train: bool) -> dict:
     """A loader batch (see ``hoisdf.data.build_dataset``) -> the network input batch, on the batch's device.
 
@@ -221,7 +227,7 @@ def augment_batch(batch: dict, settings: AugmentSettings, generator: torch.Gener
     obj_center (B, 3) m (object box centre back-projected at the hand root's depth), rotation (B, 3, 3)
     and crop_scale (B,) = R / s. Every other entry is passed through unchanged.
     """
-    img = batch["img"].float()
+    img = float_image(batch["img"])  # on the device: uint8 crosses the worker queue and the bus
     device, b, size = img.device, img.shape[0], settings.input_size
     half, store_size = size // 2, img.shape[-1]
     params = {k: v.to(device) for k, v in draw_params(b, settings, generator, train).items()}

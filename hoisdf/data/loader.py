@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import webdataset as wds
+from torch.utils.data import default_collate, get_worker_info
 from webdataset.utils import pytorch_worker_info
 
 from hoidata import schema
@@ -139,6 +140,12 @@ def sample_sdf(sdf: np.ndarray, counts, rng: np.random.Generator, n_hand: int, n
     the same way). Row indices of every draw are returned under ``<name>_rows`` (int64) for checking.
     """
     xyz, sdf_hand, sdf_obj, _ = schema.dequantize_sdf(sdf)
+    return sample_sdf_arrays(xyz, sdf_hand, sdf_obj, counts, rng, n_hand, n_object, near)
+
+
+def sample_sdf_arrays(xyz: np.ndarray, sdf_hand: np.ndarray, sdf_obj: np.ndarray, counts, rng: np.random.Generator,
+                      n_hand: int, n_object: int, near: float | None) -> dict[str, np.ndarray]:
+    """:func:`sample_sdf` on already dequantized float32 columns: xyz (N, 3), sdf_hand (N,), sdf_obj (N,)."""
     n_h, n_o, n_u = (int(c) for c in counts)
     uniform = np.arange(n_h + n_o, n_h + n_o + n_u)
     hand_rows, obj_rows = np.concatenate([np.arange(n_h), uniform]), np.concatenate([np.arange(n_h, n_h + n_o), uniform])
@@ -181,9 +188,11 @@ class _ToArrays:
         out = sample_sdf(rec[schema.SDF], meta["sdf_counts"], rng, self.n_hand, self.n_object, self.near)
         bits = np.arange(4, dtype=np.uint8)[:, None, None]
         out.update({
-            "img": np.ascontiguousarray(rec[schema.IMG].transpose(2, 0, 1), dtype=np.float32) / 255.0,
+            # uint8 as decoded (4x fewer bytes through the worker queue; augment_batch divides by 255 on
+            # the device) and H, W, 3 in memory: collate makes it (B, 3, S, S) in channels-last layout
+            "img": rec[schema.IMG],
             "seg": ((rec[schema.SEG][None] >> bits) & 1).astype(bool),
-            "heatmap": rec[schema.HEATMAP][None].astype(np.float32) / 255.0,
+            "heatmap": rec[schema.HEATMAP][None],
             "K": _f32(meta["K"]), "hand_root": _f32(meta["hand_root"]),
             "joints_3d": _f32(meta["joints_3d"]), "joints_2d": _f32(meta["joints_2d"]),
             "mano_pose": _f32(meta["mano_pose"]), "mano_betas": _f32(meta["mano_betas"]),
@@ -239,11 +248,21 @@ class _Batch:
 
 
 def collate(samples: list[dict]) -> dict:
-    """List of per-sample dicts (numpy values, ``key`` str) -> dict of batched tensors + ``key`` list."""
-    out = {"key": [s["key"] for s in samples]}
-    for name in samples[0]:
-        if name != "key":
-            out[name] = torch.from_numpy(np.stack([s[name] for s in samples]))
+    """List of per-sample dicts (numpy values, ``key`` str) -> dict of batched tensors + ``key`` list.
+
+    In a DataLoader worker, torch's default collation stacks each value (wrapped without a copy)
+    straight into a shared-memory tensor, so the batch reaches the main process without the extra copy
+    that pickling an ordinary tensor makes. In the main process numpy stacks (torch.stack's threads
+    gained nothing there and stalled when other processes held the cores)."""
+    if get_worker_info() is not None:
+        out = default_collate([{k: torch.from_numpy(v) if isinstance(v, np.ndarray) else v for k, v in s.items()}
+                               for s in samples])
+    else:
+        out = {"key": [s["key"] for s in samples]}
+        for name in samples[0]:
+            if name != "key":
+                out[name] = torch.from_numpy(np.stack([s[name] for s in samples]))
+    out["img"] = out["img"].permute(0, 3, 1, 2)  # (B, S, S, 3) -> (B, 3, S, S), a view: channels-last strides
     return out
 
 
@@ -312,9 +331,10 @@ def build_dataset(stores: list[StoreSpec], batch_size: int, epoch_samples: int |
     Each element is a dict (B = batch_size, S = crop size, H = S // 2, all tensors on the CPU):
 
     ==================  ===================  ======================================================
-    img                 (B, 3, S, S) f32     RGB crop in [0, 1]
+    img                 (B, 3, S, S) uint8   RGB crop, 0-255 (augment.float_image: float32 in [0, 1]);
+                                             channels-last memory layout (torch.channels_last)
     seg                 (B, 4, H, H) bool    visible hand, visible object, amodal hand, amodal object
-    heatmap             (B, 1, H, H) f32     joint heatmap in [0, 1]
+    heatmap             (B, 1, H, H) uint8   joint heatmap, 255 = 1 (augment_batch renders its own)
     hand_points         (B, n_hand, 3) f32   metres, camera axes, relative to hand_root; hand-set and
                                              uniform rows
     hand_sdf            (B, n_hand) f32      metres, signed distance to the hand (negative inside)
