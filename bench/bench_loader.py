@@ -81,7 +81,7 @@ class PerFileDataset(torch.utils.data.Dataset):
             meta = pickle.load(f)
         rng = np.random.default_rng([SEED, self.epoch, _key_seed(key)])
         out = sample_sdf_arrays(xyz, sdf_hand, sdf_obj, meta["sdf_counts"], rng, N_HAND, N_OBJECT, NEAR)
-        f32 = lambda x: np.asarray(x, dtype=np.float32)  # noqa: E731
+        f32 = lambda x: np.asarray(x, dtype=np.float32)
         out.update({
             "img": np.ascontiguousarray(img.transpose(2, 0, 1), dtype=np.float32) / 255.0,
             "seg": ((seg[None] >> np.arange(4, dtype=np.uint8)[:, None, None]) & 1).astype(bool),
