@@ -188,9 +188,7 @@ class _ToArrays:
         out = sample_sdf(rec[schema.SDF], meta["sdf_counts"], rng, self.n_hand, self.n_object, self.near)
         bits = np.arange(4, dtype=np.uint8)[:, None, None]
         out.update({
-            # uint8 as decoded (4x fewer bytes through the worker queue; augment_batch divides by 255 on
-            # the device) and H, W, 3 in memory: collate makes it (B, 3, S, S) in channels-last layout
-            "img": rec[schema.IMG],
+            "img": rec[schema.IMG],  # uint8 (S, S, 3): 1/4 of float32's bytes; augment_batch scales on the device
             "seg": ((rec[schema.SEG][None] >> bits) & 1).astype(bool),
             "heatmap": rec[schema.HEATMAP][None],
             "K": _f32(meta["K"]), "hand_root": _f32(meta["hand_root"]),
@@ -250,18 +248,14 @@ class _Batch:
 def collate(samples: list[dict]) -> dict:
     """List of per-sample dicts (numpy values, ``key`` str) -> dict of batched tensors + ``key`` list.
 
-    In a DataLoader worker, torch's default collation stacks each value (wrapped without a copy)
-    straight into a shared-memory tensor, so the batch reaches the main process without the extra copy
-    that pickling an ordinary tensor makes. In the main process numpy stacks (torch.stack's threads
-    gained nothing there and stalled when other processes held the cores)."""
+    In a worker torch's default collation stacks straight into shared memory (no copy when the batch is
+    sent); in the main process numpy stacks (torch.stack's threads stall on busy cores)."""
     if get_worker_info() is not None:
         out = default_collate([{k: torch.from_numpy(v) if isinstance(v, np.ndarray) else v for k, v in s.items()}
                                for s in samples])
     else:
-        out = {"key": [s["key"] for s in samples]}
-        for name in samples[0]:
-            if name != "key":
-                out[name] = torch.from_numpy(np.stack([s[name] for s in samples]))
+        out = {k: [s[k] for s in samples] if k == "key" else torch.from_numpy(np.stack([s[k] for s in samples]))
+               for k in samples[0]}
     out["img"] = out["img"].permute(0, 3, 1, 2)  # (B, S, S, 3) -> (B, 3, S, S), a view: channels-last strides
     return out
 
@@ -331,8 +325,7 @@ def build_dataset(stores: list[StoreSpec], batch_size: int, epoch_samples: int |
     Each element is a dict (B = batch_size, S = crop size, H = S // 2, all tensors on the CPU):
 
     ==================  ===================  ======================================================
-    img                 (B, 3, S, S) uint8   RGB crop, 0-255 (augment.float_image: float32 in [0, 1]);
-                                             channels-last memory layout (torch.channels_last)
+    img                 (B, 3, S, S) uint8   RGB crop 0-255, channels-last layout (float_image: [0, 1] f32)
     seg                 (B, 4, H, H) bool    visible hand, visible object, amodal hand, amodal object
     heatmap             (B, 1, H, H) uint8   joint heatmap, 255 = 1 (augment_batch renders its own)
     hand_points         (B, n_hand, 3) f32   metres, camera axes, relative to hand_root; hand-set and
