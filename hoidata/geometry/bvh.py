@@ -30,6 +30,9 @@ import numba
 import numpy as np
 
 LEAF_SIZE = 4
+# Below this depth the surface-area split is replaced by the median one, so no tree gets deeper than
+# MEDIAN_DEPTH + log2(F) (under 80 for any face count that fits in memory): the query stacks hold 128.
+MEDIAN_DEPTH = 40
 PAD = 1e-9  # box padding, relative to the mesh's bounding-box diagonal
 # The rays of MeshBVH.crossings: each point casts the one that leaves the mesh's box soonest, mostly
 # along +x, -x, +y, -y, +z or -z, tilted off every axis and diagonal (unit vectors).
@@ -130,20 +133,26 @@ def _build(vertices, faces, order, left_of, start_of, count_of):
     at most LEAF_SIZE faces per leaf. Returns the number of nodes (children after their parent)."""
     cen, lo, hi = _face_boxes(vertices, faces)
     n = len(faces)
-    stack = np.empty((128, 3), np.int64)  # (node, start, count)
-    stack[0, 0], stack[0, 1], stack[0, 2] = 0, 0, n
+    stack = np.empty((128, 4), np.int64)  # (node, start, count, depth)
+    stack[0, 0], stack[0, 1], stack[0, 2], stack[0, 3] = 0, 0, n, 0
     top, n_nodes = 1, 1
     key, prefix = np.empty(n), np.empty(n)
     box_lo, box_hi = np.empty(3), np.empty(3)
     while top:
         top -= 1
-        node, start, count = stack[top, 0], stack[top, 1], stack[top, 2]
+        node, start, count, depth = stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3]
         start_of[node], count_of[node] = start, count
         if count <= LEAF_SIZE:
             left_of[node] = -1
             continue
         best_cost, best_axis, best_split = np.inf, 0, count // 2
-        for axis in range(3):
+        if depth >= MEDIAN_DEPTH:  # the median on the widest centroid axis: balanced from here on
+            for d in range(3):
+                box_lo[d], box_hi[d] = np.inf, -np.inf
+                for k in range(start, start + count):
+                    box_lo[d], box_hi[d] = min(box_lo[d], cen[order[k], d]), max(box_hi[d], cen[order[k], d])
+            best_axis = np.argmax(box_hi - box_lo)
+        for axis in range(3 if depth < MEDIAN_DEPTH else 0):
             for k in range(count):
                 key[k] = cen[order[start + k], axis]
             sorted_faces = order[start:start + count][np.argsort(key[:count], kind="mergesort")]
@@ -167,6 +176,7 @@ def _build(vertices, faces, order, left_of, start_of, count_of):
         left_of[node] = n_nodes
         stack[top, 0], stack[top, 1], stack[top, 2] = n_nodes + 1, start + best_split, count - best_split
         stack[top + 1, 0], stack[top + 1, 1], stack[top + 1, 2] = n_nodes, start, best_split
+        stack[top, 3], stack[top + 1, 3] = depth + 1, depth + 1
         top += 2
         n_nodes += 2
     return n_nodes
