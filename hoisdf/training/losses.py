@@ -156,7 +156,9 @@ class HOISDFLoss(nn.Module):
         votes = (out["hand_query"][None, :, :, None] + out["vote_offsets"].float()) * 1000.0  # (L, B, N, J, 3) mm
         target = self.root_relative_joints(batch)[None, :, None] * 1000.0
         err = F.smooth_l1_loss(votes, target.expand_as(votes), reduction="none", beta=1.0)
-        return (err * labels[None, ..., None]).sum((1, 2, 3)).div(labels.sum().clamp_min(1.0) * 3).mean()
+        # upstream: sum over samples, points and joints / number of labelled (sample, point, joint) pairs,
+        # then the mean over layers and coordinates (the three coordinates are averaged once, here)
+        return (err * labels[None, ..., None]).sum((1, 2, 3)).div(labels.sum().clamp_min(1.0)).mean()
 
     def joint_cls(self, out, batch, gt):
         logits = out["vote_logits"].float()
