@@ -1,7 +1,7 @@
 """``python -m hoisdf.evaluate --ckpt RUN --shards STORE [STORE ...] --mano DIR [--out DIR] [--vis N] ...``
 
-Runs a trained HOISDF on stores (batched, no gradients, bf16 autocast on CUDA), scores it with the published
-protocols (:mod:`hoisdf.evaluation.metrics`), prints the paper's table layout beside a mean-pose baseline, and writes
+Runs a trained HOISDF on stores (batched, no gradients; fp32, or bf16 autocast with ``--precision bf16``), scores
+it with the published protocols (:mod:`hoisdf.evaluation.metrics`), prints the paper's table layout beside a mean-pose baseline, and writes
 ``OUT/metrics.json``, ``OUT/per_object.csv``, per DexYCB split the HPE result file ``dexycb_hpe_<split>.txt`` with
 the toolkit's sample ids (``dexycb_hpe_<split>_subset.txt`` when it lacks some of the split's valid samples, which
 the toolkit's evaluator refuses), with ``--ho3d-order evaluation.txt`` HO-3D's ``pred.json`` / ``pred.zip``, and
@@ -54,7 +54,8 @@ UNSEEN_HO3D = "019_pitcher_base"  # excluded from HO-3D object metrics (upstream
 
 def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=None, vis: int = 0,
              limit: int | None = None, boxes: str | None = None, plausibility: int = 32, ho3d_order=None,
-             baseline_store=None, progress: bool = True, workers: int = 4, ho3d_gt=None) -> dict:
+             baseline_store=None, progress: bool = True, workers: int = 4, ho3d_gt=None,
+             precision: str = "fp32") -> dict:
     """Evaluate a checkpoint on stores; write the result files to ``out_dir`` and return metrics.json's content
     (plus ``table``, the printed table).
 
@@ -68,6 +69,7 @@ def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=No
             give the mean pose (default: the first evaluated store). workers: loader processes.
         ho3d_gt: folder with the challenge's ``evaluation_xyz.json`` / ``evaluation_verts.json``: the written
             pred.json is scored against them (``metrics.json["ho3d_challenge"]``, ``scores.txt``).
+        precision: "fp32" (as upstream) or "bf16" (autocast; geometry, ranking and head outputs stay fp32).
     """
     from hoidata.hand import load_mano
 
@@ -82,7 +84,7 @@ def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=No
     out_dir = Path(out_dir) if out_dir else run_folder(Path(run)) / f"eval-{'+'.join(s.name for s in stores)}"
     indexes = {s: read_index(s) for s in stores}
     objects = {name: mesh for index in indexes.values() for name, mesh in index.objects.items()}
-    col = infer(model, mano, config, stores, batch_size, device, limit, vis, progress, workers, indexes)
+    col = infer(model, mano, config, stores, batch_size, device, limit, vis, progress, workers, indexes, precision)
     missing = sorted(set(col.names) - set(objects))
     if missing:
         raise DataError(stores[0], "objects", f"no mesh in the store index for {missing}")
@@ -101,6 +103,7 @@ def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=No
     counts = {str(name): int(c) for name, c in zip(*np.unique(names, return_counts=True))}
     result = {
         **info, "stores": [str(s) for s in stores], "device": str(device), "samples": len(col.keys),
+        "precision": {"mode": precision, "dtypes": col.dtypes},
         "counts": {"per_object": counts, "hand_metrics": int(np.isfinite(per_sample["rr_mje"]).sum()),
                    "object_metrics": int(np.isfinite(per_sample["oce"]).sum())},
         "overall": summary["all"], "per_object": {k: v for k, v in summary.items() if k != "all"},
@@ -147,6 +150,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="store whose mean hand pose is the baseline (e.g. the training store)")
     p.add_argument("--workers", type=non_negative_int, default=4,
                    help="loader processes decoding records (0: decode in this process)")
+    p.add_argument("--precision", choices=("fp32", "bf16"), default="fp32",
+                   help="fp32 (default, as upstream) or bf16 autocast (geometry stays fp32; metrics.json "
+                        "records the dtype of every stage)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--debug", action="store_true", help="on an error, show the traceback instead of one line")
     return p
@@ -160,7 +166,8 @@ def main(argv: list[str] | None = None) -> int:
 def _run(args) -> int:
     result = evaluate(args.ckpt, args.shards, args.mano, args.out, args.batch_size, args.device, args.vis,
                       args.limit, args.boxes, args.plausibility, args.ho3d_order, args.baseline_store,
-                      progress=not args.no_progress, workers=args.workers, ho3d_gt=args.ho3d_gt)
+                      progress=not args.no_progress, workers=args.workers, ho3d_gt=args.ho3d_gt,
+                      precision=args.precision)
     print(f"{result['samples']} samples, checkpoint {result['checkpoint']} (epoch {result['epoch']}), "
           f"boxes {result['test_boxes']}; lengths in mm")
     print(result["table"])

@@ -6,6 +6,7 @@ ground-truth wrist (as HOISDF). Everything collected is numpy float64, metres, c
 
 from __future__ import annotations
 
+from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -19,6 +20,7 @@ from hoisdf.config import config_from_dict
 from hoisdf.data import StoreSpec, build_dataset, make_loader
 from hoisdf.data.augment import augment_batch
 from hoisdf.evaluation.submissions import DEXYCB_TIP_JOINTS, HO3D_TIP_VERTICES
+from hoisdf.model.precision import autocast, trace_dtypes
 from hoisdf.training.checkpoint import CHECKPOINTS, find_checkpoint, load_checkpoint, load_weights
 from hoisdf.training.losses import hand_targets, mirrored_shape_mano
 
@@ -36,6 +38,7 @@ class Collected:
     frame_ids: list[str] = field(default_factory=list)
     arrays: dict[str, list] = field(default_factory=dict)  # joints, gt_joints, root, obj_pose, ... (chunks)
     vis: dict[str, dict] = field(default_factory=dict)  # key -> image, K and query points of the first samples
+    dtypes: dict[str, str] = field(default_factory=dict)  # stage / output -> dtype seen on the first batch
 
     def add(self, **chunks) -> None:
         for k, v in chunks.items():
@@ -95,13 +98,15 @@ def _keep_vis(col: Collected, batch: dict, out: dict, limit: int) -> None:
                                     "sdf": _np(torch.cat(sdf))}
 
 
-def predict_batch(model, mano, mirrored, batch: dict, config) -> tuple[dict, dict[str, np.ndarray]]:
+def predict_batch(model, mano, mirrored, batch: dict, config,
+                  precision: str = "fp32") -> tuple[dict, dict[str, np.ndarray]]:
     """One loader batch (on the model's device) -> (network input batch and raw outputs, per-sample arrays:
     joints, verts (when predicted), gt_joints, gt_verts, root, obj_pose, gt_obj_pose, obj_center; metres,
-    camera frame, the predicted hand placed at the ground-truth wrist)."""
+    camera frame, the predicted hand placed at the ground-truth wrist). ``precision``: "fp32" or "bf16"
+    (autocast on the batch's device; geometry stays fp32, see :mod:`hoisdf.model.precision`)."""
     device = batch["img"].device
     batch = augment_batch({k: v for k, v in batch.items() if k not in SDF_KEYS}, config.augment, None, train=False)
-    with torch.no_grad(), torch.autocast("cuda", dtype=torch.bfloat16, enabled=device.type == "cuda"):
+    with torch.no_grad(), autocast(device, precision):
         out = model(batch, points="field")
     gt = hand_targets(mano, mirrored, batch)  # full precision, outside autocast
     root = batch["hand_root"].float()[:, None]
@@ -116,12 +121,14 @@ def predict_batch(model, mano, mirrored, batch: dict, config) -> tuple[dict, dic
 
 
 def infer(model, mano, config, stores: list, batch_size: int, device: torch.device, limit: int | None = None,
-          vis: int = 0, progress: bool = True, workers: int = 0, indexes: dict | None = None) -> Collected:
+          vis: int = 0, progress: bool = True, workers: int = 0, indexes: dict | None = None,
+          precision: str = "fp32") -> Collected:
     """Predictions and ground truth of the records of ``stores``, returned in stored order (store after store).
 
     ``workers`` loader processes decode records (shards are split between them, so with ``limit`` the first
     samples are the first ones the loader delivers); ``vis`` keeps pictures' inputs of the first samples.
-    ``indexes``: already read store indexes by store path.
+    ``indexes``: already read store indexes by store path. ``precision``: see :func:`predict_batch`; the dtypes
+    the first batch ran in are kept in ``Collected.dtypes``.
     """
     mano.to(device)
     mirrored, col = mirrored_shape_mano(mano), Collected()
@@ -136,7 +143,9 @@ def infer(model, mano, config, stores: list, batch_size: int, device: torch.devi
             if n <= 0:
                 break
             batch = {k: v[:n].to(device) if torch.is_tensor(v) else v[:n] for k, v in batch.items()}
-            (batch, out), arrays = predict_batch(model, mano, mirrored, batch, config)
+            with trace_dtypes(model) if not col.dtypes else nullcontext({}) as seen:
+                (batch, out), arrays = predict_batch(model, mano, mirrored, batch, config, precision)
+            col.dtypes = col.dtypes or dict(seen)
             missing = [k for k in batch["key"] if k not in rows]
             if missing:
                 raise DataError(store, missing[0], "record missing from the store index")

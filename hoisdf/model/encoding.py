@@ -18,6 +18,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from hoisdf.model.precision import full, no_autocast
+
 MIN_DEPTH = 1e-6
 """Depths (z, metres) are clamped to at least this before the perspective division."""
 
@@ -47,10 +49,13 @@ def project_points(points: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
         K: ``(B, 3, 3)`` intrinsics (pixels).
 
     Returns:
-        ``(B, N, 2)`` pixel coordinates ``(u, v)``. The homogeneous depth is clamped to ``MIN_DEPTH`` so points
-        on or behind the camera give large but finite values (never inf/nan).
+        ``(B, N, 2)`` pixel coordinates ``(u, v)``, in full precision (fp32, or fp64 for fp64 points) even under
+        autocast. The homogeneous depth is clamped to ``MIN_DEPTH`` so points on or behind the camera give large
+        but finite values (never inf/nan).
     """
-    homo = torch.einsum("bij,bnj->bni", K.to(points.dtype), points)  # (B, N, 3)
+    points = full(points)
+    with no_autocast(points):
+        homo = torch.einsum("bij,bnj->bni", K.to(points.dtype), points)  # (B, N, 3)
     depth = homo[..., 2:3].clamp_min(MIN_DEPTH)
     return homo[..., :2] / depth
 
@@ -68,29 +73,34 @@ def pixel_to_grid(uv: torch.Tensor, image_size: int) -> torch.Tensor:
     return (uv + 0.5) / float(image_size) * 2.0 - 1.0
 
 
-def sample_pyramid(features: Sequence[torch.Tensor], grid: torch.Tensor) -> torch.Tensor:
+def _sample(fmap: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
+    """(B, C, H, W) map at (B, 1, N, 2) full-precision coordinates -> (B, N, C) in the grid's dtype (a bf16 map
+    is sampled as fp32: bilinear weights from bf16 coordinates would be off by up to a pixel)."""
+    with no_autocast(grid):
+        sampled = F.grid_sample(fmap.to(grid.dtype), grid, mode="bilinear", padding_mode="border",
+                                align_corners=False)  # (B, C, 1, N)
+    return sampled.squeeze(2).transpose(1, 2)
+
+
+def sample_pyramid(features: Sequence[torch.Tensor], grid: torch.Tensor, detach: bool = True) -> torch.Tensor:
     """Bilinearly sample every pyramid level at the same normalised locations and concatenate.
 
     Args:
         features: list of ``(B, C_l, H_l, W_l)`` maps covering the same image extent (any strides).
-        grid: ``(B, N, 2)`` normalised coordinates (see :func:`pixel_to_grid`). It is detached: no gradient
-            flows back to the points, only to the features.
+        grid: ``(B, N, 2)`` normalised coordinates (see :func:`pixel_to_grid`). Detached by default: no gradient
+            flows back to the points, only to the features; ``detach=False`` keeps d(feature)/d(grid) (the
+            full field gradient of the "gradient" sampling step).
 
     Returns:
-        ``(B, N, sum_l C_l)``, levels concatenated in list order. Outside the image the border value is used
-        (``padding_mode="border"``).
+        ``(B, N, sum_l C_l)`` in full precision, levels concatenated in list order. Outside the image the border
+        value is used (``padding_mode="border"``).
     """
-    grid = grid.detach().unsqueeze(1)  # (B, 1, N, 2)
-    out = []
-    for fmap in features:
-        sampled = F.grid_sample(fmap, grid.to(fmap.dtype), mode="bilinear", padding_mode="border",
-                                align_corners=False)  # (B, C_l, 1, N)
-        out.append(sampled.squeeze(2).transpose(1, 2))
-    return torch.cat(out, dim=-1)
+    grid = full(grid.detach() if detach else grid).unsqueeze(1)  # (B, 1, N, 2)
+    return torch.cat([_sample(fmap, grid) for fmap in features], dim=-1)
 
 
 def pixel_aligned_features(features: Sequence[torch.Tensor], points_cam: torch.Tensor, K: torch.Tensor,
-                           image_size: int) -> torch.Tensor:
+                           image_size: int, detach: bool = True) -> torch.Tensor:
     """Project camera-frame points into the image and sample the feature pyramid there.
 
     Args:
@@ -98,12 +108,13 @@ def pixel_aligned_features(features: Sequence[torch.Tensor], points_cam: torch.T
         points_cam: ``(B, N, 3)`` camera-frame points, metres.
         K: ``(B, 3, 3)`` crop intrinsics.
         image_size: input crop side length in pixels.
+        detach: no gradient to ``points_cam`` (the default); ``False`` for the full field gradient.
 
     Returns:
-        ``(B, N, sum_l C_l)`` features (no gradient to ``points_cam``).
+        ``(B, N, sum_l C_l)`` features.
     """
-    uv = project_points(points_cam.detach(), K)
-    return sample_pyramid(features, pixel_to_grid(uv, image_size))
+    uv = project_points(points_cam.detach() if detach else points_cam, K)
+    return sample_pyramid(features, pixel_to_grid(uv, image_size), detach)
 
 
 def project_pyramid(features: Sequence[torch.Tensor], linear: nn.Linear) -> list[torch.Tensor]:
@@ -128,9 +139,8 @@ def project_pyramid(features: Sequence[torch.Tensor], linear: nn.Linear) -> list
 
 def sample_projected(projected: Sequence[torch.Tensor], grid: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
     """(B, N, out): the sum over levels of the sampled projected maps, plus ``bias`` (see :func:`project_pyramid`)."""
-    grid = grid.detach().unsqueeze(1)
-    total = bias.to(projected[0].dtype)
+    grid = full(grid.detach()).unsqueeze(1)
+    total = bias.to(grid.dtype)
     for fmap in projected:
-        sampled = F.grid_sample(fmap, grid.to(fmap.dtype), mode="bilinear", padding_mode="border", align_corners=False)
-        total = total + sampled.squeeze(2).transpose(1, 2)
+        total = total + _sample(fmap, grid)
     return total

@@ -9,6 +9,7 @@ import torch
 from torch import nn
 
 from hoisdf.model.layers import MLP
+from hoisdf.model.precision import full_precision
 from hoisdf.model.rotation import axis_angle_to_matrix, rot6d_to_matrix
 
 N_JOINTS = 21
@@ -37,13 +38,14 @@ class ManoHead(nn.Module):
 
     def __init__(self, d_model: int):
         super().__init__()
-        self.pose = MLP(d_model, [d_model, d_model], 6)
-        self.shape = MLP(d_model, [d_model, d_model], 10)
+        self.pose = MLP(d_model, [d_model, d_model], 6, full_precision_out=True)
+        self.shape = MLP(d_model, [d_model, d_model], 10, full_precision_out=True)
         self.register_buffer("identity_6d", torch.tensor([1.0, 0.0, 0.0, 0.0, 1.0, 0.0]), persistent=False)
 
     def forward(self, queries: torch.Tensor, mano) -> dict[str, torch.Tensor]:
         L, B = queries.shape[:2]
-        rotations = rot6d_to_matrix(self.pose(queries[:, :, :16]) + self.identity_6d.to(queries.dtype))
+        code = self.pose(queries[:, :, :16])  # (L, B, 16, 6), full precision
+        rotations = rot6d_to_matrix(code + self.identity_6d.to(code.dtype))
         betas = self.shape(queries[:, :, 16])
         verts, joints = wrist_centred_mano(mano, rotations.flatten(0, 1).float(), betas.flatten(0, 1).float())
         return {"rotations": rotations, "betas": betas,
@@ -55,7 +57,7 @@ class ShapeHead(nn.Module):
 
     def __init__(self, d_model: int):
         super().__init__()
-        self.shape = MLP(d_model, [d_model, d_model], 10)
+        self.shape = MLP(d_model, [d_model, d_model], 10, full_precision_out=True)
 
     def forward(self, queries: torch.Tensor) -> dict[str, torch.Tensor]:
         return {"betas": self.shape(queries[:, :, 0])}
@@ -76,8 +78,8 @@ class VoteHead(nn.Module):
 
     def __init__(self, d_model: int):
         super().__init__()
-        self.vote = MLP(d_model, [d_model, d_model, d_model], N_VOTED * 3)
-        self.cls = MLP(d_model, [d_model, d_model], N_VOTED)
+        self.vote = MLP(d_model, [d_model, d_model, d_model], N_VOTED * 3, full_precision_out=True)
+        self.cls = MLP(d_model, [d_model, d_model], N_VOTED, full_precision_out=True)
 
     def forward(self, tokens: torch.Tensor, points: torch.Tensor) -> dict[str, torch.Tensor]:
         """tokens (L, B, N, D), points (B, N, 3) -> offsets (L,B,N,20,3), logits (L,B,N,20), joints (L,B,20,3)."""
@@ -91,6 +93,7 @@ def with_root(voted: torch.Tensor) -> torch.Tensor:
     return torch.cat([torch.zeros_like(voted[..., :1, :]), voted], dim=-2)
 
 
+@full_precision
 def mean_rotation(axis_angles: torch.Tensor, mode: str) -> torch.Tensor:
     """Average per-point rotation predictions (B, N, 3) axis-angle -> (B, 3, 3).
 
@@ -114,8 +117,8 @@ class ObjectHead(nn.Module):
 
     def __init__(self, d_model: int):
         super().__init__()
-        self.rot = MLP(d_model, [d_model, d_model], 3)
-        self.trans = MLP(d_model, [d_model, d_model], 3)
+        self.rot = MLP(d_model, [d_model, d_model], 3, full_precision_out=True)
+        self.trans = MLP(d_model, [d_model, d_model], 3, full_precision_out=True)
 
     def forward(self, tokens: torch.Tensor) -> dict[str, torch.Tensor]:
         return {"rot": self.rot(tokens), "trans": self.trans(tokens)}

@@ -33,6 +33,7 @@ from hoisdf.model.encoding import (
 )
 from hoisdf.model.ik import solve_ik
 from hoisdf.model.layers import MLP
+from hoisdf.model.precision import full
 from hoisdf.model.sampling import field_guided_points, grid_points, jitter
 from hoisdf.model.sdf_decoder import SDFDecoder
 from hoisdf.model.transformer import (
@@ -138,7 +139,7 @@ class HOISDF(nn.Module):
     def field(self, decoder: SDFDecoder, sdf_in: torch.Tensor, scaled: torch.Tensor) -> torch.Tensor:
         """Clamped scaled SDF (B, N) of a decoder at scaled points (B, N, 3) with their ``sdf_in`` features."""
         out = decoder(sdf_in, fourier_encode(scaled, self.n_freq), scaled)
-        return out.float().clamp(-self.clamp, self.clamp)
+        return full(out).clamp(-self.clamp, self.clamp)
 
     def _sdf_fn(self, decoder, pyramid, K, center):
         """camera points (B, M, 3) -> clamped scaled SDF (B, M) of ``decoder``, for a few hundred points."""
@@ -162,7 +163,7 @@ class HOISDF(nn.Module):
 
     def _augment(self, feat: torch.Tensor, sdf: torch.Tensor | None, which: str) -> torch.Tensor:
         """Token feature from the image feature (B, N, F) and a detached scaled SDF (None: not augmented)."""
-        mode = self.augmentation
+        mode, feat = self.augmentation, full(feat)
         if mode == "none":
             return feat
         if sdf is None:  # "image" cross tokens: no field information

@@ -22,6 +22,7 @@ import torch
 
 from hoidata.hand.lbs import batch_rodrigues
 from hoidata.hand.model import MANO_TO_DEXYCB
+from hoisdf.model.precision import full_precision
 from hoisdf.model.rotation import matrix_to_axis_angle
 
 # DexYCB order: 0 wrist, then thumb, index, middle, ring, little with 4 joints each (MCP, PIP, DIP, tip).
@@ -62,6 +63,7 @@ def minimal_rotation(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return torch.where(opposite, perp * angle, aa)
 
 
+@full_precision
 def solve_ik(joints: torch.Tensor, betas: torch.Tensor, mano) -> torch.Tensor:
     """MANO pose reproducing 21 target joints with the given shape.
 

@@ -9,6 +9,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from hoisdf.model.precision import full_precision
+
 _SMALL_ANGLE_SQ = 1e-6
 """Squared angle (rad^2) below which Taylor expansions replace the closed forms."""
 
@@ -42,6 +44,7 @@ def _skew(v: torch.Tensor) -> torch.Tensor:
     return torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], dim=-1).reshape(*v.shape[:-1], 3, 3)
 
 
+@full_precision
 def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
     """Axis-angle (rotation vector, radians) -> rotation matrix by Rodrigues' formula.
 

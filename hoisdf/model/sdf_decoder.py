@@ -7,6 +7,8 @@ import torch.nn.functional as F
 from torch import nn
 from torch.nn.utils.parametrizations import weight_norm as _weight_norm
 
+from hoisdf.model.precision import full, no_autocast
+
 
 class SDFDecoder(nn.Module):
     """Per-point MLP ``[feature, fourier, xyz] -> SDF`` with a DeepSDF skip connection and a final tanh.
@@ -58,7 +60,8 @@ class SDFDecoder(nn.Module):
             xyz: ``(B, N, 3)`` points in scaled space.
 
         Returns:
-            ``(B, N)`` SDF in scaled units, in ``(-1, 1)`` (tanh); any leading dims work the same way.
+            ``(B, N)`` SDF in scaled units, in ``(-1, 1)`` (tanh); any leading dims work the same way. The hidden
+            layers follow autocast; the output layer and the tanh run in full precision (the values are ranked).
         """
         x = torch.cat([feat, pe, xyz], dim=-1)
         h = x
@@ -67,7 +70,9 @@ class SDFDecoder(nn.Module):
                 h = torch.cat([h, x], dim=-1)
             h = F.relu(layer(h))
             h = F.dropout(h, p=self.dropout, training=self.training)
-        return torch.tanh(self.out_layer(h)).squeeze(-1)
+        h = full(h)
+        with no_autocast(h):
+            return torch.tanh(self.out_layer(h.to(self.out_layer.weight.dtype))).squeeze(-1)
 
 
 def init_sdf_decoder_weights(decoder: SDFDecoder) -> None:
