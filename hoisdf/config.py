@@ -53,6 +53,7 @@ class ModelSettings:
     n_object: int = 200
     grid_resolution: int = 64
     sheared_grid: bool = False  # reproduce the reference's sheared inference lattice
+    fixed_shape: bool = False  # field-guided sampling over the whole grid, boxes as masks (torch.compile, CUDA graphs)
     sampling: str = "absolute"  # absolute | signed | random | gradient
     feature_augmentation: str = "density"  # density | none | density_concat | distance_concat
     cross_field: str = "sdf"  # sdf | none | image | target

@@ -34,7 +34,7 @@ from hoisdf.model.encoding import (
 from hoisdf.model.ik import solve_ik
 from hoisdf.model.layers import MLP
 from hoisdf.model.precision import full
-from hoisdf.model.sampling import field_guided_points, grid_points, jitter
+from hoisdf.model.sampling import field_guided_points, grid_points, inside_rows, jitter, random_grid_points
 from hoisdf.model.sdf_decoder import SDFDecoder
 from hoisdf.model.transformer import (
     QueryDecoder,
@@ -67,7 +67,7 @@ class HOISDF(nn.Module):
                  channels_last=False, image_size=256, sdf_scale=3.1, sdf_clamp=0.15, n_freq=5, d_model=256, heads=4,
                  ff=1024, dropout=0.1, hand_layers=6, decoder_layers=4, object_layers=3, sdf_features=256,
                  sdf_hidden=512, sdf_dropout=0.2, token_hidden=(1024, 512, 256), n_hand=600, n_object=200,
-                 grid_resolution=64, sheared_grid=False, sampling="absolute", feature_augmentation="density",
+                 grid_resolution=64, sheared_grid=False, fixed_shape=False, sampling="absolute", feature_augmentation="density",
                  cross_field="sdf", pose_regressor="mano", density_sign="paper", beta_init=0.1, beta_min=2e-3,
                  object_rotation="chordal", test_boxes="gt", mask_threshold=0.5, chunk=32768, cls_dist=0.04):
         super().__init__()
@@ -94,6 +94,7 @@ class HOISDF(nn.Module):
         self.regressor, self.sign = pose_regressor, (-1.0 if density_sign == "paper" else 1.0)
         self.beta_min, self.object_rotation, self.test_boxes = beta_min, object_rotation, test_boxes
         self.mask_threshold, self.chunk, self.cls_dist = mask_threshold, chunk, cls_dist
+        self.fixed_shape = bool(fixed_shape)
         self.project_grid = False  # set below: grid SDFs through project_pyramid (exact) when it samples fewer channels
         self.register_buffer("grid", grid_points(grid_resolution, sheared_grid), persistent=False)
 
@@ -132,19 +133,24 @@ class HOISDF(nn.Module):
         return self._mano[0]
 
     # --- fields -------------------------------------------------------------------------------------------
-    def features(self, pyramid: list[torch.Tensor], points_cam: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
-        """Pixel-aligned multi-level features (B, N, C) of camera points (B, N, 3)."""
-        return pixel_aligned_features(pyramid, points_cam, K, self.image_size)
+    def features(self, pyramid: list[torch.Tensor], points_cam: torch.Tensor, K: torch.Tensor,
+                 detach: bool = True) -> torch.Tensor:
+        """Pixel-aligned multi-level features (B, N, C) of camera points (B, N, 3) (``detach=False``: with
+        the gradient through the projection)."""
+        return pixel_aligned_features(pyramid, points_cam, K, self.image_size, detach)
 
     def field(self, decoder: SDFDecoder, sdf_in: torch.Tensor, scaled: torch.Tensor) -> torch.Tensor:
         """Clamped scaled SDF (B, N) of a decoder at scaled points (B, N, 3) with their ``sdf_in`` features."""
         out = decoder(sdf_in, fourier_encode(scaled, self.n_freq), scaled)
         return full(out).clamp(-self.clamp, self.clamp)
 
-    def _sdf_fn(self, decoder, pyramid, K, center):
-        """camera points (B, M, 3) -> clamped scaled SDF (B, M) of ``decoder``, for a few hundred points."""
+    def _sdf_fn(self, decoder, pyramid, K, center, detach=True):
+        """camera points (B, M, 3) -> clamped scaled SDF (B, M) of ``decoder``, for a few hundred points.
+
+        ``detach=False``: a function of the points through both the point code and the image features (the
+        full field gradient)."""
         def fn(points_cam):
-            return self.field(decoder, self.sdf_in(self.features(pyramid, points_cam, K)),
+            return self.field(decoder, self.sdf_in(self.features(pyramid, points_cam, K, detach)),
                               (points_cam - center[:, None]) * self.scale)
         return fn
 
@@ -178,24 +184,44 @@ class HOISDF(nn.Module):
         return torch.cat([offset, fourier_encode(offset * self.scale, self.n_freq), feat], dim=-1)
 
     # --- query points -------------------------------------------------------------------------------------
+    def _training_points(self, batch, K, root, center, boxes, generator):
+        """Scaled ground-truth guided points (the "gt" path) of the sampling variant: near-surface rows
+        ("absolute", "gradient"), rows inside the meshes ("signed"), random grid points in the box ("random")."""
+        if self.sampling == "random":
+            return (random_grid_points(self.grid, root, self.scale, K, boxes[0], self.n_hand, generator, self.chunk),
+                    random_grid_points(self.grid, center, self.scale, K, boxes[1], self.n_object, generator, self.chunk))
+        if self.sampling == "signed":
+            rows = {w: (torch.cat([batch[f"{w}_points"], batch[f"{w}_near_points"]], 1),
+                        torch.cat([batch[f"{w}_sdf"], batch[f"{w}_near_sdf"]], 1)) for w in ("hand", "obj")}
+            hand = inside_rows(*rows["hand"], self.n_hand, generator)
+            obj = inside_rows(*rows["obj"], self.n_object, generator)
+        else:
+            hand, obj = batch["hand_near_points"][:, :self.n_hand], batch["obj_near_points"][:, :self.n_object]
+        return hand * self.scale, (obj + (root - center)[:, None]) * self.scale
+
     def _query_points(self, batch, pyramid, K, root, center, boxes, mode, noise, generator):
         """Scaled query points (hand rel. root (B, Nh, 3), object rel. centre (B, No, 3))."""
         if mode == "gt":
-            hand = batch["hand_near_points"][:, :self.n_hand] * self.scale
-            obj = (batch["obj_near_points"][:, :self.n_object] + (root - center)[:, None]) * self.scale
+            hand, obj = self._training_points(batch, K, root, center, boxes, generator)
             return jitter(hand, noise, generator), jitter(obj, noise, generator)
         if mode != "field":
             raise ValueError(f"points must be 'gt' or 'field', got {mode!r}")
+        # the "gradient" variant trains as "absolute" and moves the points onto the surface only at inference
+        strategy = "absolute" if self.sampling == "gradient" and self.training else self.sampling
+        newton = {}
+        if strategy == "gradient":
+            newton = {"hand": self._sdf_fn(self.hand_sdf, pyramid, K, root, detach=False),
+                      "obj": self._sdf_fn(self.obj_sdf, pyramid, K, center, detach=False)}
         if self.project_grid:
             projected = project_pyramid(pyramid, self.sdf_in.layers[0])
             hand_fn = self._grid_sdf_fn(self.hand_sdf, projected, K, root)
             obj_fn = self._grid_sdf_fn(self.obj_sdf, projected, K, center)
         else:
             hand_fn, obj_fn = self._sdf_fn(self.hand_sdf, pyramid, K, root), self._sdf_fn(self.obj_sdf, pyramid, K, center)
-        hand, _ = field_guided_points(self.grid, root, self.scale, K, boxes[0], hand_fn, self.n_hand, self.sampling,
-                                      self.chunk, generator)
-        obj, _ = field_guided_points(self.grid, center, self.scale, K, boxes[1], obj_fn, self.n_object, self.sampling,
-                                     self.chunk, generator)
+        hand, _ = field_guided_points(self.grid, root, self.scale, K, boxes[0], hand_fn, self.n_hand, strategy,
+                                      self.chunk, generator, self.fixed_shape, newton.get("hand"))
+        obj, _ = field_guided_points(self.grid, center, self.scale, K, boxes[1], obj_fn, self.n_object, strategy,
+                                     self.chunk, generator, self.fixed_shape, newton.get("obj"))
         return hand, obj
 
     def boxes(self, batch: dict, maps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

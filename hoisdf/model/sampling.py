@@ -3,11 +3,20 @@
 Coordinates: "scaled" points are metric offsets from a centre (hand root or object pseudo-centre) times
 ``sdf_scale`` (3.1), so the 64^3 grid spans [-1, 1]^3 = a cube of +-32 cm around the centre.
 
-Field-guided sampling is batched over the batch: every sample's grid is projected with its own
-intrinsics, the points strictly inside its 2D box are moved to the front (a stable sort of the
-inside flags), and the SDF decoder runs on the first ``M = max(inside count, n)`` columns of every row in
-chunks. Columns outside a sample's box are ranked after all of its inside points, so a box holding
-fewer than ``n`` grid points still yields ``n`` points (the reference code crashes there).
+Field-guided sampling ranks the grid points whose projection lies strictly inside the sample's 2D box and
+keeps the first ``n``; ties (e.g. SDFs clamped at the same value) go to the lower grid index, and a box
+holding fewer than ``n`` grid points is filled with the lowest-index points outside it (the reference code
+crashes there). Two ways to compute it, selecting the same points (tested):
+
+* compact (default): the inside points are moved to the front (a stable sort of the inside flags) and the
+  SDF decoder runs on the first ``M = max(inside count, n)`` columns only; ``M`` depends on the data.
+* fixed shape (``fixed_shape=True``): the decoder runs on the whole grid and the box is a mask on the scores;
+  every shape is static, so the model compiles with ``torch.compile(fullgraph=True)`` and can be captured in
+  a CUDA graph, at the price of decoding the points outside the boxes too.
+
+The ablation variants of the supplementary (``STRATEGIES``) also choose the training points:
+"absolute" (HOISDF) and "gradient" train on near-surface rows, "signed" on rows inside the meshes
+(:func:`inside_rows`), "random" on random grid points inside the box (:func:`random_grid_points`).
 """
 
 from __future__ import annotations
@@ -20,7 +29,6 @@ from hoisdf.model.encoding import project_points
 
 SdfFn = Callable[[torch.Tensor], torch.Tensor]  # camera points (B, M, 3) -> scaled SDF (B, M)
 STRATEGIES = ("absolute", "signed", "random", "gradient")
-_OUTSIDE = 1e4  # added to the score of points outside the box so they rank last
 
 
 def noise_scale(progress: float, ratios: tuple[float, ...] = (0.3, 0.7),
@@ -63,50 +71,97 @@ def inside_box(points_cam: torch.Tensor, K: torch.Tensor, box: torch.Tensor) -> 
     return (x > b[..., 0]) & (x < b[..., 2]) & (y > b[..., 1]) & (y < b[..., 3]) & (points_cam[..., 2] > 0)
 
 
-def _score(sdf: torch.Tensor, strategy: str, generator: torch.Generator | None) -> torch.Tensor:
-    if strategy in ("absolute", "gradient"):
-        return sdf.abs()
-    if strategy == "signed":
-        return sdf
-    return torch.rand(sdf.shape, generator=generator).to(sdf)  # random
+def _score(sdf: torch.Tensor, strategy: str) -> torch.Tensor:
+    return sdf if strategy == "signed" else sdf.abs()  # "absolute" and "gradient" rank by |SDF|
+
+
+def _rank(score: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """(B, M) column order: valid columns by ascending score, then the invalid ones; ties keep column order."""
+    masked = torch.where(valid, score, torch.full_like(score, float("inf")))
+    return torch.sort(masked, dim=1, stable=True).indices
+
+
+def _inside_grid(grid: torch.Tensor, center: torch.Tensor, scale: float, K: torch.Tensor, box: torch.Tensor,
+                 chunk: int) -> torch.Tensor:
+    """(B, G) bool: grid point g of sample b projects strictly inside box b."""
+    return torch.cat([inside_box(grid[None, s:s + chunk] / scale + center[:, None], K, box)
+                      for s in range(0, grid.shape[0], chunk)], dim=1)
+
+
+def random_grid_points(grid: torch.Tensor, center: torch.Tensor, scale: float, K: torch.Tensor, box: torch.Tensor,
+                       n: int, generator: torch.Generator | None = None, chunk: int = 32768) -> torch.Tensor:
+    """(B, n, 3) scaled grid points drawn uniformly (without replacement) among those inside each box.
+
+    The scores are drawn for the whole grid (B, G) on the CPU, so the fixed-shape and the compact path see the
+    same draw. Shapes as :func:`field_guided_points`.
+    """
+    grid = grid.to(center.dtype)
+    with torch.no_grad():
+        inside = _inside_grid(grid, center, scale, K, box, chunk)
+        score = torch.rand(inside.shape, generator=generator).to(device=inside.device, dtype=grid.dtype)
+        return grid[_rank(score, inside)[:, :n]]
+
+
+def inside_rows(points: torch.Tensor, sdf: torch.Tensor, n: int,
+                generator: torch.Generator | None = None) -> torch.Tensor:
+    """(B, n, 3): ``n`` of the SDF rows (B, M, 3) whose own signed distance (B, M) is negative (inside the mesh),
+    drawn uniformly with replacement on the CPU; a sample without such a row takes its smallest-SDF row."""
+    inside = (sdf < 0).float()
+    deepest = torch.nn.functional.one_hot(sdf.argmin(dim=1), sdf.shape[1]).to(inside)
+    weights = torch.where(inside.sum(1, keepdim=True) > 0, inside, deepest)
+    idx = torch.multinomial(weights.detach().cpu(), n, replacement=True, generator=generator).to(points.device)
+    return torch.gather(points, 1, idx[..., None].expand(-1, -1, points.shape[-1]))
+
+
+def _grid_sdf(points: torch.Tensor, center: torch.Tensor, scale: float, sdf_fn: SdfFn, chunk: int) -> torch.Tensor:
+    """(B, M) SDF of scaled points (B, M, 3) or (1, M, 3) in chunks of ``chunk`` columns."""
+    return torch.cat([sdf_fn(points[:, s:s + chunk] / scale + center[:, None])
+                      for s in range(0, points.shape[1], chunk)], dim=1)
 
 
 def field_guided_points(grid: torch.Tensor, center: torch.Tensor, scale: float, K: torch.Tensor, box: torch.Tensor,
                         sdf_fn: SdfFn, n: int, strategy: str = "absolute", chunk: int = 32768,
-                        generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                        generator: torch.Generator | None = None, fixed_shape: bool = False,
+                        newton_fn: SdfFn | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """The ``n`` grid points per sample that the strategy ranks first among those inside the box.
 
     grid: (G, 3) scaled lattice (see :func:`grid_points`); center: (B, 3) camera-frame centre, metres;
     K: (B, 3, 3); box: (B, 4) in the same pixels as K; sdf_fn: camera points (B, M, 3) -> scaled SDF
     (B, M) of the field being sampled. ``strategy``: "absolute" smallest |SDF| (HOISDF), "signed" smallest
     SDF (deepest inside), "random" uniformly among the inside points, "gradient" as "absolute" and then
-    one Newton step onto the surface along the SDF gradient.
+    one step onto the surface along the field's gradient (``newton_fn``, default ``sdf_fn``: give one whose
+    gradient flows through the image features too). ``fixed_shape``: decode the whole grid with the box as a
+    mask (static shapes; the same points as the default compact path, see the module docstring).
     Returns (points (B, n, 3) scaled, relative to ``center``; sdf (B, n) scaled, from ``sdf_fn``).
     Runs without gradient, except the "gradient" step (which needs it for the points, not the weights).
     """
     if strategy not in STRATEGIES:
         raise ValueError(f"sampling strategy must be one of {STRATEGIES}, got {strategy!r}")
-    B, G = center.shape[0], grid.shape[0]
-    grid = grid.to(center)
+    B = center.shape[0]
+    grid = grid.to(center.dtype)
+    if strategy == "random":
+        points = random_grid_points(grid, center, scale, K, box, n, generator, chunk)
+        with torch.no_grad():
+            return points, sdf_fn(points / scale + center[:, None])
     with torch.no_grad():
-        inside = torch.cat([inside_box(grid[None, s:s + chunk] / scale + center[:, None], K, box)
-                            for s in range(0, G, chunk)], dim=1)  # (B, G)
-        m = min(G, max(int(inside.sum(1).max()), n))
-        order = torch.argsort((~inside).to(torch.uint8), dim=1, stable=True)[:, :m]  # inside points first
-        cand = grid[order]  # (B, m, 3)
-        valid = torch.gather(inside, 1, order)
-        sdf = torch.cat([sdf_fn(cand[:, s:s + chunk] / scale + center[:, None]) for s in range(0, m, chunk)], dim=1)
-        score = _score(sdf, strategy, generator) + _OUTSIDE * (~valid)
-        pick = torch.topk(score, n, dim=1, largest=False).indices
-        points = torch.gather(cand, 1, pick[..., None].expand(B, n, 3))
+        inside = _inside_grid(grid, center, scale, K, box, chunk)  # (B, G)
+        if fixed_shape:
+            cand, valid = grid[None], inside
+        else:
+            m = min(grid.shape[0], max(int(inside.sum(1).max()), n))
+            order = torch.argsort((~inside).to(torch.uint8), dim=1, stable=True)[:, :m]  # inside points first
+            cand, valid = grid[order], torch.gather(inside, 1, order)  # (B, m, 3), (B, m)
+        sdf = _grid_sdf(cand, center, scale, sdf_fn, chunk)
+        pick = _rank(_score(sdf, strategy), valid)[:, :n]
+        points = torch.gather(cand.expand(B, -1, -1), 1, pick[..., None].expand(B, n, 3))
         sdf = torch.gather(sdf, 1, pick)
     if strategy == "gradient":
-        points, sdf = _newton_step(points, center, scale, sdf_fn)
+        points, sdf = _newton_step(points, center, scale, newton_fn or sdf_fn)
     return points, sdf
 
 
 def _newton_step(points: torch.Tensor, center: torch.Tensor, scale: float, sdf_fn: SdfFn):
-    """Move each scaled point by -sdf * unit gradient (one projection step onto the zero level set)."""
+    """Move each scaled point by -sdf * unit gradient of ``sdf_fn`` (one projection step onto the zero level set)."""
     with torch.enable_grad():
         p = points.detach().requires_grad_(True)
         sdf = sdf_fn(p / scale + center[:, None])
@@ -115,4 +170,3 @@ def _newton_step(points: torch.Tensor, center: torch.Tensor, scale: float, sdf_f
     moved = (p - sdf[..., None] * unit).detach()
     with torch.no_grad():
         return moved, sdf_fn(moved / scale + center[:, None])
-
