@@ -5,6 +5,11 @@
 3. ``python -m hoisdf.evaluate`` on the test store, against a mean-pose baseline from the train store;
 4. a report folder: metrics.json, training_curve.png, result pictures, and a verdict line.
 
+``--ablation NAME`` (sampling, feature_augmentation, cross_field, pose_regressor) replaces steps 2-4 by one
+of the paper's ablation tables on the same stores: every variant trained ``--steps`` steps from the same seed,
+evaluated on the test store, and ``OUT/ablation-NAME/`` with table.md, table.json and ablation.png
+(:mod:`hoisdf.ablation`).
+
 Every step resumes: data and stores that exist are kept, a finished training run is not repeated.
 """
 
@@ -21,6 +26,7 @@ from hoidata.atomic import write_atomic
 from hoidata.cli import main as hoidata_main
 from hoidata.cli import non_negative_int, positive_int
 from hoidata.errors import run_cli
+from hoisdf.ablation import TABLES, run_table
 from hoisdf.evaluate import evaluate
 from hoisdf.evaluation.visualize import plot_training_curve
 from hoisdf.train import main as train_main
@@ -35,7 +41,7 @@ def beats_baseline(model: dict, baseline: dict, names=COMPARED) -> dict[str, boo
 
 
 def run(out: Path, steps: int, workers: int, seed: int, sequences: int | None, frames: int | None,
-        vis: int, extra: list[str]) -> int:
+        vis: int, extra: list[str], ablation: str | None = None) -> int:
     out = Path(out)
     t0 = time.perf_counter()
     data_args = ["toy-pipeline", "--out", str(out), "--workers", str(workers), "--seed", str(seed)]
@@ -46,6 +52,12 @@ def run(out: Path, steps: int, workers: int, seed: int, sequences: int | None, f
     mano = out / "data" / "dexycb" / "mano"
     train_store, test_store, run_dir = out / "store" / "train", out / "store" / "test", out / "run"
     t_data = time.perf_counter() - t0
+    if ablation:
+        summary = run_table(ablation, train_store, test_store, mano, out / f"ablation-{ablation}", steps, seed, extra)
+        print(f"\n{(out / f'ablation-{ablation}' / 'table.md').read_text()}")
+        print(f"wrote {out / f'ablation-{ablation}'}: table.md, table.json, ablation.png; training seconds "
+              f"{summary['train_seconds']}, total {time.perf_counter() - t0:.0f} s")
+        return 0
     if not (run_dir / CHECKPOINTS / LAST).is_file():
         argv = ["--shards", str(train_store), "--mano", str(mano), "--config", "toy", "--out", str(run_dir),
                 f"train.max_steps={steps}", f"train.seed={seed}", *extra]
@@ -90,11 +102,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sequences", type=positive_int, default=10, help="toy size: sequences per subject (see hoidata make-toy)")
     p.add_argument("--frames", type=positive_int, default=5, help="toy size: frames per sequence and camera")
     p.add_argument("--vis", type=non_negative_int, default=8, help="result pictures to write")
+    p.add_argument("--ablation", choices=sorted(TABLES), default=None,
+                   help="train and compare the variants of one of the paper's ablation tables instead")
     p.add_argument("--debug", action="store_true", help="on an error, show the traceback instead of one line")
     p.add_argument("overrides", nargs="*", metavar="section.key=value", help="training overrides")
     args = p.parse_intermixed_args(argv)  # overrides before and after other options
     return run_cli("", lambda: run(args.out, args.steps, args.workers, args.seed, args.sequences, args.frames,
-                                   args.vis, args.overrides), args.debug)
+                                   args.vis, args.overrides, args.ablation), args.debug)
 
 
 if __name__ == "__main__":
