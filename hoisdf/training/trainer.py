@@ -96,7 +96,8 @@ class Trainer:
         self.model = model
         self.loss = HOISDFLoss(config.loss, mano, m.sdf_scale, m.sdf_clamp, m.cls_dist)
         params = [p for p in model.parameters() if p.requires_grad]
-        self.optimizer = torch.optim.AdamW(params, lr=t.lr, weight_decay=t.weight_decay)
+        optimizer = {"adamw": torch.optim.AdamW, "adam": torch.optim.Adam}[t.optimizer]
+        self.optimizer = optimizer(params, lr=t.lr, weight_decay=t.weight_decay)
         self.dataset = build_dataset(list(stores), t.batch_size, t.epoch_samples or None, t.seed, m.n_hand, m.n_object,
                                      t.near, t.shuffle_buffer, training=True)
         self.loader = make_loader(self.dataset, t.workers, pin_memory=device.type == "cuda")
