@@ -20,6 +20,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from hoidata.errors import DataError
+
 METRICS = ("rr_mje", "pa_mje", "oce", "mce", "add_s")
 LABELS = {"rr_mje": "MJE", "pa_mje": "PA-MJE", "oce": "OCE", "mce": "MCE", "add_s": "ADD-S"}
 
@@ -97,30 +99,38 @@ def derive_checkpoint(run_dir: Path, overrides: tuple[str, ...], out: Path) -> P
                                                        "progress": payload.get("progress", {})})
 
 
+def train_variant(run_dir: Path, store: Path, mano: Path, config: str, steps: int, seed: int,
+                  overrides: list[str]) -> float | None:
+    """Train one variant to ``steps`` steps, resuming an interrupted run; None when it had already finished."""
+    from hoisdf.train import main as train_main
+    from hoisdf.training.checkpoint import CHECKPOINTS, LAST, load_checkpoint
+
+    resume = (run_dir / CHECKPOINTS / LAST).is_file()
+    if resume and load_checkpoint(run_dir)["progress"]["global_step"] >= steps:
+        return None
+    argv = ["--shards", str(store), "--mano", str(mano), "--config", config, "--out", str(run_dir), "--no-progress",
+            *(["--resume"] if resume else []), f"train.max_steps={steps}", f"train.seed={seed}", *overrides]
+    print(f"\n$ python -m hoisdf.train {' '.join(argv)}", flush=True)
+    start = time.perf_counter()
+    if train_main(argv):
+        raise DataError(run_dir, None, "training this ablation variant failed (its error is above)")
+    return round(time.perf_counter() - start, 1)
+
+
 def run_table(name: str, train_store: Path, test_store: Path, mano: Path, out: Path, steps: int, seed: int,
               extra: list[str], vis: int = 0, config: str = "toy") -> dict:
     """Train every distinct variant of table ``name`` (``--config config``, ``extra`` overrides, ``steps`` steps),
     evaluate every row on ``test_store``, write the table files into ``out``; returns the table's content."""
-    from hoidata.errors import DataError
     from hoisdf.evaluate import evaluate
-    from hoisdf.train import main as train_main
-    from hoisdf.training.checkpoint import CHECKPOINTS, LAST
 
     if name not in TABLES:
         raise ValueError(f"unknown ablation {name!r}; choose one of {sorted(TABLES)}")
     rows, out = TABLES[name], Path(out)
     runs, timing = training_runs(rows), {}
     for overrides, run_name in runs.items():
-        run_dir = out / "runs" / run_name
-        if (run_dir / CHECKPOINTS / LAST).is_file():
-            continue  # resumes: a finished variant is not trained again
-        argv = ["--shards", str(train_store), "--mano", str(mano), "--config", config, "--out", str(run_dir),
-                "--no-progress", f"train.max_steps={steps}", f"train.seed={seed}", *extra, *overrides]
-        print(f"\n[{name}] $ python -m hoisdf.train {' '.join(argv)}", flush=True)
-        start = time.perf_counter()
-        if train_main(argv):
-            raise DataError(run_dir, None, "training this ablation variant failed (its error is above)")
-        timing[run_name] = round(time.perf_counter() - start, 1)
+        seconds = train_variant(out / "runs" / run_name, train_store, mano, config, steps, seed, [*extra, *overrides])
+        if seconds is not None:
+            timing[run_name] = seconds
     results = []
     for row in rows:
         ckpt = out / "runs" / runs[row.train]

@@ -34,6 +34,10 @@ def test_sampling_table_trains_three_runs_and_evaluates_four_rows(tiny_store, ma
     before = (out / "runs" / "random" / "checkpoints" / "last.pt").stat().st_mtime_ns
     assert not run_table("sampling", tiny_store, tiny_store, mano_dir, out, 2, 0, SMALL)["train_seconds"]
     assert (out / "runs" / "random" / "checkpoints" / "last.pt").stat().st_mtime_ns == before
+    # a larger budget resumes every variant from its checkpoint instead of starting again
+    assert len(run_table("sampling", tiny_store, tiny_store, mano_dir, out, 3, 0, SMALL)["train_seconds"]) == 3
+    last = torch.load(out / "runs" / "random" / "checkpoints" / "last.pt", weights_only=True)
+    assert last["progress"]["global_step"] == 3
 
 
 def test_feature_augmentation_rows_run_without_cross_fields():
