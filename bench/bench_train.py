@@ -3,6 +3,7 @@
 Usage: python bench/bench_train.py [--config toy] [--store STORE] [--mano DIR] [--device cuda]
            [--batch-size B] [--warmup N] [--steps N] [--frames N] [--infer-batch B]
            [--workers 0 1 2 ...] [--loader-batch B] [--loader-batches N] [--json OUT]
+           [--compile [--compile-mode MODE] [--precision fp32|bf16]] [--skip train infer loader]
 
 Model: the paper's full-size HOISDF by default (ResNet-50, 256 px input, 600 + 200 query points, 64^3
 grid, 6 + 4 hand and 3 object transformer layers); ``--config toy`` for the small CPU model. Data: a
@@ -27,6 +28,10 @@ Measured:
    (22, the paper's, on every device), no model: time to the first batch (worker start-up) and
    samples/s after it, also per worker; then ``augment_batch`` per training batch on the device
    (training augmentation and the test-time crop).
+4. with ``--compile``: eager against ``torch.compile`` on the same weights and batches (``compile_bench.py``):
+   inference with the compact and the fixed-shape sampling path eager and the fixed-shape model compiled
+   (fullgraph; CUDA graphs on CUDA) at batch 1 and ``--infer-batch``, then training steps eager and compiled
+   (fixed-shape model) for both query-point paths. ``--skip`` leaves sections out (e.g. the loader).
 """
 
 from __future__ import annotations
@@ -39,6 +44,7 @@ import shutil
 import tempfile
 import time
 from contextlib import contextmanager, nullcontext
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -222,6 +228,49 @@ def fmt(value: float | None, spec: str) -> str:
     return format(value, spec) if value is not None else format("-", f">{spec.split('.')[0]}")
 
 
+def print_train(rows: list[dict]) -> None:
+    print("\ntraining (train_step on batches in memory; augmentation + forward + loss + backward + AdamW)")
+    print(f"{'points':>6} {'batch':>5} {'ms/step':>9} {'samples/s':>10} {'peak GiB':>9}")
+    for r in rows:
+        print(f"{r['points']:>6} {r['batch']:>5} {r['ms_per_step']:>9.0f} {r['samples_per_s']:>10.2f} "
+              f"{fmt(r['peak_gib'], '9.2f')}", flush=True)
+
+
+def run_infer(config, mano, batches: list[dict], infer_batch: int, frames: int, warmup: int,
+              device: torch.device) -> list[dict]:
+    """Section 2 on one model: both grid paths at batch 1 and ``infer_batch``."""
+    model = build_model(config.model, mano).to(device).eval()
+    inputs = test_inputs(first_samples(batches, infer_batch), config, device)
+    rows = []
+    for grid_path in ("direct", "projected"):  # the baseline grid path and the default one, same weights
+        model.project_grid = grid_path == "projected"
+        for b in sorted({1, infer_batch}):
+            rows.append({"grid_path": grid_path, **bench_infer(model, inputs, b, frames, warmup, device)})
+    print(f"\ninference (field-guided points, eval, no_grad{', bf16' if device.type == 'cuda' else ''}); paper: "
+          f"{PAPER_FPS} FPS on a TITAN RTX; grid path: direct = sample all pyramid channels per grid point, "
+          "projected = sdf_in's first layer applied to the pyramid before sampling (the default, exact)")
+    print(f"{'grid path':>9} {'batch':>5} {'frames':>6} {'frames/s':>9} {'ms/frame':>9} {'backbone':>9} "
+          f"{'sampling':>9} {'pose':>7} {'other':>7} {'peak GiB':>9}")
+    for r in rows:
+        s = r["stage_ms_per_frame"]
+        print(f"{r['grid_path']:>9} {r['batch']:>5} {r['frames']:>6} {r['frames_per_s']:>9.2f} "
+              f"{r['ms_per_frame']:>9.0f} {s['backbone']:>9.0f} {s['sampling']:>9.0f} {s['pose']:>7.0f} "
+              f"{s['other']:>7.0f} {fmt(r['peak_gib'], '9.2f')}", flush=True)
+    return rows
+
+
+def print_loader(rows: list[dict], augment: dict, loader_batch: int, loader_batches: int, device) -> None:
+    print(f"\nloader (make_loader(build_dataset), batch {loader_batch}, {loader_batches} timed batches after "
+          "the first)")
+    print(f"{'workers':>7} {'first batch s':>13} {'samples/s':>10} {'per worker':>11}")
+    for r in rows:
+        print(f"{r['workers']:>7} {r['first_batch_s']:>13.2f} {r['samples_per_s']:>10.1f} {r['per_worker']:>11.1f}")
+    b = augment["batch"]
+    print(f"augment_batch on {device}, batch {b}: training {augment['train_ms']:.1f} ms/batch "
+          f"({augment['train_ms'] / b:.1f} ms/sample), test-time crop {augment['test_ms']:.1f} ms/batch "
+          f"({augment['test_ms'] / b:.1f} ms/sample)")
+
+
 # --- main ---------------------------------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -238,7 +287,45 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--loader-batch", type=int, default=22, help="loader batch size (default 22)")
     p.add_argument("--loader-batches", type=int, default=None, help="timed loader batches (default 50 / 20)")
     p.add_argument("--json", type=Path, default=None, metavar="OUT", help="write the numbers to this file")
+    p.add_argument("--compile", action="store_true", help="also time torch.compile against eager (section 4)")
+    p.add_argument("--compile-mode", default=None, help="torch.compile mode (default reduce-overhead on CUDA)")
+    p.add_argument("--backend", default="inductor", help="torch.compile backend (eager: a quick check of the script)")
+    p.add_argument("--precision", choices=("fp32", "bf16"), default=None,
+                   help="autocast of the compile section (default bf16 on CUDA, fp32 on the CPU)")
+    p.add_argument("--skip", nargs="*", default=[], choices=("train", "infer", "loader"), help="sections to leave out")
     return p
+
+
+def bench_compile(args, config, mano, batches: list[dict], infer_batch: int, frames: int, warmup: int,
+                  steps: int, device: torch.device) -> dict:
+    """Section 4: eager vs compiled inference and training on the same weights (see compile_bench.py)."""
+    from compile_bench import (
+        compile_inference,
+        inference_rows,
+        print_rows,
+        training_rows,
+    )
+
+    precision = args.precision or ("bf16" if device.type == "cuda" else "fp32")
+    fixed = replace(config.model, fixed_shape=True)
+    torch.manual_seed(0)
+    compact = build_model(config.model, mano).to(device).eval()
+    eager_fixed = build_model(fixed, mano).to(device).eval()
+    eager_fixed.load_state_dict(compact.state_dict())
+    inputs = test_inputs(first_samples(batches, infer_batch), config, device)
+    infer_rows = [] if "infer" in args.skip else inference_rows(
+        compact, eager_fixed, compile_inference(eager_fixed, device, args.compile_mode, args.backend), inputs,
+        sorted({1, infer_batch}), frames, warmup, device, precision)
+    del compact, eager_fixed, inputs
+    generator = torch.Generator().manual_seed(0)
+    train_batches = [augment_batch(to_device(b, device), config.augment, generator, train=True) for b in batches]
+    train_rows = [] if "train" in args.skip else training_rows(
+        lambda: build_model(fixed, mano), mano, config.loss, train_batches, warmup, steps, device, precision,
+        args.compile_mode, args.backend)
+    print(f"\ncompiled vs eager ({precision}, torch {torch.__version__}; inference: fixed = whole grid, boxes as "
+          "masks, compiled with fullgraph=True; training: fixed-shape model, graph breaks allowed)")
+    print_rows(infer_rows, train_rows)
+    return {"precision": precision, "infer": infer_rows, "train": train_rows}
 
 
 def main() -> None:
@@ -272,52 +359,25 @@ def main() -> None:
         trainer = Trainer(config, [StoreSpec(store)], mano, work / "run", device)
         torch.manual_seed(0)
         batches = list(trainer.loader)[:n_batches]
-        train_rows = [bench_train(trainer, batches, points, warmup, steps) for points in ("gt", "field")]
-        print("\ntraining (train_step on batches in memory; augmentation + forward + loss + backward + AdamW)")
-        print(f"{'points':>6} {'batch':>5} {'ms/step':>9} {'samples/s':>10} {'peak GiB':>9}")
-        for r in train_rows:
-            print(f"{r['points']:>6} {r['batch']:>5} {r['ms_per_step']:>9.0f} {r['samples_per_s']:>10.2f} "
-                  f"{fmt(r['peak_gib'], '9.2f')}", flush=True)
+        result = {"device": str(device), "cpu_cores": cores, "config": args.config or "default",
+                  "model": config.as_dict()["model"], "store": str(store) if args.store else "toy (temporary)",
+                  "paper_fps": PAPER_FPS}
+        if "train" not in args.skip:
+            result["train"] = [bench_train(trainer, batches, points, warmup, steps) for points in ("gt", "field")]
+            print_train(result["train"])
         del trainer
         if cuda:
             torch.cuda.empty_cache()
-
-        model = build_model(config.model, mano).to(device).eval()
-        inputs = test_inputs(first_samples(batches, infer_batch), config, device)
-        infer_rows = []
-        for grid_path in ("direct", "projected"):  # the baseline grid path and the default one, same weights
-            model.project_grid = grid_path == "projected"
-            for b in sorted({1, infer_batch}):
-                infer_rows.append({"grid_path": grid_path, **bench_infer(model, inputs, b, frames, warmup, device)})
-        print(f"\ninference (field-guided points, eval, no_grad{', bf16' if cuda else ''}); paper: {PAPER_FPS} FPS "
-              "on a TITAN RTX; grid path: direct = sample all pyramid channels per grid point, projected = "
-              "sdf_in's first layer applied to the pyramid before sampling (the default, exact)")
-        print(f"{'grid path':>9} {'batch':>5} {'frames':>6} {'frames/s':>9} {'ms/frame':>9} {'backbone':>9} "
-              f"{'sampling':>9} {'pose':>7} {'other':>7} {'peak GiB':>9}")
-        for r in infer_rows:
-            s = r["stage_ms_per_frame"]
-            print(f"{r['grid_path']:>9} {r['batch']:>5} {r['frames']:>6} {r['frames_per_s']:>9.2f} "
-                  f"{r['ms_per_frame']:>9.0f} {s['backbone']:>9.0f} {s['sampling']:>9.0f} {s['pose']:>7.0f} "
-                  f"{s['other']:>7.0f} {fmt(r['peak_gib'], '9.2f')}", flush=True)
-        del model, inputs
-
-        loader_rows = [bench_loader(store, config, args.loader_batch, w, loader_batches, device) for w in workers]
-        augment = bench_augment(first_samples(batches, batch), config, device, reps=pick(None, 50, 10))
-        print(f"\nloader (make_loader(build_dataset), batch {args.loader_batch}, {loader_batches} timed batches after "
-              "the first)")
-        print(f"{'workers':>7} {'first batch s':>13} {'samples/s':>10} {'per worker':>11}")
-        for r in loader_rows:
-            print(f"{r['workers']:>7} {r['first_batch_s']:>13.2f} {r['samples_per_s']:>10.1f} {r['per_worker']:>11.1f}")
-        b = augment["batch"]
-        print(f"augment_batch on {device}, batch {b}: training {augment['train_ms']:.1f} ms/batch "
-              f"({augment['train_ms'] / b:.1f} ms/sample), test-time crop {augment['test_ms']:.1f} ms/batch "
-              f"({augment['test_ms'] / b:.1f} ms/sample)")
-
+        if "infer" not in args.skip:
+            result["infer"] = run_infer(config, mano, batches, infer_batch, frames, warmup, device)
+        if "loader" not in args.skip:
+            result["loader"] = [bench_loader(store, config, args.loader_batch, w, loader_batches, device)
+                                for w in workers]
+            result["augment"] = bench_augment(first_samples(batches, batch), config, device, reps=pick(None, 50, 10))
+            print_loader(result["loader"], result["augment"], args.loader_batch, loader_batches, device)
+        if args.compile:
+            result["compile"] = bench_compile(args, config, mano, batches, infer_batch, frames, warmup, steps, device)
         if args.json:
-            result = {"device": str(device), "cpu_cores": cores, "config": args.config or "default",
-                      "model": config.as_dict()["model"], "store": str(store) if args.store else "toy (temporary)",
-                      "train": train_rows, "infer": infer_rows, "paper_fps": PAPER_FPS, "loader": loader_rows,
-                      "augment": augment}
             args.json.write_text(json.dumps(result, indent=2))
             print(f"wrote {args.json}")
     finally:

@@ -91,7 +91,12 @@ def derive_checkpoint(run_dir: Path, overrides: tuple[str, ...], out: Path) -> P
     ``overrides`` applied: the same network evaluated with another inference setting."""
     from hoidata.pipeline.settings import apply_overrides
     from hoisdf.config import config_from_dict
-    from hoisdf.training.checkpoint import CHECKPOINTS, LAST, load_checkpoint, save_checkpoint
+    from hoisdf.training.checkpoint import (
+        CHECKPOINTS,
+        LAST,
+        load_checkpoint,
+        save_checkpoint,
+    )
 
     payload = load_checkpoint(run_dir)
     config = config_from_dict(apply_overrides(payload["config"], list(overrides), run_dir / "config.json"))
@@ -158,9 +163,9 @@ def _fmt(value) -> str:
 def markdown_table(summary: dict) -> str:
     """The rows with this run's errors (mm) beside the paper's, and the baseline's."""
     head = " | ".join(f"{LABELS[m]} ours / paper" for m in METRICS)
-    lines = [f"{summary['table']} ablation: {summary['steps_per_variant']} steps per variant, seed {summary['seed']}; "
-             "ours = toy test store, paper = DexYCB test (mm)", "", f"| variant | {head} |",
-             "|---|" + "---|" * len(METRICS)]
+    title = (f"{summary['table']} ablation: {summary['steps_per_variant']} steps per variant, seed {summary['seed']}; "
+             "ours = toy test store, paper = DexYCB test (mm)")
+    lines = [title, "", f"| variant | {head} |", "|---|" + "---|" * len(METRICS)]
     for r in summary["rows"]:
         cells = " | ".join(f"{_fmt(r['ours'][m])} / {_fmt(r['paper'].get(m))}" for m in METRICS)
         lines.append(f"| {r['label']} | {cells} |")

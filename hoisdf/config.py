@@ -78,8 +78,9 @@ RECIPES: dict[str, dict] = {
     # upstream's released code (main/train.py, main/config.py of amathislab/HOISDF): what its checkpoints used
     "released": {"optimizer": "adamw", "weight_decay": 0.01, "lr": 1e-4, "lr_drop": 9, "lr_gamma": 0.7,
                  "epochs": 70, "batch_size": 22, "point_sampling_epoch": 40},
-    # the paper's text (Sec. 4.1): Adam, mini-batch 32, lr 1e-4 x0.7 every 5 epochs, "about 40 epochs"; the
-    # paper gives no weight decay (Adam's default 0) and no field-sampling epoch: 23 keeps upstream's 40/70 ratio
+    # the paper's text ("Implementation and Training Details"): Adam, mini-batch 32, lr 1e-4 x0.7 every 5 epochs,
+    # "about 40 epochs"; it gives no weight decay (Adam's default 0) and no field-sampling epoch: 23 keeps
+    # upstream's 40/70 ratio (our choice)
     "paper_text": {"optimizer": "adam", "weight_decay": 0.0, "lr": 1e-4, "lr_drop": 5, "lr_gamma": 0.7,
                    "epochs": 40, "batch_size": 32, "point_sampling_epoch": 23},
 }

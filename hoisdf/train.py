@@ -104,7 +104,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--shards", nargs="+", required=True, metavar="STORE[:WEIGHT]", help="training stores")
     p.add_argument("--val-shards", nargs="*", default=[], metavar="STORE", help="validation stores")
     p.add_argument("--mano", required=True, type=Path, help="folder with MANO_RIGHT.pkl")
-    p.add_argument("--config", default=None, help="pipelines/<name>.toml or a path (default: the paper's settings)")
+    p.add_argument("--config", default=None, help="pipelines/<name>.toml or a path (default: upstream's released settings)")
     p.add_argument("--out", type=Path, default=None, help="run folder (default runs/<config>)")
     p.add_argument("--resume", action="store_true", help="continue the run folder's last checkpoint")
     p.add_argument("--device", default=None, help="cpu, cuda, cuda:1 (default: cuda when present)")

@@ -11,7 +11,13 @@ from hoisdf.data import StoreSpec, build_dataset
 from hoisdf.data.augment import augment_batch
 from hoisdf.model import build_model
 from hoisdf.model.encoding import pixel_aligned_features
-from hoisdf.model.sampling import field_guided_points, grid_points, inside_box, inside_rows, random_grid_points
+from hoisdf.model.sampling import (
+    field_guided_points,
+    grid_points,
+    inside_box,
+    inside_rows,
+    random_grid_points,
+)
 
 SCALE = 3.1
 TINY = ["model.depth=18", "model.image_size=64", "model.d_model=64", "model.ff=128", "model.hand_layers=2",
@@ -56,7 +62,7 @@ def test_ties_go_to_the_lower_grid_index():
     """|SDF| clamped to 0.15 everywhere: the first 5 inside points in grid order are taken, on both paths."""
     K, center, box, _ = _scene()
     grid = grid_points(12)
-    flat = lambda p: torch.full(p.shape[:2], 0.15)  # noqa: E731
+    flat = lambda p: torch.full(p.shape[:2], 0.15)
     expected_idx = torch.nonzero(inside_box(grid[None] / SCALE + center[:1, None], K[:1], box[:1])[0])[:5, 0]
     for fixed in (False, True):
         points, _ = field_guided_points(grid, center[:1], SCALE, K[:1], box[:1], flat, 5, fixed_shape=fixed)

@@ -34,7 +34,13 @@ from hoisdf.model.encoding import (
 from hoisdf.model.ik import solve_ik
 from hoisdf.model.layers import MLP
 from hoisdf.model.precision import full
-from hoisdf.model.sampling import field_guided_points, grid_points, inside_rows, jitter, random_grid_points
+from hoisdf.model.sampling import (
+    field_guided_points,
+    grid_points,
+    inside_rows,
+    jitter,
+    random_grid_points,
+)
 from hoisdf.model.sdf_decoder import SDFDecoder
 from hoisdf.model.transformer import (
     QueryDecoder,
