@@ -97,3 +97,23 @@ def test_fp32_and_bf16_evaluation_differ_only_in_the_learned_layers(model_and_ba
 def test_precision_setting_is_checked():
     with pytest.raises(ValueError, match="precision must be one of"):
         autocast("cpu", "fp16")
+
+
+def test_evaluate_precision_switch_is_recorded_in_metrics(tiny_store, mano_dir, tmp_path):
+    import json
+
+    from hoidata.hand import load_mano
+    from hoisdf.evaluate import evaluate
+    from hoisdf.training.checkpoint import save_checkpoint
+
+    cfg = load_train_config(None, TINY)
+    torch.manual_seed(0)
+    model = build_model(cfg.model, load_mano(mano_dir, side="right"))
+    save_checkpoint(tmp_path / "run" / "checkpoints" / "last.pt",
+                    {"model": model.state_dict(), "config": cfg.as_dict(), "progress": {}})
+    for precision, learned in (("fp32", "float32"), ("bf16", "bfloat16")):
+        evaluate(tmp_path / "run", [tiny_store], mano_dir, tmp_path / precision, batch_size=4, limit=4,
+                 plausibility=0, progress=False, workers=0, precision=precision)
+        record = json.loads((tmp_path / precision / "metrics.json").read_text())["precision"]
+        assert record["mode"] == precision
+        assert record["dtypes"]["stage:backbone"] == learned and record["dtypes"]["output:joints"] == "float32"
