@@ -1,7 +1,8 @@
 """``python -m hoisdf.evaluate --ckpt RUN --shards STORE [STORE ...] --mano DIR [--out DIR] [--vis N] ...``
 
 Runs a trained HOISDF on stores (batched, no gradients; fp32, or bf16 autocast with ``--precision bf16``), scores
-it with the published protocols (:mod:`hoisdf.evaluation.metrics`), prints the paper's table layout beside a mean-pose baseline, and writes
+it with the published protocols (:mod:`hoisdf.evaluation.metrics`), prints the paper's table layout beside a
+mean-pose baseline, and writes
 ``OUT/metrics.json``, ``OUT/per_object.csv``, per DexYCB split the HPE result file ``dexycb_hpe_<split>.txt`` with
 the toolkit's sample ids (``dexycb_hpe_<split>_subset.txt`` when it lacks some of the split's valid samples, which
 the toolkit's evaluator refuses), with ``--ho3d-order evaluation.txt`` HO-3D's ``pred.json`` / ``pred.zip``, and
