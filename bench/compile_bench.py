@@ -1,4 +1,4 @@
-"""Eager against ``torch.compile`` for HOISDF, side by side: shared by ``bench_train.py --compile`` and ``bench_gpu.py``.
+"""Eager against ``torch.compile`` for HOISDF, side by side (shared by ``bench_train.py --compile``, ``bench_gpu.py``).
 
 Needs only torch and the model code (no stores, no loader), so it also runs where the data packages are not
 installed. Inputs are batches already on the device: training batches after the training augmentation, test

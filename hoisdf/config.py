@@ -170,7 +170,8 @@ def with_recipe(values: dict, path: Path) -> dict:
         raise DataError(path, "train.recipe", f"unknown recipe {recipe!r}; expected one of {sorted(RECIPES)}")
     merged = {**RECIPES[recipe], **values}
     if merged["optimizer"] not in OPTIMIZERS:
-        raise DataError(path, "train.optimizer", f"unknown optimizer {merged['optimizer']!r}; expected one of {OPTIMIZERS}")
+        raise DataError(path, "train.optimizer",
+                        f"unknown optimizer {merged['optimizer']!r}; expected one of {OPTIMIZERS}")
     return merged
 
 

@@ -73,8 +73,9 @@ class HOISDF(nn.Module):
                  channels_last=False, image_size=256, sdf_scale=3.1, sdf_clamp=0.15, n_freq=5, d_model=256, heads=4,
                  ff=1024, dropout=0.1, hand_layers=6, decoder_layers=4, object_layers=3, sdf_features=256,
                  sdf_hidden=512, sdf_dropout=0.2, token_hidden=(1024, 512, 256), n_hand=600, n_object=200,
-                 grid_resolution=64, sheared_grid=False, fixed_shape=False, sampling="absolute", feature_augmentation="density",
-                 cross_field="sdf", pose_regressor="mano", density_sign="paper", beta_init=0.1, beta_min=2e-3,
+                 grid_resolution=64, sheared_grid=False, fixed_shape=False, sampling="absolute",
+                 feature_augmentation="density", cross_field="sdf", pose_regressor="mano", density_sign="paper",
+                 beta_init=0.1, beta_min=2e-3,
                  object_rotation="chordal", test_boxes="gt", mask_threshold=0.5, chunk=32768, cls_dist=0.04):
         super().__init__()
         for name, value in (("sampling", sampling), ("feature_augmentation", feature_augmentation),
@@ -194,8 +195,9 @@ class HOISDF(nn.Module):
         """Scaled ground-truth guided points (the "gt" path) of the sampling variant: near-surface rows
         ("absolute", "gradient"), rows inside the meshes ("signed"), random grid points in the box ("random")."""
         if self.sampling == "random":
-            return (random_grid_points(self.grid, root, self.scale, K, boxes[0], self.n_hand, generator, self.chunk),
-                    random_grid_points(self.grid, center, self.scale, K, boxes[1], self.n_object, generator, self.chunk))
+            grid, s, c = self.grid, self.scale, self.chunk
+            return (random_grid_points(grid, root, s, K, boxes[0], self.n_hand, generator, c),
+                    random_grid_points(grid, center, s, K, boxes[1], self.n_object, generator, c))
         if self.sampling == "signed":
             rows = {w: (torch.cat([batch[f"{w}_points"], batch[f"{w}_near_points"]], 1),
                         torch.cat([batch[f"{w}_sdf"], batch[f"{w}_near_sdf"]], 1)) for w in ("hand", "obj")}
