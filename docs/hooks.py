@@ -23,17 +23,23 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _field_comments(cls) -> dict[str, str]:
-    """{field name: the ``# comment`` on its line} from the class source."""
+    """{field name: the ``# comment`` on its line, else a whole-line comment right above it} from the source."""
     source = inspect.getsource(cls)
     comments, line_field = {}, {}
     for lineno, line in enumerate(source.splitlines(), 1):
         head = line.strip().split(":", 1)[0]
         if head.isidentifier() and ":" in line and not line.strip().startswith(("def ", "class ", "#", '"')):
             line_field[lineno] = head
+    above = {}
     for tok in tokenize.generate_tokens(io.StringIO(source).readline):
-        if tok.type == tokenize.COMMENT and tok.start[0] in line_field:
-            comments[line_field[tok.start[0]]] = tok.string.lstrip("#").strip()
-    return comments
+        if tok.type != tokenize.COMMENT:
+            continue
+        text = tok.string.lstrip("#").strip()
+        if tok.start[0] in line_field:
+            comments[line_field[tok.start[0]]] = text
+        elif tok.start[0] + 1 in line_field and tok.line.strip().startswith("#"):
+            above[line_field[tok.start[0] + 1]] = text
+    return {**above, **comments}
 
 
 def _default(f: dataclasses.Field) -> str:

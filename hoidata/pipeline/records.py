@@ -30,15 +30,15 @@ from hoidata.geometry.mirror import (
 class RecordSettings:
     """Per-record settings (``[record]`` in ``pipelines/<name>.toml``)."""
 
-    crop_size: int = 512
-    context: float = crop_ops.DEFAULT_CONTEXT
-    n_hand: int = 4096
-    n_object: int = 2048
-    uniform_fraction: float = 0.1
+    crop_size: int = 512  # px: side of the stored square crop (img.jpg; masks and heatmap at half of it)
+    context: float = crop_ops.DEFAULT_CONTEXT  # stored crop / hand-object box side: room for jitter, zoom, rotation
+    n_hand: int = 4096  # SDF samples per record around the hand surface (sdf.npy rows)
+    n_object: int = 2048  # SDF samples per record around the object surface
+    uniform_fraction: float = 0.1  # fraction of each count drawn uniformly in the cube instead of near the surface
     cube: float = 0.64  # metres: side of the uniform-sample cube around the hand root
-    sigmas: tuple[float, float] = (0.010, 0.003)
-    part_radius: float = 0.05
-    heatmap_sigma: float = schema.HEATMAP_SIGMA
+    sigmas: tuple[float, float] = (0.010, 0.003)  # metres: std of the two near-surface Gaussian offsets
+    part_radius: float = 0.05  # metres: samples farther than this from the hand get no part label (-1)
+    heatmap_sigma: float = schema.HEATMAP_SIGMA  # px (at the heatmap's resolution): Gaussian of each joint in hm.png
     sdf_backend: str = "bvh"  # hoidata.geometry.sdf.signed_distance backend: "bvh", or "igl" (the previous path)
     LIMITS: ClassVar[dict] = {"crop_size": (">= 32", "<= 4096"), "context": ("> 0",), "n_hand": (">= 1",),
                               "n_object": (">= 1",), "uniform_fraction": (">= 0", "<= 1"), "cube": ("> 0",),

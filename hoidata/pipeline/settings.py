@@ -35,12 +35,12 @@ def pipelines_dir() -> Path:
 class DatasetConfig:
     name: str = "dexycb"  # reader: 'dexycb' | 'ho3d'
     setting: str = "dexycb"  # a name for the frame selection (recorded)
-    setup: str = "s0"
-    splits: tuple[str, ...] = ("train", "test")
-    sides: tuple[str, ...] = ("right",)
-    frame_stride: int = 1
+    setup: str = "s0"  # DexYCB toolkit setup: s0 (seen), s1 (unseen subjects), s2 (unseen views), s3 (unseen objects)
+    splits: tuple[str, ...] = ("train", "test")  # splits to build (DexYCB: train/val/test; HO-3D: train/evaluation)
+    sides: tuple[str, ...] = ("right",)  # hands to keep: 'right', 'left' (left hands are mirrored to right ones)
+    frame_stride: int = 1  # keep every n-th frame of each camera (DexYCB's papers use 5)
     proximity_mm: float = -1.0  # negative: no proximity filter
-    proximity_splits: tuple[str, ...] = ("train", "val", "test")
+    proximity_splits: tuple[str, ...] = ("train", "val", "test")  # splits on which the proximity filter applies
     complete_subjects: bool = True  # DexYCB: require 100 sequences per subject (see DexYCBSetting)
     fix_left_shapedirs: bool = False  # DexYCB: its labels use MANO_LEFT without the shapedirs fix
     frame_list: str = ""  # DexYCB: a JSON list of toolkit sample ids (gSDF's format) to build exactly; one split
@@ -64,7 +64,7 @@ class DatasetConfig:
 
 @dataclass(frozen=True)
 class StoreConfig:
-    records_per_shard: int = 256
+    records_per_shard: int = 256  # records per shard-%06d.tar (the unit of parallel work and of resume)
     LIMITS: ClassVar[dict] = {"records_per_shard": (">= 1",)}
 
 

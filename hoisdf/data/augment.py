@@ -39,10 +39,10 @@ class AugmentSettings:
     context: float = 2.0  # the store's crop context: the network crop is the central S_store / context square
     center_jitter: float = 0.1  # centre + jitter * side * U(-1, 1) per axis
     scale_sigma: float = 0.2  # side * clip(N(1, sigma), scale_min, scale_max)
-    scale_min: float = 0.8
-    scale_max: float = 1.2
+    scale_min: float = 0.8  # lower clip of the crop-side scale factor
+    scale_max: float = 1.2  # upper clip of the crop-side scale factor
     rotation: str = "dexycb"  # "dexycb": p=rot_prob, clip(N(0,1), -2, 2) * 30 deg; "uniform": U(-pi, pi); "none"
-    rot_prob: float = 0.6
+    rot_prob: float = 0.6  # probability of an in-plane rotation (rotation = dexycb)
     color: bool = True  # brightness, contrast, saturation U(0.5, 1.5), hue shift U(-0.15, 0.15) of a turn
     blur_max: float = 0.5  # Gaussian blur sigma U(0, blur_max), output pixels (0 disables)
     heatmap_sigma: float = 1.25  # px at the R // 2 resolution

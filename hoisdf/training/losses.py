@@ -22,18 +22,18 @@ from hoisdf.model.rotation import axis_angle_to_matrix, matrix_to_axis_angle
 
 @dataclass(frozen=True)
 class LossWeights:
-    sdf_hand: float = 50.0
-    sdf_obj: float = 25.0
+    sdf_hand: float = 50.0  # L1 of clamped hand SDF values (scaled units)
+    sdf_obj: float = 25.0  # L1 of clamped object SDF values (scaled units)
     heatmap: float = 1e-3  # on a 0..255 heatmap, as the reference
-    hand_seg: float = 1.0
-    obj_seg: float = 1.0
+    hand_seg: float = 1.0  # BCE of the hand mask logits
+    obj_seg: float = 1.0  # BCE of the object mask logits
     joint_vote: float = 0.1  # per-point votes (mm, SmoothL1) of the points within cls_dist of a joint
-    joint_cls: float = 1.0
+    joint_cls: float = 1.0  # BCE of which joint's neighbourhood (cls_dist) a hand query point lies in
     joint_all: float = 0.1  # softmax-aggregated joints (mm, SmoothL1)
     mano_verts: float = 1e4  # MSE, metres
-    mano_joints: float = 1e4
+    mano_joints: float = 1e4  # MSE of the MANO joints, metres
     mano_pose: float = 10.0  # MSE of the 16 rotation matrices
-    mano_shape: float = 0.1
+    mano_shape: float = 0.1  # MSE of the MANO betas
     shape_reg: float = 1e-6  # IK variant: betas towards 0
     obj_rot: float = 0.7  # SmoothL1 of per-point axis-angles
     obj_trans: float = 100.0  # SmoothL1 of per-point translations, metres
