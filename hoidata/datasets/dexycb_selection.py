@@ -107,7 +107,8 @@ def count_warnings(expected: dict, counts: dict, setting: str, source: str) -> l
     Args:
         expected: {split: frames} as the TOML states it (``[dataset.expected_frames]``).
         counts: {split: frames} this build selected.
-        setting, source: the setting's name and its TOML (named in the line).
+        setting: the setting's name (named in the line).
+        source: its TOML file (named in the line).
     """
     lines = []
     for split, want in expected.items():

@@ -147,11 +147,15 @@ def export_dataset(fmt: str, cfg: BuildConfig, root: Path, mano_dir: Path, model
     Args:
         fmt: 'handoccnet' or 'gsdf'.
         cfg: the pipeline settings (its ``[dataset]`` selects the frames; ``[record]`` is not used).
-        root, mano_dir, models_dir: the dataset, MANO and YCB model folders.
+        root: the dataset folder.
+        mano_dir: the MANO folder (MANO_RIGHT.pkl, MANO_LEFT.pkl).
+        models_dir: the YCB models folder.
         out: the folder the consumer's loader reads (see docs/other-codebases.md).
         splits: the splits to export (default: the format's, see :func:`default_splits`).
         store: gsdf: a built store whose SDF rows are re-used for the frames it holds unmirrored.
-        workers, part, chunk_size: parallelism, ``--part i/N`` and frames per unit of work.
+        workers: worker processes.
+        part: ``(i, N)`` of ``--part i/N``: this run does the i-th of N equal slices of the work.
+        chunk_size: frames per unit of work (and of resume).
     """
     from hoidata.pipeline.runner import run_shards
 

@@ -141,11 +141,14 @@ def frame_files(xyz_hand, xyz_obj, dist_hand_pts, dist_obj_pts, hand_lab_hand_pt
     """{'sdf_hand': arrays, 'sdf_obj': arrays, 'norm': arrays} of one frame.
 
     Args:
-        xyz_hand, xyz_obj: (Nh, 3) and (No, 3) query points of the two files, camera frame, metres.
+        xyz_hand: (Nh, 3) query points of the hand file, camera frame, metres.
+        xyz_obj: (No, 3) query points of the object file, likewise.
         dist_hand_pts: (2, Nh) signed distances of the hand file's points to (hand, object), metres.
         dist_obj_pts: (2, No) the same for the object file's points.
-        hand_lab_hand_pts, hand_lab_obj_pts: (Nh, 4) and (No, 4) AlignSDF labels of the closest hand face.
-        offset, scale: the frame's normalisation (:func:`normalisation`).
+        hand_lab_hand_pts: (Nh, 4) AlignSDF labels of the closest hand face, hand file's points.
+        hand_lab_obj_pts: (No, 4) the same for the object file's points.
+        offset: (3,) the frame's normalisation offset (:func:`normalisation`).
+        scale: the frame's normalisation scale.
     """
     xh, dh = to_normalised(xyz_hand, dist_hand_pts, offset, scale)
     xo, do = to_normalised(xyz_obj, dist_obj_pts, offset, scale)

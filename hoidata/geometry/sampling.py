@@ -98,11 +98,14 @@ def sample_query_points(hand_vertices, hand_faces, obj_vertices, obj_faces, hand
     """SDF query points of one frame: hand set, then object set, then uniform set.
 
     Args:
-        hand_vertices, hand_faces: closed hand mesh (V_h, 3) metres, (F_h, 3).
-        obj_vertices, obj_faces: object mesh (V_o, 3) metres, (F_o, 3), same frame as the hand.
+        hand_vertices: (V_h, 3) vertices of the closed hand mesh, metres.
+        hand_faces: (F_h, 3) its triangles.
+        obj_vertices: (V_o, 3) object mesh vertices, metres, same frame as the hand.
+        obj_faces: (F_o, 3) its triangles.
         hand_root: (3,) wrist joint, metres: the centre of the uniform cube.
         rng: the only source of randomness; the same generator state gives the same points.
-        n_hand, n_object: nominal set sizes before the uniform set takes its share.
+        n_hand: nominal hand set size before the uniform set takes its share.
+        n_object: nominal object set size, likewise.
         uniform_fraction: fraction of n_hand + n_object drawn uniformly in the cube.
         cube: edge length (m) of the axis-aligned cube for the uniform set.
         sigmas: Gaussian offset standard deviations (m, per axis) of the surface sets.
@@ -132,9 +135,11 @@ def compute_sdf_samples(points, hand_vertices, hand_faces, hand_face_parts, obj_
 
     Args:
         points: (N, 3) metres.
-        hand_vertices, hand_faces: the closed hand mesh, (V_h, 3) metres and (F_h, 3).
+        hand_vertices: (V_h, 3) vertices of the closed hand mesh, metres.
+        hand_faces: (F_h, 3) its triangles.
         hand_face_parts: (F_h,) integer part label (0-15, MANO joint order) of each hand face.
-        obj_vertices, obj_faces: object mesh (V_o, 3) metres, (F_o, 3).
+        obj_vertices: (V_o, 3) object mesh vertices, metres.
+        obj_faces: (F_o, 3) its triangles.
         obj_watertight: the object's repair report says watertight (pseudonormal sign); if False,
             the sign comes from the generalized winding number, which tolerates holes.
         part_radius: points farther than this (m) from the hand surface get no part label.

@@ -161,7 +161,8 @@ def slide_to_gap(collision: HandObjectCollision, hand, start: np.ndarray, direct
         hand: fcl object of the hand mesh (see ``HandObjectCollision.hand_object``).
         start: (3,) translation of the hand mesh at which it is clear of the object, metres.
         direction: (3,) unit direction of travel.
-        gap, travel: target clearance and the longest slide, metres.
+        gap: target clearance, metres.
+        travel: the longest slide, metres.
 
     Returns:
         The distance slid (m), or None if the hand passes the object or starts in collision.

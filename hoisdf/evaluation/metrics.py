@@ -62,7 +62,8 @@ def procrustes_align(pred, gt, scale: bool = True, reflection: bool = True) -> n
     """Align each predicted point set onto its GT by a similarity (or rigid) transform.
 
     Args:
-        pred, gt: (N, K, 3) or (K, 3) corresponding points (any unit; the evaluators' 1e-8 is in that unit).
+        pred: (N, K, 3) or (K, 3) points (any unit; the evaluators' 1e-8 is in that unit).
+        gt: the corresponding points, same shape and unit.
         scale: True for a similarity (rotation, translation, scale), False for a rigid transform.
         reflection: True (the official definition, ``align_w_scale``): R = U V^T from the SVD of
             gt_c^T pred_c, an improper rotation when that fits better; scale = sum of the singular values over

@@ -67,7 +67,8 @@ def ho3d_challenge_scores(pred_xyz, pred_verts, gt_xyz, gt_verts) -> dict[str, f
     """The 14 ``scores.txt`` values of predictions against ground truth, all in HO-3D's convention.
 
     Args:
-        pred_xyz, gt_xyz: (N, 21, 3) metres, HO-3D joint order (the frame does not matter, both must share it).
+        pred_xyz: (N, 21, 3) metres, HO-3D joint order (the frame does not matter, both must share it).
+        gt_xyz: (N, 21, 3) the ground truth, likewise.
         pred_verts: (N, V, 3); V = 778 (the GT's count) for the mesh scores, V = 0 when no mesh is predicted
             (the mesh scores are then eval.py's -100 / -1 and the F-scores 0).
         gt_verts: (N, 778, 3).

@@ -29,7 +29,8 @@ def penetration_depth(hand_verts, obj_verts, obj_faces, obj_watertight: bool = T
 
     Args:
         hand_verts: (V, 3) hand vertices, metres.
-        obj_verts, obj_faces: (W, 3) posed object vertices (metres) and (F, 3) faces.
+        obj_verts: (W, 3) posed object vertices, metres.
+        obj_faces: (F, 3) its faces.
         obj_watertight: False for a mesh with holes (sign from the winding number instead).
     """
     sdf = _object_sdf(hand_verts, obj_verts, obj_faces, obj_watertight)
@@ -58,8 +59,10 @@ def intersection_volume(hand_v, hand_f, obj_v, obj_f, voxel: float = VOXEL, chun
     :func:`penetration_depth` alongside.
 
     Args:
-        hand_v, hand_f: (V, 3) closed hand mesh vertices (metres) and (F, 3) faces.
-        obj_v, obj_f: (W, 3) posed object vertices (metres) and (G, 3) faces.
+        hand_v: (V, 3) closed hand mesh vertices, metres.
+        hand_f: (F, 3) its faces.
+        obj_v: (W, 3) posed object vertices, metres.
+        obj_f: (G, 3) its faces.
         voxel: cube edge, metres (> 0).
         chunk: how many cube centres to test at once (bounds memory).
     """
