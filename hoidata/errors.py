@@ -20,8 +20,9 @@ class DataError(ValueError):
     DataErrors survive pickling (worker processes send them to the parent as they are).
     """
 
-    def __init__(self, path: str | os.PathLike | None, field: str | None, problem: str):
-        self.path = None if path is None else os.fspath(path)
+    def __init__(self, path: str | os.PathLike | object | None, field: str | None, problem: str):
+        # a path, or what names a remote file (a RemoteFile prints its URL); never parsed here
+        self.path = None if path is None else os.fspath(path) if isinstance(path, (str, os.PathLike)) else str(path)
         self.field = field
         self.problem = problem
         parts = [p for p in (self.path, None if field is None else repr(field)) if p]

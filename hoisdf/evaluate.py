@@ -30,7 +30,7 @@ from hoidata.atomic import write_atomic
 from hoidata.cli import non_negative_int, positive_int
 from hoidata.errors import DataError, run_cli
 from hoidata.schema import FULL
-from hoidata.store import read_index, resolve_store
+from hoidata.store import RemoteStore, read_index, resolve_store
 from hoisdf.evaluation import metrics as M
 from hoisdf.evaluation.inference import infer, load_for_eval, resolve_device, run_folder
 from hoisdf.evaluation.official import format_ho3d_scores
@@ -61,7 +61,8 @@ def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=No
     (plus ``table``, the printed table).
 
     Args:
-        run: run folder or checkpoint file. stores: store folders. mano_dir: MANO folder.
+        run: run folder or checkpoint file. stores: store folders or URLs (hoidata.store.resolve_store). mano_dir:
+            MANO folder.
         out_dir: default ``RUN/eval-<store name>``. device: default CUDA when present.
         vis: pictures of the first ``vis`` samples. limit: evaluate only the first ``limit`` samples.
         boxes: override the model's ``test_boxes`` ("gt" | "predicted").
@@ -74,7 +75,7 @@ def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=No
     """
     from hoidata.hand import load_mano
 
-    stores = [resolve_store(s) for s in ([stores] if isinstance(stores, (str, Path)) else stores)]
+    stores = [resolve_store(s) for s in ([stores] if isinstance(stores, (str, Path, RemoteStore)) else stores)]
     if boxes not in (None, "gt", "predicted"):
         raise ValueError(f"boxes must be 'gt' or 'predicted', got {boxes!r}")
     if ho3d_gt is not None and ho3d_order is None:
@@ -96,7 +97,7 @@ def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=No
     per_sample = score(col.get("joints"), col.get("gt_joints"), col.get("verts"), col.get("gt_verts"),
                        col.get("obj_pose"), col.get("gt_obj_pose"), obj_verts, obj_valid)
     summary = M.summarize(per_sample, names)
-    base_src = Path(baseline_store) if baseline_store else stores[0]
+    base_src = resolve_store(baseline_store) if baseline_store else stores[0]
     base_index = indexes.get(base_src) or read_index(base_src)
     base_summary = None
     if (base_index.labels["kind"] == FULL).any():
@@ -131,7 +132,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m hoisdf.evaluate", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--ckpt", required=True, type=Path, help="run folder (its checkpoints/last.pt) or a .pt file")
-    p.add_argument("--shards", nargs="+", required=True, type=str, metavar="STORE", help="stores to evaluate")
+    p.add_argument("--shards", nargs="+", required=True, type=str, metavar="STORE",
+                   help="stores to evaluate: folders or http(s)://, s3://, gs:// URLs")
     p.add_argument("--mano", required=True, type=Path, help="folder with MANO_RIGHT.pkl")
     p.add_argument("--out", type=Path, default=None, help="output folder (default RUN/eval-<store name>)")
     p.add_argument("--batch-size", type=positive_int, default=8)
@@ -147,7 +149,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ho3d-gt", type=Path, default=None, metavar="DIR",
                    help="score pred.json against DIR/evaluation_xyz.json and evaluation_verts.json as the challenge "
                         "server does (metrics.json['ho3d_challenge'], scores.txt); needs --ho3d-order")
-    p.add_argument("--baseline-store", type=Path, default=None, metavar="STORE",
+    p.add_argument("--baseline-store", default=None, metavar="STORE",
                    help="store whose mean hand pose is the baseline (e.g. the training store)")
     p.add_argument("--workers", type=non_negative_int, default=4,
                    help="loader processes decoding records (0: decode in this process)")

@@ -1,7 +1,7 @@
 """``python -m hoisdf.train --shards STORE[:WEIGHT] ... --mano DIR [--config NAME] [section.key=value ...]``
 
 Trains HOISDF on one or more stores (weights set the mixing ratio, e.g. ``shards/dexycb:1.0
-shards/ho3d_render:0.6``). Multi-GPU / multi-process: ``torchrun --nproc_per_node N -m hoisdf.train ...``
+shards/ho3d_render:0.6``); a store is a folder or an explicit ``http(s)://``, ``s3://`` or ``gs://`` URL. Multi-GPU / multi-process: ``torchrun --nproc_per_node N -m hoisdf.train ...``
 (NCCL on GPUs, gloo on CPUs). ``--resume`` continues ``--out``'s last checkpoint exactly.
 """
 
@@ -23,6 +23,7 @@ from hoidata.errors import DataError, run_cli
 from hoidata.pipeline.runner import git_commit
 from hoidata.pipeline.settings import TRAIN_SECTIONS, apply_overrides, refuse_unused
 from hoidata.store import resolve_store
+from hoidata.store.remote import url_authority
 from hoisdf.config import TrainConfig, config_from_dict, load_train_config
 from hoisdf.data import StoreSpec
 from hoisdf.training.checkpoint import CHECKPOINTS, LAST, find_checkpoint, load_checkpoint
@@ -30,10 +31,12 @@ from hoisdf.training.trainer import CURVE, Trainer
 
 
 def parse_store(text: str) -> StoreSpec:
-    """'path' or 'path:weight' (a finite weight > 0) -> StoreSpec; the path is always a local folder
-    (hoidata.store.resolve_store: a name like 'pipe:...' is just a folder name)."""
-    path, sep, weight = text.rpartition(":")
-    if sep and path and not weight.startswith(("/", "\\")):
+    """'store' or 'store:weight' (a finite weight > 0) -> StoreSpec. A store is a local folder, or an explicit
+    http(s)://, s3:// or gs:// URL (hoidata.store.resolve_store; a folder name like 'pipe:...' is just a folder);
+    in a URL a ':' before the path is the port, so a weight follows the path (``http://host:8000/store:0.6``)."""
+    head = url_authority(text) or ""
+    path, sep, weight = text[len(head):].rpartition(":")
+    if sep and (path or head) and not weight.startswith(("/", "\\")):
         try:
             value = float(weight)
         except ValueError:
@@ -41,7 +44,7 @@ def parse_store(text: str) -> StoreSpec:
         else:
             if not (math.isfinite(value) and value > 0):
                 raise DataError(text, "weight", f"must be a finite number > 0, got {weight}")
-            return StoreSpec(resolve_store(path), value)
+            return StoreSpec(resolve_store(head + path), value)
     return StoreSpec(resolve_store(text), 1.0)
 
 
@@ -101,8 +104,9 @@ def write_run_info(run_dir: Path, config: TrainConfig, stores, val_stores, world
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m hoisdf.train", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--shards", nargs="+", required=True, metavar="STORE[:WEIGHT]", help="training stores")
-    p.add_argument("--val-shards", nargs="*", default=[], metavar="STORE", help="validation stores")
+    p.add_argument("--shards", nargs="+", required=True, metavar="STORE[:WEIGHT]",
+                   help="training stores: folders or http(s)://, s3://, gs:// URLs")
+    p.add_argument("--val-shards", nargs="*", default=[], metavar="STORE", help="validation stores (folders or URLs)")
     p.add_argument("--mano", required=True, type=Path, help="folder with MANO_RIGHT.pkl")
     p.add_argument("--config", default=None, help="pipelines/<name>.toml or a path (default: upstream's released settings)")
     p.add_argument("--out", type=Path, default=None, help="run folder (default runs/<config>)")

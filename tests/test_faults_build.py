@@ -97,9 +97,11 @@ def test_a_store_path_is_a_folder_never_a_command(tiny_store, tmp_path, monkeypa
         shutil.copytree(tiny_store, tmp_path / name)
         assert len(_read_all(name)) == 16 and not marker.exists()
         assert store.verify_store(name).ok
-    with pytest.raises(DataError, match="remote stores .* not supported"):
-        build_dataset([StoreSpec("s3://bucket/store")], 2)
-    assert not store.verify_store("https://example.org/store").ok
+    # only an explicit URL string is remote (read by fsspec, tests/test_cluster_stores.py); a Path never is
+    assert isinstance(store.resolve_store("s3://bucket/store"), store.RemoteStore)
+    assert store.resolve_store(Path("s3://bucket/store")) == Path("s3:/bucket/store")
+    report = store.verify_store("https://example.org/store")  # refused before any request: verify is local
+    assert not report.ok and "local store folder" in report.problems[0]
 
 
 # --- 2. no work lost -----------------------------------------------------------------------------------------

@@ -5,6 +5,8 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import os
+import socket
 import tarfile
 import warnings
 
@@ -178,7 +180,7 @@ def test_shards_appear_atomically(tmp_path):
     writer = ShardWriter(tmp_path, 3)
     for key, members in records[:2]:
         assert writer.add(key, members) is None
-    assert not list(tmp_path.glob("shard-*.tar")) and list(tmp_path.glob("shard-000000.tar.tmp"))
+    assert not list(tmp_path.glob("shard-*.tar")) and list(tmp_path.glob("shard-000000.tar.*.tmp"))  # per writer
     assert writer.add(*records[2]).name == "shard-000000.tar"
     assert [p.name for p in tmp_path.iterdir()] and not list(tmp_path.glob("*.tmp"))
     writer.add(*records[3])
@@ -271,10 +273,16 @@ def test_completed_shards_checks_bytes_against_sidecars(tmp_path):
     records, shards = build_store(tmp_path, n=7, per_shard=3)
     plan = [ShardInfo(s.number, shard_name(s.number), s.count, first_key=s.first_key, last_key=s.last_key)
             for s in shards]
+    host = socket.gethostname()
     (tmp_path / "shard-000002.tar.tmp").write_bytes(b"partial")  # a planned shard's leftover: removed
-    (tmp_path / "shard-000003.tar.tmp").write_bytes(b"partial")  # another --part job's shard: left alone
+    (tmp_path / f"shard-000001.tar.{host}-999999.tmp").write_bytes(b"partial")  # of a dead writer here: removed
+    alive = [f"shard-000001.tar.{host}-{os.getppid()}.tmp",  # a writer still running on this host
+             "shard-000001.tar.other-node-42.tmp",  # one on another node of a shared filesystem
+             "shard-000003.tar.tmp"]  # another --part job's shard
+    for name in alive:
+        (tmp_path / name).write_bytes(b"partial")  # all left alone
     assert completed_shards(tmp_path, plan) == {0, 1, 2}
-    assert [p.name for p in tmp_path.glob("*.tmp")] == ["shard-000003.tar.tmp"]
+    assert sorted(p.name for p in tmp_path.glob("*.tmp")) == sorted(alive)
     assert completed_shards(tmp_path, plan[2:], clean=False) == {2}
     data = bytearray((tmp_path / "shard-000001.tar").read_bytes())
     data[700] ^= 1

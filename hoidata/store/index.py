@@ -32,6 +32,7 @@ import numpy as np
 from hoidata.errors import DataError
 from hoidata.schema import META_FIELDS, META_TYPES, RECORD_KINDS, SCHEMA_VERSION, check_key
 from hoidata.store.paths import INDEX_NAME, replaced_dir, resolve_store
+from hoidata.store.remote import RemoteStore, remote_sizes
 
 INDEX_FORMAT = 1  # layout version of index.zarr, recorded as the attribute "hoidata_index"
 LABEL_CHUNK_ROWS = 32768
@@ -305,7 +306,7 @@ def write_index(store_dir, shards_info: Sequence[ShardInfo | dict], labels: dict
 
 @dataclass
 class StoreIndex:
-    """What index.zarr holds, loaded. labels: every column by name (text as numpy str), with "key" and
+    """What index.zarr holds, loaded (``path``: the index folder, or its RemoteFile for a remote store). labels: every column by name (text as numpy str), with "key" and
     "shard" (the shard number of each row); objects: name -> (vertices (V, 3) float32, faces (F, 3) int32)."""
 
     path: Path
@@ -328,11 +329,14 @@ def _open_index(store_dir):
     """Open index.zarr and check its attributes; returns (group, attrs, shards, path)."""
     import zarr
 
-    path = resolve_store(store_dir) / INDEX_NAME
-    if not (path / "zarr.json").is_file():
+    location = resolve_store(store_dir)
+    remote = isinstance(location, RemoteStore)  # read through zarr's fsspec store; errors name the URL
+    path = location.file(INDEX_NAME) if remote else location / INDEX_NAME
+    if not (remote_sizes([location.file(f"{INDEX_NAME}/zarr.json")])[0] is not None if remote
+            else (path / "zarr.json").is_file()):
         raise DataError(path, None, "missing (the build did not finish, or this is not a store folder)")
     try:
-        group = zarr.open_group(path, mode="r", zarr_format=3)
+        group = zarr.open_group(path.url if remote else path, mode="r", zarr_format=3)
         attrs = group.attrs.asdict()
     except Exception as exc:  # zarr raises many types for a damaged store; all mean the same here
         raise DataError(path, None, f"not a readable zarr v3 group ({type(exc).__name__}: {exc})") from None

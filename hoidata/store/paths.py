@@ -1,8 +1,9 @@
 """Where a store lives and what in its folder is not part of it.
 
 :func:`resolve_store` is the one place that decides whether a store location is local or remote;
-:func:`replaced_dir` writes a folder (the index) aside and swaps it in; :func:`stale_temps` finds the leftovers of
-such writes that did not finish (``index.zarr.tmp<pid>``).
+:func:`local_store` refuses a remote one where a command needs a folder; :func:`replaced_dir` writes a folder
+(the index) aside and swaps it in; :func:`stale_temps` finds the leftovers of such writes that did not finish
+(``index.zarr.tmp<pid>``); :func:`index_lock` serialises the processes that finish one store's index.
 """
 
 from __future__ import annotations
@@ -15,24 +16,35 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from hoidata.errors import DataError
+from hoidata.store.remote import RemoteStore, url_authority
 
 INDEX_NAME = "index.zarr"
-_REMOTE_RE = re.compile(r"^(https?|s3|gs)://", re.IGNORECASE)
+LOCK_NAME = "index.zarr.lock"
 
 
-def resolve_store(location) -> Path:
-    """Where a store given on a command line or to a loader lives: always a local folder, for now.
+def resolve_store(location) -> Path | RemoteStore:
+    """Where a store given on a command line or to a loader lives: a local folder, or a :class:`RemoteStore`.
 
-    This is the one place that decides local or remote. Only an explicit ``http://``, ``https://``, ``s3://``
-    or ``gs://`` URL would be remote, and remote stores are not supported yet: such a URL is a DataError.
-    Anything else is a local path, whatever it looks like: a folder named ``pipe:cmd`` or ``s3:x`` is just a
-    folder, and no part of the project hands a store path to a URL opener (webdataset's ``pipe:`` runs a shell).
+    This is the one place that decides local or remote. Only a ``str`` that is an explicit ``http://``,
+    ``https://``, ``s3://`` or ``gs://`` URL (with a host) is remote. Anything else is a local path, whatever
+    it looks like: a ``Path`` is never parsed, and a folder named ``pipe:cmd``, ``s3:x`` or ``http:x`` is just a
+    folder. No part of the project hands a store location to webdataset's URL opener (its ``pipe:`` runs a shell).
     """
-    text = os.fspath(location)
-    if _REMOTE_RE.match(text):
-        raise DataError(text, None, "remote stores (http://, https://, s3://, gs://) are not supported yet; "
-                                    "copy the store to a local folder")
-    return Path(text)
+    if isinstance(location, RemoteStore):
+        return location
+    if isinstance(location, str) and url_authority(location) is not None:
+        return RemoteStore(location)
+    return Path(os.fspath(location))
+
+
+def local_store(location, what: str) -> Path:
+    """:func:`resolve_store` for commands that need a local folder (``what`` names the command): a URL is a
+    DataError saying so."""
+    where = resolve_store(location)
+    if isinstance(where, RemoteStore):
+        raise DataError(where.url, None, f"{what} works on a local store folder; remote stores are read by the "
+                                         "training and evaluation loaders only (copy the store to a folder first)")
+    return where
 
 
 _TEMP_RE = re.compile(rf"^{re.escape(INDEX_NAME)}\.(tmp|old)(\d+)$")
@@ -88,3 +100,50 @@ def replaced_dir(where: Path) -> Iterator[Path]:
             os.replace(old, where)
         raise
     shutil.rmtree(old, ignore_errors=True)
+
+
+def writer_token() -> str:
+    """``<host>-<pid>``: names a temporary file after the process writing it, so two processes writing the same
+    shard (a part rerun while the first run is still alive, on any node of a shared filesystem) never share one."""
+    import socket
+
+    return f"{socket.gethostname()}-{os.getpid()}"
+
+
+def is_stale_token(token: str) -> bool:
+    """Whether the writer a :func:`writer_token` names is gone: a process of this host that no longer runs.
+    A writer on another host cannot be checked from here and counts as alive (its leftover, if it died, is only
+    disk space; ``hoidata verify`` lists it)."""
+    import socket
+
+    host, _, pid = token.rpartition("-")
+    return host == socket.gethostname() and pid.isdigit() and (int(pid) == os.getpid() or not _pid_alive(int(pid)))
+
+
+@contextlib.contextmanager
+def index_lock(store_dir) -> Iterator[None]:
+    """Hold an exclusive lock on ``store_dir``'s index for the block, so the processes that finish one store (array
+    tasks on any node, a rerun part, the launcher) write its index one after the other.
+
+    A POSIX record lock (``fcntl.lockf``) on ``index.zarr.lock``: the kernel releases it when the process ends, so
+    a killed holder leaves no stale lock, and network filesystems (NFS, Lustre mounted with ``flock``, GPFS)
+    honour it across nodes. The lock file stays (removing it would let two processes lock different files).
+    Where the filesystem has no locks, the block runs unlocked, with a note on stderr.
+    """
+    import errno
+    import fcntl
+    import sys
+
+    path = Path(store_dir) / LOCK_NAME
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)  # the umask applies, as to any new file
+    try:
+        try:
+            fcntl.lockf(fd, fcntl.LOCK_EX)
+        except OSError as exc:
+            if exc.errno not in (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL):
+                raise
+            print(f"note: {path}: this filesystem has no file locks; finishing the index unlocked", file=sys.stderr)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
+

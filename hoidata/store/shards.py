@@ -11,7 +11,10 @@ A build plans its records as fixed runs of ``records_per_shard``; after an inter
 :func:`hoidata.store.verify.completed_shards` which shards are already good, rewrites only the others
 with :func:`write_shard` (or streams a straight run through :class:`ShardWriter`) and ends with
 :func:`hoidata.store.index.write_index`. Nothing half-written ever carries a final name: shards are
-written to ``<name>.tmp`` and renamed.
+written to ``<name>.<host>-<pid>.tmp`` and renamed.
+
+Reading is one sequential pass over a byte stream (:class:`_ShardBytes` under ``tarfile``'s stream mode), the
+same for a local file and for a remote one (:mod:`hoidata.store.remote`), so every check applies to both.
 """
 
 from __future__ import annotations
@@ -34,7 +37,8 @@ from hoidata.store.codec import (
     decode_record,
 )
 from hoidata.store.index import ShardInfo, _open_index, shard_name
-from hoidata.store.paths import INDEX_NAME, resolve_store
+from hoidata.store.paths import INDEX_NAME, local_store, resolve_store, writer_token
+from hoidata.store.remote import RemoteFile, RemoteStore, open_stream, remote_sizes
 
 # --------------------------------------------------------------------------------------------------
 # shards
@@ -72,7 +76,7 @@ class _OpenShard:
 
     def __init__(self, store_dir: Path, number: int):
         self.number, self.path = number, store_dir / shard_name(number)
-        self.tmp = self.path.with_name(self.path.name + ".tmp")
+        self.tmp = self.path.with_name(f"{self.path.name}.{writer_token()}.tmp")  # one per writer (paths.writer_token)
         self._file = open(self.tmp, "wb")
         self._hash = _HashingWriter(self._file)
         self._tar = tarfile.open(fileobj=self._hash, mode="w", format=tarfile.PAX_FORMAT)
@@ -191,66 +195,119 @@ class ShardWriter:
 # reading, verification, resume
 
 
-def _check_tar_end(file, offset: int, path) -> None:
-    """tarfile stops silently at a damaged header: only zeros (>= 2 blocks) may follow the last member."""
-    size = os.fstat(file.fileno()).st_size
-    file.seek(offset)
-    clean = size - offset >= 2 * tarfile.BLOCKSIZE
-    while clean and (chunk := file.read(1 << 20)):
-        clean = not chunk.strip(b"\0")
-    if not clean:
-        raise DataError(path, None, f"the tar stream breaks off at byte {offset} of {size}: truncated or corrupt")
+class _ShardBytes:
+    """The bytes of one shard, read once from the start: counts them, remembers where the last non-zero byte was
+    and never reads past ``limit`` (the size the file or the index gives), whatever a server sends."""
+
+    def __init__(self, file, limit: int):
+        self.file, self.limit, self.offset, self.last_data = file, limit, 0, -1
+
+    def read(self, n: int = -1) -> bytes:
+        room = self.limit - self.offset
+        n = room if n is None or n < 0 or n > room else n
+        chunk = self.file.read(n) if n > 0 else b""
+        data = len(chunk.rstrip(b"\0"))
+        if data:
+            self.last_data = self.offset + data - 1
+        self.offset += len(chunk)
+        return chunk
 
 
-def read_shard_members(path) -> Iterator[dict[str, bytes]]:
-    """Raw records of one shard, in order: {"__key__": key, member name: bytes}, names not yet checked."""
+def _check_tar_end(data: _ShardBytes, end: int, path) -> None:
+    """tarfile stops silently at a damaged header: only zeros (>= 2 blocks) may follow the last member, up to the
+    shard's size."""
+    while data.read(1 << 20):
+        pass
+    if data.last_data >= end or data.offset - end < 2 * tarfile.BLOCKSIZE:
+        raise DataError(path, None, f"the tar stream breaks off at byte {end} of {data.offset}: truncated or corrupt")
+    if data.offset != data.limit or data.file.read(1):
+        raise DataError(path, None, f"{data.offset} bytes read, expected exactly {data.limit}: truncated or replaced")
+
+
+def _members(data: _ShardBytes, path) -> Iterator[dict[str, bytes]]:
+    """Raw records of one shard stream, in order (see read_shard_members)."""
+    try:
+        tar = tarfile.open(fileobj=data, mode="r|", bufsize=1 << 20)  # "r|": a plain tar stream, never compressed
+    except tarfile.TarError as exc:
+        raise DataError(path, None, f"not a tar file ({exc})") from None
+    record, seen = None, set()
+    try:
+        for info in tar:
+            key, _, member = info.name.partition(".")
+            if not info.isreg() or not _is_key(key) or not member or info.size > MAX_MEMBER_BYTES:
+                raise DataError(path, info.name, f"not a <key>.<member> file of at most {MAX_MEMBER_BYTES} bytes")
+            if record is None or key != record[KEY]:
+                if record is not None:
+                    yield record
+                if key in seen:
+                    raise DataError(path, key, "the key appears twice (records must be unique and contiguous)")
+                seen.add(key)
+                record = {KEY: key}
+            if member in record:
+                raise DataError(path, info.name, "the member appears twice")
+            record[member] = tar.extractfile(info).read()
+    except (tarfile.TarError, EOFError) as exc:
+        key = None if record is None else record[KEY]
+        raise DataError(path, key, f"truncated or corrupt tar ({exc})") from None
+    _check_tar_end(data, tar.offset, path)
+    if record is not None:
+        yield record
+
+
+def read_shard_members(path, size: int | None = None) -> Iterator[dict[str, bytes]]:
+    """Raw records of one shard, in order: {"__key__": key, member name: bytes}, names not yet checked.
+
+    ``path``: a local file or a :class:`~hoidata.store.remote.RemoteFile`; ``size``: the bytes to expect (default:
+    the file's own size). Member sizes are checked before a member is read, so a hostile shard cannot make the
+    reader allocate more than MAX_MEMBER_BYTES; nothing past ``size`` is read.
+    """
+    if isinstance(path, RemoteFile):
+        if size is None:
+            size = remote_sizes([path])[0]
+            if size is None:
+                raise DataError(path, None, "missing (no such file at this URL)")
+        with open_stream(path) as file:
+            yield from _members(_ShardBytes(file, size), path)
+        return
     with open(path, "rb") as file:
-        try:
-            tar = tarfile.open(fileobj=file, mode="r:")  # "r:" -- never a compressed stream
-        except tarfile.TarError as exc:
-            raise DataError(path, None, f"not a tar file ({exc})") from None
-        record, seen = None, set()
-        try:
-            for info in tar:
-                key, _, member = info.name.partition(".")
-                if not info.isreg() or not _is_key(key) or not member or info.size > MAX_MEMBER_BYTES:
-                    raise DataError(path, info.name, f"not a <key>.<member> file of at most {MAX_MEMBER_BYTES} bytes")
-                if record is None or key != record[KEY]:
-                    if record is not None:
-                        yield record
-                    if key in seen:
-                        raise DataError(path, key, "the key appears twice (records must be unique and contiguous)")
-                    seen.add(key)
-                    record = {KEY: key}
-                if member in record:
-                    raise DataError(path, info.name, "the member appears twice")
-                record[member] = tar.extractfile(info).read()
-        except (tarfile.TarError, EOFError) as exc:
-            key = None if record is None else record[KEY]
-            raise DataError(path, key, f"truncated or corrupt tar ({exc})") from None
-        _check_tar_end(file, tar.offset, path)
-        if record is not None:
-            yield record
+        yield from _members(_ShardBytes(file, os.fstat(file.fileno()).st_size if size is None else size), path)
+
+
+def shard_source(location, name: str):
+    """A shard of a store (a folder or a :class:`~hoidata.store.remote.RemoteStore`): its Path or RemoteFile."""
+    location = resolve_store(location)
+    return location.file(name) if isinstance(location, RemoteStore) else location / name
+
+
+def shard_sizes(sources: Sequence) -> list[int | None]:
+    """The size in bytes of each shard source (None where there is no such file); remote ones asked concurrently."""
+    remote = [s for s in sources if isinstance(s, RemoteFile)]
+    sizes = dict(zip(remote, remote_sizes(remote)))
+    return [sizes[s] if isinstance(s, RemoteFile) else (s.stat().st_size if Path(s).is_file() else None)
+            for s in sources]
 
 
 def read_checked_shard(path, expected_keys: Sequence[str], expected_size: int | None = None) -> Iterator[dict[str, bytes]]:
     """:func:`read_shard_members` compared with what the index says the shard holds, as the training loader reads.
 
-    The file's size is checked before anything is read, then every record's key, in order, and at the end the
-    count: a shard cut at a record boundary, zeroed, holding a duplicate, foreign or missing record is a
-    DataError naming the shard (and the key). Member sizes are checked before a member is read (see
-    read_shard_members), so a hostile shard cannot make the reader allocate more than MAX_MEMBER_BYTES.
+    ``path``: a local file or a RemoteFile (:func:`shard_source`). The file's size is checked before anything is
+    read, then every record's key, in order, and at the end the count: a shard cut at a record boundary, zeroed,
+    holding a duplicate, foreign or missing record is a DataError naming the shard (and the key). Member sizes
+    are checked before a member is read (see read_shard_members), so a hostile shard cannot make the reader
+    allocate more than MAX_MEMBER_BYTES.
     """
-    path = Path(path)
+    path = path if isinstance(path, RemoteFile) else Path(path)
     try:
-        size = path.stat().st_size
+        size = shard_sizes([path])[0]
     except OSError as exc:
         raise DataError(path, None, f"cannot read the shard ({exc.strerror or exc})") from None
+    if size is None:
+        raise DataError(path, None, "missing (hoidata verify checks the whole store)")
     if expected_size is not None and size != expected_size:
         raise DataError(path, None, f"{size} bytes, the index says {expected_size}: the shard is truncated, "
                                     "damaged or replaced (hoidata verify checks the whole store)")
     count = 0
-    for members in read_shard_members(path):
+    for members in read_shard_members(path, size):
         key = members[KEY]
         if count >= len(expected_keys) or key != expected_keys[count]:
             there = repr(expected_keys[count]) if count < len(expected_keys) else "no record"
@@ -265,7 +322,7 @@ def read_checked_shard(path, expected_keys: Sequence[str], expected_size: int | 
 def _shard_paths(source) -> list[Path]:
     """A store folder (its index's shard list, else every shard-*.tar), one shard file, or a list of them."""
     if isinstance(source, (str, os.PathLike)):
-        source = resolve_store(source)
+        source = local_store(source, "reading every record")
         if not source.is_dir():
             return [source]
         if (source / INDEX_NAME).exists():

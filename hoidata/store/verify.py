@@ -14,7 +14,7 @@ from hoidata.errors import DataError
 from hoidata.schema import META, META_FIELDS
 from hoidata.store.codec import KEY
 from hoidata.store.index import ShardInfo, StoreIndex, read_index
-from hoidata.store.paths import resolve_store, stale_temps
+from hoidata.store.paths import is_stale_token, local_store, stale_temps
 from hoidata.store.shards import iter_records, sidecar_name
 
 
@@ -105,7 +105,7 @@ def verify_store(store_dir) -> VerifyReport:
     decoded and its key and labels matching the index, in order; shard files the index does not list."""
     report = VerifyReport(str(store_dir))
     try:
-        store_dir = resolve_store(store_dir)
+        store_dir = local_store(store_dir, "hoidata verify")
     except DataError as exc:
         report.problems.append(str(exc))
         return report
@@ -153,20 +153,30 @@ def read_sidecar(store_dir, number: int) -> ShardInfo:
     return info
 
 
-def completed_shards(store_dir, expected: Sequence[ShardInfo], clean: bool = True) -> set[int]:
+def _leftovers(store_dir: Path, plan: ShardInfo) -> list[Path]:
+    """Temporary files of a planned shard whose writer is gone: ``<name>.tmp`` (older versions) and
+    ``<name>.<host>-<pid>.tmp`` of a dead process of this host (paths.is_stale_token)."""
+    found = [store_dir / f"{plan.name}.tmp"] if (store_dir / f"{plan.name}.tmp").exists() else []
+    for path in store_dir.glob(f"{plan.name}.*.tmp"):
+        if is_stale_token(path.name[len(plan.name) + 1:-len(".tmp")]):
+            found.append(path)
+    return found
+
+
+def completed_shards(store_dir, expected: Sequence[ShardInfo], clean: bool = True, check_bytes: bool = True) -> set[int]:
     """Numbers of the planned shards that are already written intact, so a resumed build skips them.
 
     A shard counts when its sidecar matches every field the plan sets (count, keys; sha256/size if
-    given) and the file's size and sha256 match the sidecar. With ``clean``, leftover ``.tmp`` files
-    of the *planned* shards (an interrupted run) are removed: call it before this job's writers start,
-    with only the shards this job owns, so parallel ``--part`` jobs never delete each other's files.
+    given) and the file's size and (with ``check_bytes``) sha256 match the sidecar. With ``clean``, leftover
+    temporary files of the *planned* shards whose writer is gone (an interrupted run) are removed: call it before
+    this job's writers start, with only the shards this job owns, so parallel ``--part`` jobs never delete each
+    other's files (a writer still running, here or on another node, keeps its own).
     """
     store_dir = Path(store_dir)
     if clean:
         for plan in expected:
-            leftover = store_dir / (plan.name + ".tmp")
-            if leftover.exists():  # unlink only what is there: a complete store may sit on a read-only disk
-                leftover.unlink()
+            for leftover in _leftovers(store_dir, plan):  # only what is there: a complete store may be read-only
+                leftover.unlink(missing_ok=True)
     done = set()
     for plan in expected:
         try:
@@ -177,6 +187,6 @@ def completed_shards(store_dir, expected: Sequence[ShardInfo], clean: bool = Tru
         if any(getattr(plan, f) is not None and getattr(plan, f) != getattr(info, f) for f in fields):
             continue
         path = store_dir / info.name
-        if path.is_file() and path.stat().st_size == info.size and file_digest(path)[1] == info.sha256:
+        if path.is_file() and path.stat().st_size == info.size and (not check_bytes or file_digest(path)[1] == info.sha256):
             done.add(plan.number)
     return done

@@ -24,9 +24,10 @@ worker has data, no sample is invented, and for large stores (many shards) it de
 "disjoint shards per worker". ``wds.ResampledShards`` would also never hang, but draws shards with
 replacement, so within an epoch some shards are read twice and others not at all.
 
-Shards are opened as local files by :func:`hoidata.store.read_checked_shard`, never through webdataset's URL
-opener (which runs ``pipe:`` names as shell commands); an error in a DataLoader worker reaches the caller as
-the same DataError (:func:`make_loader`), not as a worker traceback.
+Shards are read by :func:`hoidata.store.read_checked_shard`, from local files or, for a store given as an explicit
+``http(s)://`` / ``s3://`` / ``gs://`` URL, from fsspec streams (:mod:`hoisdf.data.shards`), never through
+webdataset's URL opener (which runs ``pipe:`` names as shell commands); an error in a DataLoader worker reaches
+the caller as the same DataError (:func:`make_loader`), not as a worker traceback.
 
 Epochs and workers: :meth:`MixedStores.set_epoch` stores the epoch in a small holder object shared
 by every stage. DataLoader workers receive a pickled copy of the dataset when ``iter(loader)`` is
@@ -57,7 +58,7 @@ _MIX_STREAM, _SHUFFLE_STREAM = 1, 2  # distinguish the RNG streams drawn from th
 
 @dataclass(frozen=True)
 class StoreSpec:
-    """A store folder (``shard-*.tar`` + ``index.zarr``) and its relative sampling weight (> 0)."""
+    """A store (a folder of ``shard-*.tar`` + ``index.zarr``, or its URL) and its relative sampling weight (> 0)."""
 
     path: Path | str
     weight: float = 1.0

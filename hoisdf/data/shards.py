@@ -1,8 +1,11 @@
 """Where the loader's samples come from: each rank's and worker's shard sequence, shards read strictly against
 the index, and the DataLoader wrapper that carries a worker's errors to the main process.
 
-Shards are opened as local files (:func:`hoidata.store.resolve_store`, :func:`hoidata.store.read_checked_shard`),
-never through webdataset's URL opener, which would run a store folder named ``pipe:...`` as a shell command.
+A store is a local folder or, given as an explicit ``http(s)://``, ``s3://`` or ``gs://`` URL, a remote one
+(:func:`hoidata.store.resolve_store` decides). Either way a shard is one :func:`hoidata.store.shard_source` (a Path
+or a RemoteFile) read by :func:`hoidata.store.read_checked_shard` with the same checks, never through webdataset's
+URL opener, which would run a store folder named ``pipe:...`` as a shell command. Ranks and workers get their
+shards by position in the index's shard list, so a remote store is split exactly as its local copy.
 """
 
 from __future__ import annotations
@@ -14,11 +17,11 @@ import torch
 from webdataset.utils import pytorch_worker_info
 
 from hoidata.errors import DataError
-from hoidata.store import read_checked_shard, read_index, resolve_store
+from hoidata.store import read_checked_shard, read_index, resolve_store, shard_sizes, shard_source
 
 
 class ShardStream:
-    """Source stage: this rank's ``{"url": shard path}`` dicts, one shuffled pass after another.
+    """Source stage: this rank's ``{"url": shard source}`` dicts (Path or RemoteFile), one shuffled pass after another.
 
     Training with at least as many shards as ranks: every epoch the shard list is shuffled by
     (seed, epoch) and rank r keeps every world-th shard of it, so ranks read disjoint shards (disjoint
@@ -52,10 +55,10 @@ class ShardStream:
 
 
 class ReadShards:
-    """``{"url": shard path}`` -> the shard's raw records, each checked against the index (read_checked_shard)."""
+    """``{"url": shard source}`` -> the shard's raw records, each checked against the index (read_checked_shard)."""
 
-    def __init__(self, expected: dict[str, tuple[tuple[str, ...], int]]):
-        self.expected = expected  # shard path -> (keys in order, size in bytes)
+    def __init__(self, expected: dict):
+        self.expected = expected  # shard source (Path or RemoteFile) -> (keys in order, size in bytes)
 
     def __call__(self, src):
         for item in src:
@@ -78,21 +81,21 @@ def errors_as_items(batches):
         yield {_ERROR: ("os", exc.errno, exc.strerror or str(exc), exc.filename)}
 
 
-def store_shards(location) -> tuple[object, dict[str, tuple[tuple[str, ...], int]]]:
-    """(the store's index, {shard path: (its keys in order, its size in bytes)} of its non-empty shards), after
+def store_shards(location) -> tuple[object, dict]:
+    """(the store's index, {shard source: (its keys in order, its size in bytes)} of its non-empty shards), after
     checking every shard file is there with the size the index gives (so a missing or cut shard is an error
-    before the first step, not hours later). A store without records is an error."""
+    before the first step, not hours later; a remote store's sizes are asked concurrently). Sources are Paths, or
+    RemoteFiles of a store URL. A store without records is an error."""
     path = resolve_store(location)
     index = read_index(path)
+    sources = [shard_source(path, info.name) for info in index.shards]
     expected = {}
-    for info in index.shards:
-        shard = path / info.name
-        size = shard.stat().st_size if shard.is_file() else None
+    for info, shard, size in zip(index.shards, sources, shard_sizes(sources)):
         if size != info.size:
             problem = "missing" if size is None else f"{size} bytes, the index says {info.size}: truncated or replaced"
             raise DataError(shard, None, f"{problem} (hoidata verify checks the whole store)")
         if info.count:
-            expected[str(shard)] = (tuple(index.keys[index.shard_rows(info.number)]), info.size)
+            expected[shard] = (tuple(index.keys[index.shard_rows(info.number)]), info.size)
     if not expected:
         raise DataError(path, None, "the store holds no records")
     return index, expected

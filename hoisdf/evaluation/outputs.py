@@ -72,7 +72,7 @@ def export(col: Collected, stores: list, out_dir: Path, ho3d_order=None,
     for s, path in enumerate(stores):
         sel = np.flatnonzero(np.asarray(col.store) == s)
         index = (indexes or {}).get(path) or read_index(path)
-        suffix = "" if len(stores) == 1 else f"_{Path(path).name}"
+        suffix = "" if len(stores) == 1 else f"_{path.name}"  # a folder's or a store URL's last part
         for name, file, score in _export_hpe(index, np.asarray(col.rows)[sel], joints[sel], gt[sel], out_dir, suffix):
             written[f"hpe:{path}:{name}"], scores[Path(file).name] = file, score
         if order is not None:
