@@ -88,9 +88,19 @@ def filesystem(url: str):
         raise DataError(url, None, f"cannot read this URL ({exc})") from None
 
 
+def _missing(exc: BaseException) -> bool:
+    """Whether an fsspec error means "no such file" (fsspec's HTTP filesystem reports a refused connection or a
+    server error as FileNotFoundError too, with the real error as its cause: that is not a missing file)."""
+    cause = exc.__cause__
+    return isinstance(exc, FileNotFoundError) and (cause is None or isinstance(cause, FileNotFoundError)
+                                                   or getattr(cause, "status", None) in (404, 410))
+
+
 def _problem(exc: BaseException) -> str:
-    if isinstance(exc, FileNotFoundError):
+    if _missing(exc):
         return "missing (no such file at this URL)"
+    if isinstance(exc, FileNotFoundError) and exc.__cause__ is not None:
+        exc = exc.__cause__
     text = str(exc).strip().splitlines()
     return f"cannot read ({type(exc).__name__}: {text[0] if text else ''})"
 
@@ -111,10 +121,10 @@ def remote_sizes(files: Sequence[RemoteFile]) -> list[int | None]:
     for file, path in zip(files, paths):
         try:
             sizes.append(int(fs.size(path)))
-        except FileNotFoundError:
-            sizes.append(None)
         except Exception as exc:  # noqa: BLE001
-            raise DataError(file.url, None, _problem(exc)) from None
+            if not _missing(exc):
+                raise DataError(file.url, None, _problem(exc)) from None
+            sizes.append(None)
     return sizes
 
 
