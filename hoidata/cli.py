@@ -7,11 +7,13 @@ takes an argument list so tests can call it directly.
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
 from pathlib import Path
 
 from hoidata import __version__
 from hoidata.errors import run_cli
+from hoidata.pipeline.launch import add_launcher_flags, launch
 
 
 def count_type(low: int):
@@ -90,7 +92,9 @@ def cmd_build_sdf(args: argparse.Namespace) -> int:
         for k, v in estimate_build(cfg, root, mano, models, workers=args.workers).items():
             print(f"{k:>30}: {v}")
         return 0
-    s = build_store(cfg, root, mano, models, Path(args.out), workers=args.workers, part=args.part)
+    s = launch(args, functools.partial(build_store, cfg, root, mano, models, Path(args.out)), "build-sdf")
+    if s is None:  # --dry-run
+        return 0
     empty = f" ({s.empty_shards} empty: every frame skipped)" if s.empty_shards else ""
     print(f"{s.store}: {s.records} records written in {s.seconds:.1f} s ({s.frames_per_second:.2f} frames/s), "
           f"{s.shards_written} shards written{empty}, {s.shards_kept} kept from an earlier run")
@@ -110,8 +114,11 @@ def cmd_export(args: argparse.Namespace) -> int:
     cfg = load_build_config(args.dataset, args.overrides)
     root = Path(args.root)
     mano, models = Path(args.mano or root / "mano"), Path(args.models or root / "models")
-    s = export_dataset(args.format, cfg, root, mano, models, Path(args.out), splits=args.splits,
-                       store=Path(args.store) if args.store else None, workers=args.workers, part=args.part)
+    task = functools.partial(export_dataset, args.format, cfg, root, mano, models, Path(args.out), splits=args.splits,
+                             store=Path(args.store) if args.store else None)
+    s = launch(args, task, "export", finished=lambda summary: summary.finished)
+    if s is None:  # --dry-run
+        return 0
     print(f"{s.out}: {s.exported} of {s.frames} frames exported as {s.format} in {s.seconds:.1f} s "
           f"({s.frames_per_second:.2f} frames/s), {s.chunks_written} chunks written, {s.chunks_kept} kept from an "
           f"earlier run, {len(s.skipped)} frames skipped")
@@ -144,9 +151,11 @@ def cmd_render_synthetic(args: argparse.Namespace) -> int:
     source = Path(args.source)
     mano, models = Path(args.mano or source / "mano"), Path(args.models or source / "models")
     record = RecordSettings(crop_size=args.crop_size)
-    s = render_synthetic(source, Path(args.out), args.count, mano, models, seed=args.seed,
-                         backgrounds=args.backgrounds, workers=args.workers, part=args.part, record=record,
-                         records_per_shard=args.records_per_shard)
+    task = functools.partial(render_synthetic, source, Path(args.out), args.count, mano, models, seed=args.seed,
+                             backgrounds=args.backgrounds, record=record, records_per_shard=args.records_per_shard)
+    s = launch(args, task, "render-synthetic")
+    if s is None:  # --dry-run
+        return 0
     print(f"{s.store}: {s.records} synthetic records in {s.seconds:.1f} s ({s.frames_per_second:.2f} renders/s), "
           f"{len(s.skipped)} samples skipped")
     print_skips(s.skipped, "render")
@@ -224,7 +233,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--models", default=None, help="YCB models folder (default ROOT/models)")
     p.add_argument("--out", required=True, help="store folder (resumes if it holds an interrupted build)")
     p.add_argument("--workers", type=positive_int, default=1, help="worker processes (1: build in this process)")
-    p.add_argument("--part", type=_part, default=(0, 1), help="i/N: build only shards k with k %% N == i")
+    p.add_argument("--part", type=_part, default=None,
+                   help="i/N: build only shards k with k %% N == i (default: a Slurm array task's, else all)")
+    add_launcher_flags(p, count_type)
     p.add_argument("--estimate", action="store_true", help="time and disk estimate from a few frames; writes nothing")
     p.add_argument("overrides", nargs="*", help="section.key=value overrides, e.g. record.n_hand=2048")
     p.set_defaults(func=cmd_build_sdf)
@@ -240,7 +251,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--splits", type=lambda text: tuple(text.split(",")), default=None,
                    help="comma-separated splits to export (default: HO-3D train,evaluation; DexYCB the pipeline's)")
     p.add_argument("--workers", type=positive_int, default=1, help="worker processes (1: export in this process)")
-    p.add_argument("--part", type=_part, default=(0, 1), help="i/N: export only chunks k with k %% N == i")
+    p.add_argument("--part", type=_part, default=None,
+                   help="i/N: export only chunks k with k %% N == i (default: a Slurm array task's, else all)")
+    add_launcher_flags(p, count_type)
     p.add_argument("overrides", nargs="*", help="section.key=value overrides, e.g. dataset.box_splits=[\"train\"]")
     p.set_defaults(func=cmd_export)
 
@@ -253,9 +266,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--backgrounds", default=None, help="folder of background images (default: procedural)")
     p.add_argument("--seed", type=non_negative_int, default=0)
     p.add_argument("--workers", type=positive_int, default=1, help="worker processes (1: render in this process)")
-    p.add_argument("--part", type=_part, default=(0, 1), help="i/N: render only shards k with k %% N == i")
+    p.add_argument("--part", type=_part, default=None,
+                   help="i/N: render only shards k with k %% N == i (default: a Slurm array task's, else all)")
     p.add_argument("--crop-size", type=count_type(32), default=512, help="record crop size, pixels (>= 32)")
     p.add_argument("--records-per-shard", type=positive_int, default=256)
+    add_launcher_flags(p, count_type)
     p.set_defaults(func=cmd_render_synthetic)
 
     p = add("verify", "decode every record of a store and check counts and checksums")
@@ -296,7 +311,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     if not argv or argv[0] not in parser.commands:
         return parser.parse_args(argv)  # --help, --version, a missing or unknown command: argparse says it
     args = parser.commands[argv[0]].parse_intermixed_args(argv[1:])
-    args.command = argv[0]
+    args.command, args.argv = argv[0], argv
     return args
 
 

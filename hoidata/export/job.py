@@ -141,7 +141,7 @@ def _export_chunk(job) -> tuple[int, int, list]:
 
 def export_dataset(fmt: str, cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path, out: Path,
                    splits=None, store: Path | None = None, workers: int = 1, part: tuple[int, int] = (0, 1),
-                   chunk_size: int = 64, progress: bool = True) -> ExportSummary:
+                   chunk_size: int = 64, progress: bool = True, engine=None) -> ExportSummary:
     """Export (or resume exporting) the frames of ``cfg``'s setting into ``out`` in format ``fmt``.
 
     Args:
@@ -156,6 +156,7 @@ def export_dataset(fmt: str, cfg: BuildConfig, root: Path, mano_dir: Path, model
         workers: worker processes.
         part: ``(i, N)`` of ``--part i/N``: this run does the i-th of N equal slices of the work.
         chunk_size: frames per unit of work (and of resume).
+        engine: what runs the chunk jobs (see :func:`hoidata.pipeline.runner.run_shards`).
     """
     from hoidata.pipeline.runner import run_shards
 
@@ -187,7 +188,7 @@ def export_dataset(fmt: str, cfg: BuildConfig, root: Path, mano_dir: Path, model
 
     run, numbers, done = run_shards(out, len(frames), chunk_size, make_job, _export_chunk, worker.init,
                                     (Path(mano_dir), Path(models_dir), opts.get("store")), workers, part,
-                                    progress, f"export {fmt}", done=lambda n: chunk_done(out, work, n))
+                                    progress, f"export {fmt}", done=lambda n: chunk_done(out, work, n), engine=engine)
     summary = ExportSummary(out, fmt, frames=len(frames), exported=run.records, chunks_written=run.shards_written,
                             chunks_kept=run.shards_kept)
     summary.skipped = [{"frame_id": s.frame_id, "reason": s.reason, "path": s.path} for s in reader_skips]

@@ -4,13 +4,15 @@ The unit of work is a shard: shard k holds the frames k*R .. (k+1)*R-1 of the re
 records per shard), so its content depends only on the frames and the record settings. Workers, parts
 (``--part i/N`` takes the shards with k % N == i) and resumed runs therefore produce byte-identical
 shards. A finished shard has a sidecar with its checksum; a resumed build keeps intact shards.
-When every planned shard is done, the zarr index is written.
+When every planned shard is done, the zarr index is written (:mod:`hoidata.pipeline.finish`: by the last part to
+finish, whatever the order). The shard jobs run in a local process pool, or on another engine with the same
+contract (``engine``: :func:`hoidata.pipeline.ray_tasks.run_ray`); ``hoidata.pipeline.slurm`` submits the parts
+as a Slurm array.
 """
 
 from __future__ import annotations
 
 import json
-import subprocess
 import sys
 import time
 from dataclasses import dataclass, field
@@ -23,6 +25,15 @@ from hoidata.atomic import write_json_atomic
 from hoidata.datasets.frame import Skip
 from hoidata.errors import DataError
 from hoidata.pipeline import fingerprint
+from hoidata.pipeline.finish import (  # noqa: F401 - re-exported: render-synthetic and the CLI use them from here
+    _extra_name,
+    _skip_dict,
+    describe_skips,
+    finish_store,
+    git_commit,
+    read_shard_skips,
+    skip_groups,
+)
 from hoidata.pipeline.frame_list import check_listed, frame_list_provenance, read_frame_list
 from hoidata.pipeline.settings import BuildConfig, stated_count_warnings
 
@@ -122,10 +133,6 @@ def _build_one(frame, key: str, settings):
     return store.encode_record(key, rec["img"], rec["seg"], rec["heatmap"], rec["sdf"], rec["meta"])
 
 
-def _extra_name(number: int) -> str:
-    return f"shard-{number:06d}.skips.json"
-
-
 @dataclass
 class ShardJob:
     """One shard to build: its frames and keys, the record settings, the store folder; ``root`` (the dataset
@@ -157,19 +164,6 @@ def _build_shard(job: ShardJob) -> tuple[int, int, list]:
     write_json_atomic(Path(job.out) / _extra_name(job.number),
                       {"skipped": skips, "records": len(records), "inputs": inputs, **(job.extra or {})})
     return job.number, len(records), skips
-
-
-def read_shard_skips(out: Path, number: int) -> dict:
-    """Shard ``number``'s skips file, checked: {"skipped": [...], "records": n, "inputs": {...}, ...}."""
-    path = Path(out) / _extra_name(number)
-    try:
-        value = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, ValueError) as exc:
-        raise DataError(path, None, f"unreadable skips file ({exc}); rerun the build to rewrite it") from None
-    ok = isinstance(value, dict) and isinstance(value.get("skipped"), list) and isinstance(value.get("records"), int)
-    if not ok or not all(isinstance(s, dict) and {"frame_id", "reason"} <= set(s) for s in value["skipped"]):
-        raise DataError(path, None, "not a skips file (expected 'skipped' entries and 'records'); rerun the build")
-    return value
 
 
 def _shard_done(out: Path, number: int, complete: set[int]) -> bool:
@@ -205,14 +199,6 @@ def _check_build_file(out: Path, config: dict, keys: list[str], inputs: dict) ->
         write_json_atomic(path, spec)
 
 
-def git_commit() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).parent, capture_output=True,
-                              text=True, timeout=5).stdout.strip() or "unknown"
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
-
-
 def build_inputs(frames, root: Path, mano_dir: Path, models_dir: Path) -> dict:
     """What build.json pins besides settings and keys (see hoidata.pipeline.fingerprint)."""
     return {"mano": fingerprint.files(mano_dir, fingerprint.MANO_FILES),
@@ -221,8 +207,8 @@ def build_inputs(frames, root: Path, mano_dir: Path, models_dir: Path) -> dict:
 
 
 def build_store(cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path, out: Path, workers: int = 1,
-                part: tuple[int, int] = (0, 1), progress: bool = True) -> BuildSummary:
-    """Build (or resume) the store in `out`; see the module docstring."""
+                part: tuple[int, int] = (0, 1), progress: bool = True, engine=None) -> BuildSummary:
+    """Build (or resume) the store in `out`; see the module docstring (``engine``: see :func:`run_shards`)."""
     root, out, models_dir = Path(root), Path(out), Path(models_dir)
     start = time.perf_counter()
     frames, reader_skips = read_frames(cfg, root, Path(mano_dir))
@@ -243,7 +229,7 @@ def build_store(cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path, 
 
     init = (Path(mano_dir), models_dir, cfg.record.crop_size)
     summary, numbers, done = run_shards(out, len(keys), per, make_job, _build_shard, _init_worker, init, workers,
-                                        part, progress, "build-sdf", check_kept=check_kept)
+                                        part, progress, "build-sdf", check_kept=check_kept, engine=engine)
     summary.reader_skipped = [_skip_dict(s) for s in reader_skips]
     if done:
         summary.skipped = finish_store(out, cfg.as_dict(), models_dir, numbers, reader_skips, summary,
@@ -270,65 +256,17 @@ def toolkit_provenance(cfg: BuildConfig, root: Path) -> dict:
                                          if listed else {})}
 
 
-def _skip_dict(skip) -> dict:
-    """A Skip as a plain dict (its toolkit sample_index kept when it has one)."""
-    if isinstance(skip, dict):
-        return skip
-    sample = getattr(skip, "sample_index", -1)
-    return {"frame_id": skip.frame_id, "reason": skip.reason, "path": skip.path,
-            **({"sample_index": sample} if sample >= 0 else {})}
-
-
-def skip_groups(skips) -> list[tuple[str, int, str]]:
-    """(reason without its file path, count, an example path) of a skips list, most frequent first."""
-    groups: dict[str, list] = {}
-    for skip in map(_skip_dict, skips):
-        reason, path = str(skip["reason"]), str(skip.get("path") or "")
-        head, sep, tail = reason.partition(": ")
-        kind = tail if sep and (head == path or Path(head).suffix or "/" in head) else reason
-        entry = groups.setdefault(kind, [0, head if kind == tail else path])
-        entry[0] += 1
-    return sorted(((k, n, p) for k, (n, p) in groups.items()), key=lambda g: -g[1])
-
-
-def describe_skips(skips, who: str, limit: int = 3) -> str:
-    """'<who> N: reason (e.g. path), ...' in one line, the most frequent reasons first."""
-    groups = skip_groups(skips)
-    parts = [f"{n} x {kind}" + (f" ({path})" if path else "") for kind, n, path in groups[:limit]]
-    more = f", and {len(groups) - limit} other reasons" if len(groups) > limit else ""
-    return f"{who} {len(skips)}" + (": " + "; ".join(parts) + more if parts else "")
-
-
-def finish_store(out: Path, config: dict, models_dir: Path, numbers: list[int], reader_skips: list,
-                 summary: BuildSummary, provenance: dict | None = None) -> list[dict]:
-    """Write the index when every shard is done (unless the index already lists exactly these shards, so a
-    finished store on a read-only disk can be "rebuilt"); returns every shard's build-time skips."""
-    build_skips = [s for n in numbers for s in read_shard_skips(out, n)["skipped"]]
-    infos = [store.read_sidecar(out, n) for n in numbers]
-    if not sum(info.count for info in infos):
-        raise DataError(out, None, f"no records: every frame was skipped while building; "
-                                   f"{describe_skips(build_skips, 'skipped')}")
-    try:
-        current = store.read_index(out).shards == infos
-    except DataError:
-        current = False
-    if not current:
-        write_store_index(out, config, models_dir, numbers, reader_skips, provenance)
-    summary.index_written = True
-    summary.empty_shards = sum(info.count == 0 for info in infos)
-    return build_skips
-
-
 def run_shards(out: Path, n_items: int, per: int, make_job, shard_fn, init, initargs, workers: int,
                part: tuple[int, int], progress: bool, desc: str, done=None,
-               check_kept=None) -> tuple[BuildSummary, list[int], bool]:
+               check_kept=None, engine=None) -> tuple[BuildSummary, list[int], bool]:
     """Run the missing shard jobs of this part, serially or in a pool (hoidata.pipeline.pool); report whether all
-    are done.
+    are done (of every part: sidecars, sizes and skips files; finish_store checks the bytes before indexing).
 
     make_job(n) -> the picklable job of shard n; shard_fn(job) -> (number, records written, skips);
     init(*initargs) sets up each worker process. done(n) -> whether unit n is finished, for jobs that write
     something other than store shards (default: the store shard, its sidecar and its skips file are intact).
-    check_kept(numbers) may refuse the units a resumed run keeps (inputs that changed since).
+    check_kept(numbers) may refuse the units a resumed run keeps (inputs that changed since). engine: what runs
+    the jobs, with run_pool's signature and contract (default run_pool; e.g. ray_tasks.run_ray).
     """
     from hoidata.pipeline.pool import run_pool
 
@@ -349,7 +287,7 @@ def run_shards(out: Path, n_items: int, per: int, make_job, shard_fn, init, init
     summary = BuildSummary(out, frames=n_items, shards_kept=len(owned) - len(mine))
     bar = tqdm(total=sum(min(per, n_items - n * per) for n in mine), desc=desc, unit="frame", disable=not progress)
     try:
-        _run(run_pool(shard_fn, jobs, workers, init, initargs) if jobs else iter(()), summary, bar, start)
+        _run((engine or run_pool)(shard_fn, jobs, workers, init, initargs) if jobs else iter(()), summary, bar, start)
     finally:
         bar.close()
         renderer = _WORKER.pop("renderer", None)  # the serial run's own renderer
@@ -357,7 +295,7 @@ def run_shards(out: Path, n_items: int, per: int, make_job, shard_fn, init, init
             renderer.close()
     summary.seconds = time.perf_counter() - start
     if done is None:
-        finished = store.completed_shards(out, plan, clean=False)  # other parts may still be writing
+        finished = store.completed_shards(out, plan, clean=False, check_bytes=False)  # others may still be writing
         return summary, numbers, all(_shard_done(out, n, finished) for n in numbers)
     return summary, numbers, all(done(n) for n in numbers)
 
@@ -370,25 +308,6 @@ def _run(results, summary: BuildSummary, bar, start: float) -> None:
         summary.skipped += skips
         bar.update(written + len(skips))
         bar.set_postfix(fps=f"{summary.records / max(time.perf_counter() - start, 1e-9):.2f}")
-
-
-def write_store_index(out: Path, config: dict, models_dir: Path, numbers: list[int], reader_skips: list,
-                      provenance: dict | None = None) -> None:
-    """Gather every shard's labels and skips and write index.zarr (config and provenance are recorded)."""
-    from hoidata.objects import load_simplified
-
-    shards, metas, skipped = [], [], list(reader_skips)  # Skips keep their toolkit sample_index
-    for n in numbers:
-        skipped += read_shard_skips(out, n)["skipped"]
-        shards.append(store.read_sidecar(out, n))
-        metas += [json.loads(m[schema.META]) for m in store.read_shard_members(out / store.shard_name(n))]
-    names = sorted({m["object_name"] for m in metas})
-    meshes = {}
-    for name in names:
-        simple = load_simplified(models_dir, name)
-        meshes[name] = (simple.vertices, simple.faces)
-    labels = store.index_labels(metas)
-    store.write_index(out, shards, labels, meshes, skipped, config, {"git_commit": git_commit(), **(provenance or {})})
 
 
 def estimate_build(cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path, workers: int = 1,

@@ -177,8 +177,9 @@ def list_backgrounds(folder: Path | None) -> list[str]:
 def render_synthetic(source: Path, out: Path, count: int, mano_dir: Path, models_dir: Path, seed: int = 0,
                      backgrounds: Path | None = None, workers: int = 1, part: tuple[int, int] = (0, 1),
                      settings: SynthSettings = SynthSettings(), record: RecordSettings = RecordSettings(),
-                     records_per_shard: int = 256, progress: bool = True) -> runner.BuildSummary:
-    """Render `count` synthetic samples from the grasps of `source` into the store `out`."""
+                     records_per_shard: int = 256, progress: bool = True, engine=None) -> runner.BuildSummary:
+    """Render `count` synthetic samples from the grasps of `source` into the store `out` (``engine``: what runs the
+    shard jobs, see :func:`hoidata.pipeline.runner.run_shards`)."""
     import time
 
     from hoidata.hand import load_mano
@@ -204,7 +205,7 @@ def render_synthetic(source: Path, out: Path, count: int, mano_dir: Path, models
 
     init = (Path(mano_dir), Path(models_dir), source, files, record.crop_size)
     summary, numbers, done = runner.run_shards(out, count, per, make_job, _synth_shard, _init, init, workers,
-                                                 part, progress, "render-synthetic")
+                                                 part, progress, "render-synthetic", engine=engine)
     if done:
         stats = [_shard_stats(out, n) for n in numbers]
         attempts = sum(st["attempts"] for st in stats)
