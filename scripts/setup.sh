@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Set up a fresh machine for hoidata/hoisdf: system GL libraries for offscreen rendering, a virtual
-# environment in .venv, torch, and the package with all extras. Safe to run again.
+# environment in .venv, torch, and the package with all extras (s3fs / gcsfs for s3:// and gs:// stores are not
+# among them: pip install them where needed). Safe to run again.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -20,5 +21,5 @@ PYTHON=${PYTHON:-python3}
 .venv/bin/python -m pip install -q --upgrade pip
 # torch first, pinned: pip finds these on local disk here; a looser spec would pull a newer CUDA build.
 .venv/bin/python -m pip install -q "torch==2.14.1" "torchvision==0.29.1"
-.venv/bin/python -m pip install -q -e ".[test,docs]"
+.venv/bin/python -m pip install -q -e ".[test,docs,cluster]"  # cluster: submitit, ray, fsspec, aiohttp (their tests run in CI)
 echo "setup: done ($(.venv/bin/python -c 'import hoidata, torch; print("hoidata", hoidata.__version__, "torch", torch.__version__)'))"

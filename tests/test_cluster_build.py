@@ -225,3 +225,47 @@ def test_a_shard_damaged_after_it_was_written_stops_the_finisher(tiny_dexycb, tm
         _build(tiny_dexycb, out, part=(1, 2))
     assert not (out / "index.zarr").exists()
     assert _build(tiny_dexycb, out).index_written  # the rerun rewrites it
+
+
+# --- the sbatch templates ----------------------------------------------------------------------------------------
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_the_sbatch_build_template_runs_one_part_per_array_task(tiny_dexycb, local_build, tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    out = tmp_path / "store"
+    for index in (1, 0):
+        env = {**os.environ, "SLURM_ARRAY_TASK_ID": str(index), "HOIDATA_PARTS": "2", "SLURM_CPUS_PER_TASK": "1",
+               "HOIDATA": f"{sys.executable} -m hoidata.cli", "PYTHONPATH": str(ROOT)}
+        result = subprocess.run(["bash", str(ROOT / "scripts" / "sbatch_build.sh"), *_build_args(tiny_dexycb, out)],
+                                capture_output=True, text=True, env=env, timeout=300, check=False)
+        assert result.returncode == 0, result.stderr[-2000:]
+        assert f"part {index} of 2" in result.stdout and ("index.zarr written" in result.stdout) == (index == 0)
+    _same_store(local_build, out)
+
+
+def test_the_sbatch_train_template_starts_torchrun_on_every_node_with_the_slurm_rendezvous(tmp_path):
+    import os
+    import subprocess
+
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    (bin_dir / "scontrol").write_text('#!/bin/sh\n[ "$1 $2" = "show hostnames" ] && printf "gpu-07\\ngpu-08\\n"\n')
+    (bin_dir / "srun").write_text(f'#!/bin/sh\nprintf "%s\\n" "$@" > {tmp_path / "srun.txt"}\n')
+    for tool in bin_dir.iterdir():
+        tool.chmod(0o755)
+    env = {**os.environ, "PATH": f"{bin_dir}:{os.environ['PATH']}", "SLURM_JOB_NODELIST": "gpu-[07-08]",
+           "SLURM_NNODES": "2", "SLURM_JOB_ID": "4242"}
+    result = subprocess.run(["bash", str(ROOT / "scripts" / "sbatch_train.sh"), "--shards", "https://h/s", "--resume"],
+                            capture_output=True, text=True, env=env, timeout=60, check=False)
+    assert result.returncode == 0, result.stderr
+    args = (tmp_path / "srun.txt").read_text().split("\n")[:-1]
+    torchrun = args[args.index("torchrun"):]
+    flags = dict(zip(torchrun[1:-5:2], torchrun[2:-5:2]))
+    assert flags == {"--nnodes": "2", "--nproc_per_node": "8", "--rdzv_id": "4242", "--rdzv_backend": "c10d",
+                     "--rdzv_endpoint": "gpu-07:29500"}
+    assert torchrun[-5:] == ["-m", "hoisdf.train", "--shards", "https://h/s", "--resume"]
