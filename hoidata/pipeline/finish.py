@@ -6,6 +6,7 @@ that is): it is safe to call from many processes at once (see its docstring).
 
 from __future__ import annotations
 
+import hashlib
 import json
 import subprocess
 from pathlib import Path
@@ -78,9 +79,9 @@ def finish_store(out: Path, config: dict, models_dir: Path, numbers: list[int], 
     Any number of processes may call this, in any order and at the same time (the array tasks of one build, a
     rerun part, the launcher): they write the index one at a time under :func:`hoidata.store.index_lock`, and
     whoever finds the index already listing exactly these shards writes nothing (so a finished store on a
-    read-only disk can be "rebuilt", and a second finisher does not write it again). The one that writes first
-    checks every shard's bytes against its sidecar; a shard damaged since it was written is an error (a rerun
-    of the build rewrites it).
+    read-only disk can be "rebuilt", and a second finisher does not write it again). The one that writes checks
+    every shard's bytes against its sidecar in the same pass that gathers the labels; a shard damaged since it
+    was written is an error (a rerun of the build rewrites it).
     """
     build_skips = [s for n in numbers for s in read_shard_skips(out, n)["skipped"]]
     infos = [store.read_sidecar(out, n) for n in numbers]
@@ -90,12 +91,6 @@ def finish_store(out: Path, config: dict, models_dir: Path, numbers: list[int], 
     if not _index_lists(out, infos):
         with store.index_lock(out):
             if not _index_lists(out, infos):  # nobody wrote it while this process waited for the lock
-                plan = [store.ShardInfo(n, store.shard_name(n), None) for n in numbers]
-                damaged = sorted(set(numbers) - store.completed_shards(out, plan, clean=False))
-                if damaged:
-                    raise DataError(out / store.shard_name(damaged[0]), None,
-                                    f"does not match its sidecar ({len(damaged)} shards damaged since they were "
-                                    "written); rerun the build into this folder to rewrite them")
                 write_store_index(out, config, models_dir, numbers, reader_skips, provenance)
     summary.index_written = True
     summary.empty_shards = sum(info.count == 0 for info in infos)
@@ -110,6 +105,20 @@ def _index_lists(out: Path, infos: list) -> bool:
         return False
 
 
+def _shard_metas(path: Path, info) -> list[dict]:
+    """The meta.json of every record of a shard, read in the same pass that checks its bytes against its sidecar
+    (size and sha256: a shard damaged since it was written is a DataError asking for a rerun)."""
+    digest = hashlib.sha256()
+    try:
+        metas = [json.loads(m[schema.META]) for m in store.read_shard_members(path, info.size, digest)]
+    except DataError as exc:
+        raise DataError(path, exc.field, f"{exc.problem}; rerun the build into this folder to rewrite it") from None
+    if digest.hexdigest() != info.sha256:
+        raise DataError(path, None, "does not match its sidecar's sha256 (damaged since it was written); "
+                                    "rerun the build into this folder to rewrite it")
+    return metas
+
+
 def write_store_index(out: Path, config: dict, models_dir: Path, numbers: list[int], reader_skips: list,
                       provenance: dict | None = None) -> None:
     """Gather every shard's labels and skips and write index.zarr (config and provenance are recorded)."""
@@ -119,7 +128,7 @@ def write_store_index(out: Path, config: dict, models_dir: Path, numbers: list[i
     for n in numbers:
         skipped += read_shard_skips(out, n)["skipped"]
         shards.append(store.read_sidecar(out, n))
-        metas += [json.loads(m[schema.META]) for m in store.read_shard_members(out / store.shard_name(n))]
+        metas += _shard_metas(out / shards[-1].name, shards[-1])
     names = sorted({m["object_name"] for m in metas})
     meshes = {}
     for name in names:

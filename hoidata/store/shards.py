@@ -199,8 +199,8 @@ class _ShardBytes:
     """The bytes of one shard, read once from the start: counts them, remembers where the last non-zero byte was
     and never reads past ``limit`` (the size the file or the index gives), whatever a server sends."""
 
-    def __init__(self, file, limit: int):
-        self.file, self.limit, self.offset, self.last_data = file, limit, 0, -1
+    def __init__(self, file, limit: int, digest=None):
+        self.file, self.limit, self.offset, self.last_data, self.digest = file, limit, 0, -1, digest
 
     def read(self, n: int = -1) -> bytes:
         room = self.limit - self.offset
@@ -210,6 +210,8 @@ class _ShardBytes:
         if data:
             self.last_data = self.offset + data - 1
         self.offset += len(chunk)
+        if self.digest is not None:
+            self.digest.update(chunk)
         return chunk
 
 
@@ -254,12 +256,13 @@ def _members(data: _ShardBytes, path) -> Iterator[dict[str, bytes]]:
         yield record
 
 
-def read_shard_members(path, size: int | None = None) -> Iterator[dict[str, bytes]]:
+def read_shard_members(path, size: int | None = None, digest=None) -> Iterator[dict[str, bytes]]:
     """Raw records of one shard, in order: {"__key__": key, member name: bytes}, names not yet checked.
 
     ``path``: a local file or a :class:`~hoidata.store.remote.RemoteFile`; ``size``: the bytes to expect (default:
     the file's own size). Member sizes are checked before a member is read, so a hostile shard cannot make the
-    reader allocate more than MAX_MEMBER_BYTES; nothing past ``size`` is read.
+    reader allocate more than MAX_MEMBER_BYTES; nothing past ``size`` is read. ``digest`` (a hashlib object), if
+    given, is updated with every byte of the file (so one pass reads and hashes it).
     """
     if isinstance(path, RemoteFile):
         if size is None:
@@ -267,10 +270,10 @@ def read_shard_members(path, size: int | None = None) -> Iterator[dict[str, byte
             if size is None:
                 raise DataError(path, None, "missing (no such file at this URL)")
         with open_stream(path) as file:
-            yield from _members(_ShardBytes(file, size), path)
+            yield from _members(_ShardBytes(file, size, digest), path)
         return
     with open(path, "rb") as file:
-        yield from _members(_ShardBytes(file, os.fstat(file.fileno()).st_size if size is None else size), path)
+        yield from _members(_ShardBytes(file, os.fstat(file.fileno()).st_size if size is None else size, digest), path)
 
 
 def shard_source(location, name: str):
