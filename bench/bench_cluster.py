@@ -11,6 +11,8 @@ Usage: python bench/bench_cluster.py [--frames 192] [--records-per-shard 8] [--r
 2. Loader samples/s over one store, read from its folder and from a loopback HTTP server (``python -m
    http.server`` in its own process, 127.0.0.1), alternating for ``--rounds`` rounds (evaluation order, three
    passes each, batch 8), with 0 and 2 loader workers.
+3. The fixed cost every part pays before its first shard: reading the frame list (``read_frames``) and the input
+   fingerprints (``build_inputs``), per frame, twice (the second with a warm page cache).
 The machine's load average is printed before and after.
 """
 
@@ -31,7 +33,7 @@ from pathlib import Path
 from hoidata.datasets.toy import write_assets
 from hoidata.datasets.toy_dexycb import ToyDexYCBSize, write_toy_dexycb
 from hoidata.pipeline.ray_tasks import run_ray
-from hoidata.pipeline.runner import build_store
+from hoidata.pipeline.runner import build_inputs, build_store, read_frames
 from hoidata.pipeline.settings import load_build_config
 from hoidata.pipeline.slurm import SlurmOptions, submit_parts
 from hoisdf.data import StoreSpec, build_dataset, make_loader
@@ -80,6 +82,20 @@ def build_rows(root: Path, work: Path, per: int) -> list[dict]:
     reference = shard_bytes(rows[0]["out"])
     for row in rows:
         row["identical"] = shard_bytes(row["out"]) == reference
+    return rows
+
+
+def reading_cost(root: Path) -> list[tuple[int, float, float]]:
+    """(frames, ms per frame reading the frame list, ms per frame fingerprinting the inputs), twice."""
+    cfg = load_build_config("toy", ['dataset.splits=["train", "val"]'])
+    rows = []
+    for _ in range(2):
+        start = time.perf_counter()
+        frames, _ = read_frames(cfg, root, root / "mano")
+        middle = time.perf_counter()
+        build_inputs(frames, root, root / "mano", root / "models")
+        end = time.perf_counter()
+        rows.append((len(frames), 1e3 * (middle - start) / len(frames), 1e3 * (end - middle) / len(frames)))
     return rows
 
 
@@ -153,10 +169,13 @@ def main() -> None:
         print(f"{'source':<7} {'workers':>7} {'samples':>8} {'samples/s':>10}  all rounds")
         for row in loads:
             print(f"{row['source']:<7} {row['workers']:>7} {row['samples']:>8} {row['median samples/s']:>10.1f}  {row['all']}")
+        reading = reading_cost(root)
+        print("\nper part, before its first shard: " + "; ".join(
+            f"{n} frames: read {r:.2f} ms/frame, fingerprint {f:.2f} ms/frame" for n, r, f in reading))
         print(f"\nload average (1 min): {', '.join(f'{x:.2f}' for x in load)} (start, after builds, after loader)")
         if args.json:
             Path(args.json).write_text(json.dumps({"builds": [{k: v for k, v in r.items() if k != "out"} for r in builds],
-                                                   "loader": loads, "load": load}, indent=2))
+                                                   "loader": loads, "reading": reading, "load": load}, indent=2))
     finally:
         shutil.rmtree(work, ignore_errors=True)
 
