@@ -19,7 +19,7 @@ from hoidata.errors import DataError
 from hoidata.store.remote import RemoteStore, url_authority
 
 INDEX_NAME = "index.zarr"
-LOCK_NAME = "index.zarr.lock"
+LOCK_NAME = "index.lock"  # not index.zarr.*: those names are the index and its temporary folders
 
 
 def resolve_store(location) -> Path | RemoteStore:
@@ -125,7 +125,7 @@ def index_lock(store_dir) -> Iterator[None]:
     """Hold an exclusive lock on ``store_dir``'s index for the block, so the processes that finish one store (array
     tasks on any node, a rerun part, the launcher) write its index one after the other.
 
-    A POSIX record lock (``fcntl.lockf``) on ``index.zarr.lock``: the kernel releases it when the process ends, so
+    A POSIX record lock (``fcntl.lockf``) on ``index.lock``: the kernel releases it when the process ends, so
     a killed holder leaves no stale lock, and network filesystems (NFS, Lustre mounted with ``flock``, GPFS)
     honour it across nodes. The lock file stays (removing it would let two processes lock different files).
     Where the filesystem has no locks, the block runs unlocked, with a note on stderr.
