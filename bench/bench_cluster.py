@@ -157,7 +157,8 @@ def main() -> None:
         base = builds[0]
         print(f"build-sdf, {base['records']} toy frames, {base['shards']} shards of {args.records_per_shard}, "
               f"2 CPUs per engine")
-        print(f"{'engine':<16} {'seconds':>8} {'frames/s':>9} {'per core':>9} {'extra s':>8} {'per shard':>9} identical")
+        print(f"{'engine':<16} {'seconds':>8} {'frames/s':>9} {'per core':>9} {'extra s':>8} {'per shard':>9} "
+              "identical")
         for row in builds:
             extra = row["seconds"] - base["seconds"]
             print(f"{row['engine']:<16} {row['seconds']:>8.1f} {row['records'] / row['seconds']:>9.2f} "
@@ -168,14 +169,16 @@ def main() -> None:
         print(f"\nloader, three passes in evaluation order, batch 8, {args.rounds} alternating rounds (median)")
         print(f"{'source':<7} {'workers':>7} {'samples':>8} {'samples/s':>10}  all rounds")
         for row in loads:
-            print(f"{row['source']:<7} {row['workers']:>7} {row['samples']:>8} {row['median samples/s']:>10.1f}  {row['all']}")
+            print(f"{row['source']:<7} {row['workers']:>7} {row['samples']:>8} {row['median samples/s']:>10.1f}  "
+                  f"{row['all']}")
         reading = reading_cost(root)
         print("\nper part, before its first shard: " + "; ".join(
             f"{n} frames: read {r:.2f} ms/frame, fingerprint {f:.2f} ms/frame" for n, r, f in reading))
         print(f"\nload average (1 min): {', '.join(f'{x:.2f}' for x in load)} (start, after builds, after loader)")
         if args.json:
-            Path(args.json).write_text(json.dumps({"builds": [{k: v for k, v in r.items() if k != "out"} for r in builds],
-                                                   "loader": loads, "reading": reading, "load": load}, indent=2))
+            rows = [{k: v for k, v in r.items() if k != "out"} for r in builds]
+            Path(args.json).write_text(json.dumps({"builds": rows, "loader": loads, "reading": reading, "load": load},
+                                                  indent=2))
     finally:
         shutil.rmtree(work, ignore_errors=True)
 

@@ -90,7 +90,8 @@ def test_resolve_store_makes_only_explicit_url_strings_remote(tmp_path):
 def test_an_http_store_gives_the_samples_of_its_folder(http_store, tiny_store_two_shards, training):
     _, url = http_store
     for workers, epoch in ((0, 0), (1, 1)):  # in the main process and in a DataLoader worker; two epochs
-        _same_batches(_samples(url, training, workers, epoch), _samples(tiny_store_two_shards, training, workers, epoch))
+        local = _samples(tiny_store_two_shards, training, workers, epoch)
+        _same_batches(_samples(url, training, workers, epoch), local)
 
 
 def test_ranks_and_workers_get_the_same_shards_as_from_the_folder(http_store, tiny_store_two_shards, monkeypatch):

@@ -102,7 +102,8 @@ def sbatch_command(command: Sequence[str], options: SlurmOptions, out: Path, job
 
 
 def run_part(task: Callable, index: int, count: int, workers: int):
-    """One array task: ``task(workers=..., part=(index, count), progress=False)`` (module level: submitit pickles it)."""
+    """One array task: ``task(workers=..., part=(index, count), progress=False)`` (module level: submitit pickles
+    it)."""
     return task(workers=workers, part=(index, count), progress=False)
 
 
@@ -120,8 +121,8 @@ def submit_parts(task: Callable, options: SlurmOptions, out: Path, job_name: str
                                slurm_additional_parameters=dict(options.extra))
     n = options.array
     jobs = executor.map_array(run_part, [task] * n, list(range(n)), [n] * n, [options.cpus] * n)
-    print(f"submitted {n} parts as {options.executor} job {jobs[0].job_id.split('_')[0]}; logs in {Path(out) / LOG_FOLDER}",
-          flush=True)
+    job = jobs[0].job_id.split("_")[0]
+    print(f"submitted {n} parts as {options.executor} job {job}; logs in {Path(out) / LOG_FOLDER}", flush=True)
     results, failed = [], []
     for index, job in enumerate(jobs):
         try:

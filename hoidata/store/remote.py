@@ -1,4 +1,4 @@
-"""Remote stores: a store given as an explicit ``http://``, ``https://``, ``s3://`` or ``gs://`` URL, read through fsspec.
+"""Remote stores: a store given as an explicit ``http://``, ``https://``, ``s3://`` or ``gs://`` URL, read by fsspec.
 
 Only :func:`hoidata.store.resolve_store` makes a :class:`RemoteStore`, and only from a ``str`` that starts with one
 of those schemes; a ``Path`` or any other text is a local folder. A remote store is read, never written: its
