@@ -102,3 +102,29 @@ def test_mirrored_frame_poses_the_mirror_image_of_the_object():
     assert trimesh.Trimesh(verts, faces, process=False).volume > 0
     plain = obj.vertices @ mirror_frame(frame).object_pose[:3, :3].T + mirror_frame(frame).object_pose[:3, 3]
     assert np.abs(plain - mirror_points(scene)).max() > 0.01
+
+
+def test_dataset_mask_iou_equals_one_warp_per_mask(tmp_path):
+    """Both dataset masks travel as bits of one map through one nearest warp (and one flip for a mirrored frame):
+    the same IoU as warping each mask on its own."""
+    from dataclasses import replace
+
+    from hoidata.pipeline.records import dataset_mask_iou
+
+    rng = np.random.default_rng(0)
+    height, width, size = 48, 64, 20
+    frame_labels = rng.integers(0, 3, (height, width))
+    frame = Frame(dataset="toy", split="train", frame_id="f", image_path=tmp_path / "f.jpg", image_size=(width, height),
+                  K=np.eye(3), side="right", root_3d=np.zeros(3), object_name="025_mug", object_id=14,
+                  object_pose=np.eye(4), labels=frame_labels)
+    to_mask = np.array([[0.37, 0.05, -3.2], [-0.04, 0.41, 1.7], [0.0, 0.0, 1.0]])
+    ours = rng.integers(0, 3, (size, size))
+    for mirror in (False, True):
+        theirs = frame_labels[:, ::-1] if mirror else frame_labels
+        want = []
+        for label in (1, 2):
+            warped = crop.warp_image((theirs == label).astype(np.uint8), to_mask, size, nearest=True) > 0
+            union = np.count_nonzero((ours == label) | warped)
+            want.append(np.count_nonzero((ours == label) & warped) / union)
+        np.testing.assert_array_equal(dataset_mask_iou(replace(frame, mirror=mirror), ours, to_mask), want)
+    assert (dataset_mask_iou(replace(frame, labels=None), ours, to_mask) == -1).all()  # no dataset masks

@@ -307,3 +307,19 @@ def test_webdataset_reads_the_same_records(tmp_path):
         assert {m: sample[m] for m in MEMBERS} == members
     decoded = decode_record(samples[0], samples[0]["__url__"])  # the trainer can decode WebDataset samples directly
     assert decoded[KEY] == records[0][0]
+
+
+def test_to_jsonable_numbers_and_non_finite_values():
+    """Numeric arrays take a fast path (tolist at once); the values are those of the element-wise path, and a
+    NaN or infinity anywhere in them is still refused with the field's name."""
+    from hoidata.store.index import to_jsonable
+
+    value = {"K": np.array([[1.5, 0.0], [2.0, -3.25]]), "f32": np.float32([0.1, 2.0]),
+             "ids": np.arange(3, dtype=np.int16), "flags": np.array([True, False]), "names": np.array(["a", "b"]), "nested": [np.array([1.0]), (2, "x")]}
+    out = to_jsonable(value, "w", "meta")
+    assert out == {"K": [[1.5, 0.0], [2.0, -3.25]], "f32": [float(np.float32(0.1)), 2.0], "ids": [0, 1, 2],
+                   "flags": [True, False], "names": ["a", "b"], "nested": [[1.0], [2, "x"]]}
+    assert type(out["ids"][0]) is int and type(out["flags"][0]) is bool and type(out["f32"][0]) is float
+    for bad in (np.array([[0.0, np.nan]]), np.float32([1.0, -np.inf])):
+        with pytest.raises(DataError, match=r"'meta\.K': non-finite number (nan|-inf)"):
+            to_jsonable({"K": bad}, "w", "meta")

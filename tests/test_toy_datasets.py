@@ -280,3 +280,19 @@ def test_malformed_values_name_the_file_and_field(dex_root, ho3d_root, tmp_path)
 def test_partial_subjects_are_refused_by_default(dex_root):
     with pytest.raises(DataError, match=r"20200709-subject-01: 5 sequence folders, expected 100"):
         list(DexYCBReader(dex_root, dex_root / "mano", "train").frames())
+
+
+def test_read_labels_of_some_keys_still_checks_the_file(tmp_path):
+    """read_labels(keys=...) (what build-sdf's mask check reads) decodes only those members, but a missing
+    member is still refused, and the decoded ones are checked as before."""
+    good = {"seg": np.zeros((480, 640), np.uint8), "pose_y": np.zeros((2, 3, 4)), "pose_m": np.zeros((1, 51)),
+            "joint_3d": np.zeros((1, 21, 3)), "joint_2d": np.zeros((1, 21, 2))}
+    path = tmp_path / "labels_000000.npz"
+    np.savez_compressed(path, **good)
+    assert set(read_labels(path, 2, keys=("seg",))) == {"seg"} and set(read_labels(path, 2)) == set(good)
+    np.savez_compressed(path, **{k: v for k, v in good.items() if k != "joint_2d"})
+    with pytest.raises(DataError, match=r"labels_000000\.npz: 'joint_2d': missing key"):
+        read_labels(path, 2, keys=("seg",))
+    np.savez_compressed(path, **dict(good, seg=np.zeros((48, 64), np.uint8)))
+    with pytest.raises(DataError, match=r"'seg': expected shape \(480, 640\)"):
+        read_labels(path, 2, keys=("seg",))

@@ -167,19 +167,25 @@ def read_betas(root: Path, calib: str) -> np.ndarray:
 LABEL_SHAPES = {"seg": (480, 640), "pose_m": (1, 51), "joint_3d": (1, 21, 3), "joint_2d": (1, 21, 2)}
 
 
-def read_labels(path: Path, num_objects: int) -> dict[str, np.ndarray]:
-    """A ``labels_%06d.npz`` with its keys and shapes checked (DataError naming file and key)."""
+def read_labels(path: Path, num_objects: int, keys=None) -> dict[str, np.ndarray]:
+    """A ``labels_%06d.npz`` with its keys and shapes checked (DataError naming file and key).
+
+    ``keys``: decode only these members (every expected key must still be present); None: all of them."""
     if not path.is_file():
         raise DataError(path, None, "labels file not found")
+    expected = dict(LABEL_SHAPES, pose_y=(num_objects, 3, 4))
     try:
         with np.load(path, allow_pickle=False) as npz:
-            labels = {k: npz[k] for k in npz.files}
+            names = set(npz.files)
+            labels = {k: npz[k] for k in (npz.files if keys is None else [k for k in keys if k in names])}
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
         raise DataError(path, None, f"cannot read npz (corrupt?): {e}") from e
-    expected = dict(LABEL_SHAPES, pose_y=(num_objects, 3, 4))
+    missing = [k for k in expected if k not in names]
+    if missing:
+        raise DataError(path, missing[0], "missing key")
     for key, shape in expected.items():
         if key not in labels:
-            raise DataError(path, key, "missing key")
+            continue
         if labels[key].shape != shape:
             raise DataError(path, key, f"expected shape {shape}, got {labels[key].shape}")
         if labels[key].dtype.kind not in "biuf":

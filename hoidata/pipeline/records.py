@@ -10,6 +10,7 @@ import hashlib
 from dataclasses import dataclass, replace
 from typing import ClassVar
 
+import cv2
 import numpy as np
 import torch
 
@@ -130,7 +131,7 @@ def build_record(frame: Frame, mano, obj: ObjectAsset, renderer, key: str, setti
     image = frame.load_image()
     hand, faces = posed_hand(frame, mano), mano.closed_faces
     if frame.mirror:
-        frame, image = mirror_frame(frame), np.ascontiguousarray(image[:, ::-1])
+        frame, image = mirror_frame(frame), cv2.flip(image, 1)  # = image[:, ::-1], without numpy's slow copy
         hand, faces = mirror_mesh(hand, faces)
     obj_verts, obj_faces, obj_box21 = posed_object(frame, obj)
     box = crop_ops.square_crop_box(frame.joints_2d, project(obj_box21, frame.K), settings.context)
@@ -155,40 +156,55 @@ def build_record(frame: Frame, mano, obj: ObjectAsset, renderer, key: str, setti
     }
 
 
-def dataset_masks(frame: Frame) -> tuple[np.ndarray, np.ndarray] | None:
-    """The dataset's own hand and object masks at image resolution (before any mirroring), if it has them."""
+HAND_BIT, OBJECT_BIT = 1, 2  # dataset_masks' bit code
+
+
+def dataset_masks(frame: Frame) -> np.ndarray | None:
+    """The dataset's own hand and object masks at image resolution (before any mirroring), if it has them,
+    as one (H, W) uint8 map: bit HAND_BIT where the dataset says hand, OBJECT_BIT where it says object."""
     if frame.labels is not None:  # a synthetic render's own label map
-        return frame.labels == 1, frame.labels == 2
+        return _bits(frame.labels == 1, frame.labels == 2)
     path = frame.segmentation_path
     if path is None:
         return None
     if frame.dataset == "dexycb":
         from hoidata.datasets.dexycb_layout import read_labels
 
-        seg = read_labels(path, int(frame.source["num_objects"]))["seg"]
-        return seg == 255, seg == frame.object_id
+        # the reader checked every key of this file when it listed the frame; only the label map is decoded here
+        seg = read_labels(path, int(frame.source["num_objects"]), keys=("seg",))["seg"]
+        return _bits(seg == 255, seg == frame.object_id)
     if frame.dataset == "ho3d":  # rendered at 1/4 resolution: hand in red, object in blue
         import cv2
 
         from hoidata.datasets.frame import read_rgb
 
-        seg = cv2.resize(read_rgb(path), frame.image_size, interpolation=cv2.INTER_NEAREST)
-        return seg[..., 0] > 200, seg[..., 2] > 200
+        seg = read_rgb(path)
+        bits = _bits(seg[..., 0] > 200, seg[..., 2] > 200)
+        return cv2.resize(bits, frame.image_size, interpolation=cv2.INTER_NEAREST)
     return None
 
 
+def _bits(hand: np.ndarray, obj: np.ndarray) -> np.ndarray:
+    return (hand.view(np.uint8) * np.uint8(HAND_BIT)) | (obj.view(np.uint8) * np.uint8(OBJECT_BIT))
+
+
 def dataset_mask_iou(frame: Frame, labels: np.ndarray, to_mask: np.ndarray) -> np.ndarray:
-    """IoU (2,) of our visible hand / object masks (label map 1 / 2) with the dataset's; -1 if it has none."""
+    """IoU (2,) of our visible hand / object masks (label map 1 / 2) with the dataset's; -1 if it has none.
+
+    Both masks travel as bits of one map through one nearest-neighbour warp: each output pixel takes the
+    bits of one source pixel, so this equals warping each mask on its own."""
+    import cv2
+
     masks = dataset_masks(frame)
     if masks is None:
         return np.array([-1.0, -1.0])
+    masks = cv2.flip(masks, 1) if frame.mirror else masks
+    warped = crop_ops.warp_image(masks, to_mask, labels.shape[0], nearest=True)
     out = []
-    for theirs, label in zip(masks, (1, 2)):
-        theirs = theirs[:, ::-1] if frame.mirror else theirs
-        warped = crop_ops.warp_image(theirs.astype(np.uint8), to_mask, labels.shape[0], nearest=True) > 0
-        ours = labels == label
-        union = np.count_nonzero(ours | warped)
-        out.append(np.count_nonzero(ours & warped) / union if union else 1.0)
+    for bit, label in ((HAND_BIT, 1), (OBJECT_BIT, 2)):
+        theirs, ours = (warped & bit) > 0, labels == label
+        union = np.count_nonzero(ours | theirs)
+        out.append(np.count_nonzero(ours & theirs) / union if union else 1.0)
     return np.array(out)
 
 

@@ -88,11 +88,11 @@ def _init_worker(mano_dir: Path, models_dir: Path, crop_size: int) -> None:
     """Per-process state: MANO layers (loaded on first use), object geometry cache and one mask renderer."""
     import torch
 
-    from hoidata.render import Renderer
+    from hoidata.render.masks import MaskRenderer
 
     torch.set_num_threads(1)
     _WORKER.update(mano_dir=Path(mano_dir), manos={}, models_dir=Path(models_dir), objects={},
-                   renderer=Renderer(crop_size // 2, crop_size // 2))
+                   renderer=MaskRenderer(crop_size // 2, crop_size // 2))
 
 
 def hand_model(side: str, fix_left_shapedirs: bool):

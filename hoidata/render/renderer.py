@@ -19,18 +19,14 @@ edges); its coverage is returned as ``alpha`` and used to composite the backgrou
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 
 import numpy as np
 
-# Loading torch's compiler stack after an EGL context exists segfaults (CUDA bindings vs Mesa), so load it
-# first: any later `import torchvision` (the model) in a process that rendered (tests, the main job) then works.
-import torch._dynamo  # noqa: F401
-
 from hoidata.render.appearance import Lighting, default_lighting
+from hoidata.render.egl_guard import prepare_for_egl
 
-os.environ.setdefault("PYOPENGL_PLATFORM", "egl")  # before any pyrender / OpenGL import
+prepare_for_egl()  # before any pyrender / OpenGL import (torch's compiler stack first, in a main process)
 
 ZNEAR = 0.01  # metres; 24-bit depth keeps < 0.2 mm resolution out to 5 m with these planes
 ZFAR = 20.0
@@ -230,7 +226,7 @@ class Renderer:
 
         Mask i is where mesh i covers the image when rendered alone (unoccluded), so it contains
         every pixel whose visible front surface is mesh i. One flat SEG pass per mesh plus one."""
-        scene, nodes = self._scene(K, meshes, None)
+        scene, nodes = self._scene(K, meshes, None, normals=False)  # the SEG shader reads positions only
         labels, _ = self._seg(scene, {node: mesh.label for node, mesh in zip(nodes, meshes)})
         amodal = np.zeros((len(meshes), self.height, self.width), dtype=bool)
         for i, node in enumerate(nodes):
@@ -251,8 +247,9 @@ class Renderer:
         labels = np.where(depth > 0, rgb_to_label(color), 0).astype(np.int32)
         return labels, np.ascontiguousarray(depth, dtype=np.float32)
 
-    def _scene(self, K, meshes: list[RenderMesh], lighting: Lighting | None):
-        """A pyrender Scene in the OpenCV camera frame, and the mesh nodes in ``meshes`` order."""
+    def _scene(self, K, meshes: list[RenderMesh], lighting: Lighting | None, normals: bool = True):
+        """A pyrender Scene in the OpenCV camera frame, and the mesh nodes in ``meshes`` order (``normals``
+        False: the meshes carry no normals, for SEG passes only)."""
         import pyrender
 
         fx, fy, cx, cy = pyrender_intrinsics(K)
@@ -260,7 +257,7 @@ class Renderer:
         scene = pyrender.Scene(bg_color=(0.0, 0.0, 0.0, 0.0), ambient_light=np.asarray(ambient, np.float64))
         camera = pyrender.IntrinsicsCamera(fx, fy, cx, cy, znear=self.znear, zfar=self.zfar)
         scene.add(camera, pose=CV_TO_GL)
-        nodes = [scene.add(_pyrender_mesh(mesh)) for mesh in meshes]
+        nodes = [scene.add(_pyrender_mesh(mesh, normals)) for mesh in meshes]
         if lighting is not None:
             for light in lighting.directional:
                 scene.add(pyrender.DirectionalLight(color=light.color, intensity=light.intensity),
@@ -283,11 +280,14 @@ def _light_pose(direction) -> np.ndarray:
     return pose
 
 
-def _pyrender_mesh(mesh: RenderMesh):
-    """A single-primitive pyrender Mesh: textured or plain, single-sided, slightly rough plastic."""
+def _pyrender_mesh(mesh: RenderMesh, with_normals: bool = True):
+    """A single-primitive pyrender Mesh: textured or plain, single-sided, slightly rough plastic (without
+    normals when ``with_normals`` is False: enough for SEG and depth passes, which read positions only)."""
     import pyrender
 
-    normals = vertex_normals(mesh.vertices, mesh.faces) if mesh.normals is None else mesh.normals
+    normals = None
+    if with_normals:
+        normals = vertex_normals(mesh.vertices, mesh.faces) if mesh.normals is None else mesh.normals
     if mesh.texture is not None:
         texture = pyrender.Texture(source=mesh.texture, source_channels="RGB")  # uploads rows flipped: v up
         material = pyrender.MetallicRoughnessMaterial(baseColorTexture=texture, metallicFactor=0.0,
@@ -295,7 +295,8 @@ def _pyrender_mesh(mesh: RenderMesh):
     else:
         base = np.append(srgb_to_linear(mesh.color), 1.0)
         material = pyrender.MetallicRoughnessMaterial(baseColorFactor=base, metallicFactor=0.0, roughnessFactor=0.7)
-    primitive = pyrender.Primitive(positions=mesh.vertices.astype(np.float32), normals=np.asarray(normals, np.float32),
+    normals = None if normals is None else np.asarray(normals, np.float32)
+    primitive = pyrender.Primitive(positions=mesh.vertices.astype(np.float32), normals=normals,
                                    texcoord_0=None if mesh.uv is None else mesh.uv.astype(np.float32),
                                    indices=mesh.faces.astype(np.uint32), material=material)
     return pyrender.Mesh(primitives=[primitive])

@@ -204,8 +204,13 @@ def render_synthetic(source: Path, out: Path, count: int, mano_dir: Path, models
         return n, idx, [keys[i] for i in idx], seed, settings, record, out
 
     init = (Path(mano_dir), Path(models_dir), source, files, record.crop_size)
-    summary, numbers, done = runner.run_shards(out, count, per, make_job, _synth_shard, _init, init, workers,
-                                                 part, progress, "render-synthetic", engine=engine)
+    try:
+        summary, numbers, done = runner.run_shards(out, count, per, make_job, _synth_shard, _init, init, workers,
+                                                     part, progress, "render-synthetic", engine=engine)
+    finally:
+        rgb = _W.pop("rgb", None)  # a serial run's own renderer: closed now, not whenever it is garbage-collected
+        if rgb is not None:
+            rgb.close()
     if done:
         stats = [_shard_stats(out, n) for n in numbers]
         attempts = sum(st["attempts"] for st in stats)
