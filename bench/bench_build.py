@@ -3,8 +3,12 @@
 Usage: python bench/bench_build.py [--frames 60] [--root DIR] [--rounds 2]
 
 Writes a small toy DexYCB (unless --root points at one), then in one run:
-- builds --frames frames with 1 worker (the per-core rate; the first shard's start-up included)
-  and, on the same frames, with 2 workers, each with the SDF backend build-sdf uses
+- builds the frames once untimed with 1 worker (this process then has its modules imported, the numba kernels
+  loaded and the GL libraries initialised, as a long build has after its first seconds; without it the first
+  timed configuration alone would pay for them);
+- builds --frames frames with 1 worker (the per-core rate; reading the frames, the renderer's start-up and the
+  index included) and, on the same frames, with 2 workers (spawned: their start-up included), each with the
+  SDF backend build-sdf uses
   (``record.sdf_backend="bvh"``) and with the previous one as the baseline (``"igl"``), interleaved
   over --rounds rounds (medians reported; the machine's load average is printed with them);
 - measures the bytes per record in the store, split by member, against the layout HOISDF trains from:
@@ -67,6 +71,7 @@ def main() -> None:
     work = Path(tempfile.mkdtemp(prefix="bench_build_"))
     try:
         root = Path(args.root) if args.root else toy_root(args.frames, work)
+        timed_build(root, work / "warm-up", 1, BACKENDS[0])
         seconds, records = {}, {}
         runs = [(b, w) for w in (1, 2) for b in BACKENDS]
         for _ in range(args.rounds):
