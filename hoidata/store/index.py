@@ -59,12 +59,9 @@ def to_jsonable(value, where, name: str):
     if isinstance(value, (list, tuple)):
         return [to_jsonable(v, where, name) for v in value]
     if isinstance(value, np.ndarray):
-        if value.dtype.kind in "biuf":  # numbers: tolist() gives plain values; only floats can be non-finite
-            if value.dtype.kind == "f" and not np.isfinite(value).all():
-                bad = value[~np.isfinite(value)].flat[0]
-                raise DataError(where, name, f"non-finite number {float(bad)} (JSON cannot hold it)")
-            return value.tolist()
-        return to_jsonable(value.tolist(), where, name)
+        # numbers: tolist() gives plain values at once; only floats can be non-finite (the element path says which)
+        fast = value.dtype.kind in "biu" or (value.dtype.kind == "f" and np.isfinite(value).all())
+        return value.tolist() if fast else to_jsonable(value.tolist(), where, name)
     if isinstance(value, np.generic):
         value = value.item()
     if isinstance(value, os.PathLike):
