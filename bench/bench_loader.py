@@ -1,115 +1,85 @@
-"""Loader throughput: ``make_loader(build_dataset(...))`` against an upstream-style per-file loader.
+"""Loader throughput: ``make_loader(build_dataset(...))`` against two per-file loaders, at equal workers.
 
-Usage: python bench/bench_loader.py [--store DIR] [--records 96] [--batch 22] [--batches 12] [--rounds 3]
-                                    [--workers 0 1 2]
+Usage: python bench/bench_loader.py [--frames 96] [--batch 22] [--batches 12] [--rounds 3] [--workers 0 1 2]
 
-The baseline reads the same records the way the HOISDF and AlignSDF code bases do: one folder per kind
-of file, one file per frame (``rgb/<key>.jpg``, ``seg/<key>.png``, ``heatmap/<key>.png``, ``sdf/<key>.npz``
-with the SDF samples as float32 columns, ``meta/<key>.pkl`` with the labels), written here from the store
-(the image bytes as they are), and a map-style ``torch.utils.data.Dataset`` that opens and decodes them
-per item, converts to float32 in the worker, and ``DataLoader``'s default collation with a shuffling
-sampler. It draws the same SDF rows as ours (same seeded generator per key) and returns the same
-tensors; the bench checks that on a batch of keys (every key, every value; our uint8 images compared
-and heatmaps compared after ``hoisdf.data.augment.float_image``).
+Builds a toy DexYCB (its right-hand training frames: gSDF reads right hands only), a store of them with 512 px
+crops and ``hoidata export --format gsdf`` of the same frames (AlignSDF's SDF files, 20,000 rows per mesh), then
+measures, interleaved over ``--rounds`` rounds per worker count (median samples/s, the ratios per round):
 
-Both run interleaved, ``--rounds`` times per worker count (median samples/s reported, with the
-spread of the ratio), after one untimed batch each (worker start-up excluded). Without ``--store`` a toy
-DexYCB store with 512 px crops is built first (bench_train.toy_store).
+- ours: ``make_loader(build_dataset(...))`` (tar shards, strict reads against the index, uint8 images, packed
+  masks; batch 22, 600 + 200 SDF points and as many near points, as training uses);
+- "upstream-style" (``per_file_loaders.UpstreamDataset``): what HOISDF's and gSDF's loaders do per item, from
+  per-frame files: the original 640x480 frame JPEG cut to the crop by an affine warp, the dataset's label map
+  warped to the masks, AlignSDF's npz files unpacked, a label pickle, float32 images; the baseline issue 17
+  asks for;
+- "same crops" (``per_file_loaders.SameCropsDataset``): the store's own pre-cut members as per-frame files
+  (crop JPEG, mask PNG, SDF npz of the store's rows, label pickle), decoded per item to float32: the container
+  and the decode path alone, with less work per item than any upstream loader does.
+
+The baselines use DataLoader's default collation with a shuffling sampler, ours its own batches; every loader
+is timed over ``--batches`` batches after an untimed first one (worker start-up excluded). Before timing, a batch
+of each baseline is compared with ours for the same keys: "same crops" value by value (our image through
+``float_image``, our masks through ``unpack_masks``), "upstream-style" in keys, shapes and dtypes, labels value by
+value, and image and masks by how close they are (other source pixels: see per_file_loaders).
 """
 
 from __future__ import annotations
 
 import argparse
 import os
-import pickle
 import shutil
 import tempfile
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
-from bench_train import toy_store
+from bench_export import toy_root
+from per_file_loaders import LABEL_FIELDS, SameCropsDataset, UpstreamDataset
 
-from hoidata import schema
-from hoidata.store import decode_record, read_shard_members
+from hoidata.export import export_dataset
+from hoidata.pipeline.runner import build_store
+from hoidata.pipeline.settings import load_build_config
 from hoisdf.data import StoreSpec, build_dataset, make_loader
-from hoisdf.data.augment import float_image
-from hoisdf.data.loader import _key_seed, sample_sdf_arrays
+from hoisdf.data.augment import float_image, unpack_masks
 
-N_HAND, N_OBJECT, NEAR, SEED = 600, 200, 0.05, 0
-
-
-def export_per_file(store: Path, out: Path) -> list[str]:
-    """Write every record of ``store`` as per-frame files under ``out``; returns the keys in store order."""
-    for kind in ("rgb", "seg", "heatmap", "sdf", "meta"):
-        (out / kind).mkdir(parents=True, exist_ok=True)
-    keys = []
-    for shard in sorted(store.glob("shard-*.tar")):
-        for members in read_shard_members(shard):
-            rec = decode_record(members, str(shard))
-            key = rec["__key__"]
-            (out / "rgb" / f"{key}.jpg").write_bytes(members[schema.IMG])
-            (out / "seg" / f"{key}.png").write_bytes(members[schema.SEG])
-            (out / "heatmap" / f"{key}.png").write_bytes(members[schema.HEATMAP])
-            xyz, sdf_hand, sdf_obj, part = schema.dequantize_sdf(rec[schema.SDF])
-            np.savez(out / "sdf" / f"{key}.npz", xyz=xyz, sdf_hand=sdf_hand, sdf_obj=sdf_obj, part=part)
-            with open(out / "meta" / f"{key}.pkl", "wb") as f:
-                pickle.dump(rec[schema.META], f)
-            keys.append(key)
-    return keys
+N_HAND, N_OBJECT, NEAR, SEED, CROP = 600, 200, 0.05, 0, 512
+SETTINGS = ['dataset.splits=["train"]', 'dataset.sides=["right"]', f"record.crop_size={CROP}",
+            "store.records_per_shard=32"]
+LOADERS = ("ours", "upstream-style", "same crops")
 
 
-class PerFileDataset(torch.utils.data.Dataset):
-    """The upstream-style baseline: each item opens its five files and builds float32 tensors."""
-
-    def __init__(self, root: Path, keys: list[str], epoch: int = 0):
-        self.root, self.keys, self.epoch = root, keys, epoch
-
-    def __len__(self) -> int:
-        return len(self.keys)
-
-    def __getitem__(self, i: int) -> dict:
-        key, root = self.keys[i], self.root
-        img = cv2.imread(str(root / "rgb" / f"{key}.jpg"), cv2.IMREAD_COLOR)[:, :, ::-1]
-        seg = cv2.imread(str(root / "seg" / f"{key}.png"), cv2.IMREAD_UNCHANGED)
-        heatmap = cv2.imread(str(root / "heatmap" / f"{key}.png"), cv2.IMREAD_UNCHANGED)
-        with np.load(root / "sdf" / f"{key}.npz") as z:
-            xyz, sdf_hand, sdf_obj = z["xyz"], z["sdf_hand"], z["sdf_obj"]
-        with open(root / "meta" / f"{key}.pkl", "rb") as f:
-            meta = pickle.load(f)
-        rng = np.random.default_rng([SEED, self.epoch, _key_seed(key)])
-        out = sample_sdf_arrays(xyz, sdf_hand, sdf_obj, meta["sdf_counts"], rng, N_HAND, N_OBJECT, NEAR)
-        f32 = lambda x: np.asarray(x, dtype=np.float32)
-        out.update({
-            "img": np.ascontiguousarray(img.transpose(2, 0, 1), dtype=np.float32) / 255.0,
-            "seg": ((seg[None] >> np.arange(4, dtype=np.uint8)[:, None, None]) & 1).astype(bool),
-            "heatmap": heatmap[None].astype(np.float32) / 255.0,
-            "K": f32(meta["K"]), "hand_root": f32(meta["hand_root"]), "joints_3d": f32(meta["joints_3d"]),
-            "joints_2d": f32(meta["joints_2d"]), "mano_pose": f32(meta["mano_pose"]),
-            "mano_betas": f32(meta["mano_betas"]), "object_pose": f32(meta["object_pose"]),
-            "hand_box": f32(meta["hand_box"]), "object_box": f32(meta["object_box"]),
-            "object_id": np.int64(meta["object_id"]), "mirrored": np.bool_(meta["mirrored"]),
-            "is_synthetic": np.bool_(meta["dataset"] == "synthetic"), "key": key,
-        })
-        return out
+def prepare(frames: int, work: Path) -> tuple[Path, dict]:
+    """(store, {loader name: (folder, keys)}) of a toy DexYCB's right-hand training frames."""
+    root = toy_root(frames, work)
+    cfg = load_build_config("toy", SETTINGS)
+    paths = (root, root / "mano", root / "models")
+    build_store(cfg, *paths, work / "store", workers=2, progress=False)
+    export_dataset("gsdf", cfg, *paths, work / "gsdf", splits=["train"], workers=2, progress=False)
+    same = SameCropsDataset.export(work / "store", work / "same_crops")
+    upstream = UpstreamDataset.export(work / "store", work / "gsdf", work / "upstream")
+    return work / "store", {"same crops": (work / "same_crops", same), "upstream-style": (work / "upstream", upstream)}
 
 
-def baseline_loader(root: Path, keys: list[str], batch: int, workers: int, samples: int):
+def dataset(name: str, folder: Path, keys: list[str]):
+    if name == "same crops":
+        return SameCropsDataset(folder, keys, N_HAND, N_OBJECT, NEAR, SEED)
+    return UpstreamDataset(folder, keys, N_HAND, N_OBJECT, NEAR, CROP, SEED)
+
+
+def loader(name: str, store: Path, per_file: dict, batch: int, workers: int, samples: int):
+    if name == "ours":
+        data = build_dataset([StoreSpec(store)], batch, samples, SEED, N_HAND, N_OBJECT, NEAR, 64, training=True)
+        return make_loader(data, workers)
+    folder, keys = per_file[name]
     sampler = torch.utils.data.RandomSampler(keys, num_samples=samples, generator=torch.Generator().manual_seed(SEED))
-    return torch.utils.data.DataLoader(PerFileDataset(root, keys), batch_size=batch, sampler=sampler,
+    return torch.utils.data.DataLoader(dataset(name, folder, keys), batch_size=batch, sampler=sampler,
                                        num_workers=workers, drop_last=True)
 
 
-def ours_loader(store: Path, batch: int, workers: int, samples: int):
-    data = build_dataset([StoreSpec(store)], batch, samples, SEED, N_HAND, N_OBJECT, NEAR, 64, training=True)
-    return make_loader(data, workers)
-
-
-def rate(loader, batches: int) -> float:
+def rate(batches_of, batches: int) -> float:
     """Samples per second over ``batches`` batches after the first (worker start-up excluded)."""
-    it = iter(loader)
+    it = iter(batches_of)
     next(it)
     start, n = time.perf_counter(), 0
     for _ in range(batches):
@@ -119,30 +89,39 @@ def rate(loader, batches: int) -> float:
     return n / seconds
 
 
-def check_same(store: Path, root: Path, keys: list[str], batch: int) -> int:
-    """Our batch and the baseline's items for the same keys: equal in every key and value. Returns
-    the number of values compared."""
-    ours = next(iter(ours_loader(store, batch, 0, batch * 2)))
-    index = {k: i for i, k in enumerate(keys)}
-    dataset = PerFileDataset(root, keys)
-    theirs = torch.utils.data.default_collate([dataset[index[k]] for k in ours["key"]])
-    assert set(ours) == set(theirs), sorted(set(ours) ^ set(theirs))
-    compared = 0
-    for name, value in ours.items():
-        if name == "key":
-            assert value == theirs[name]
+def check(store: Path, per_file: dict, batch: int) -> list[str]:
+    """Compare a batch of ours with each baseline's items for the same keys; returns one line per baseline."""
+    ours = next(iter(loader("ours", store, per_file, batch, 0, batch * 2)))
+    bits = ours.pop("seg_bits")
+    ours = {**ours, "img": float_image(ours["img"]), "seg": unpack_masks(bits).bool()}
+    lines = []
+    for name in ("same crops", "upstream-style"):
+        folder, keys = per_file[name]
+        index, data = {k: i for i, k in enumerate(keys)}, dataset(name, folder, keys)
+        theirs = torch.utils.data.default_collate([data[index[k]] for k in ours["key"]])
+        assert set(ours) == set(theirs) and theirs["key"] == ours["key"], sorted(set(ours) ^ set(theirs))
+        for key, value in ours.items():
+            if key != "key":
+                assert value.shape == theirs[key].shape and value.dtype == theirs[key].dtype, key
+        if name == "same crops":
+            for key, value in ours.items():
+                assert key == "key" or torch.equal(value, theirs[key]), key
+            lines.append(f"same crops: every value of a batch of {batch} equal to ours "
+                         f"({sum(v.numel() for k, v in ours.items() if k != 'key')} values)")
             continue
-        if name in ("img", "heatmap"):  # ours: uint8, converted on the device
-            value = float_image(value)
-        assert value.dtype == theirs[name].dtype and torch.equal(value, theirs[name]), name
-        compared += value.numel()
-    return compared
+        for key in (*LABEL_FIELDS, "object_id", "mirrored", "is_synthetic"):
+            assert torch.equal(ours[key], theirs[key]), key
+        image = (ours["img"] - theirs["img"]).abs().mean().item() * 255
+        masks = (ours["seg"][:, :2] == theirs["seg"][:, :2]).float().mean().item()
+        lines.append(f"upstream-style: same keys, shapes and dtypes, labels equal; image {image:.2f} grey levels "
+                     f"from ours on average (crop of the frame JPEG vs JPEG of the crop), visible masks "
+                     f"{100 * masks:.1f} % of pixels equal (dataset label map vs our renders)")
+    return lines
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--store", default=None)
-    parser.add_argument("--records", type=int, default=96, help="records of the toy store built without --store")
+    parser.add_argument("--frames", type=int, default=96, help="right-hand training frames of the toy DexYCB")
     parser.add_argument("--batch", type=int, default=22)
     parser.add_argument("--batches", type=int, default=12, help="timed batches per measurement")
     parser.add_argument("--rounds", type=int, default=3)
@@ -150,25 +129,26 @@ def main() -> None:
     args = parser.parse_args()
     work = Path(tempfile.mkdtemp(prefix="bench_loader_"))
     try:
-        store = Path(args.store) if args.store else toy_store(work, args.records, workers=2)[0]
-        keys = export_per_file(store, work / "per_file")
-        print(f"{len(keys)} records, {args.batch} per batch; same tensors checked: "
-              f"{check_same(store, work / 'per_file', keys, args.batch)} values equal")
+        store, per_file = prepare(args.frames, work)
+        print(f"{len(per_file['same crops'][1])} records, {args.batch} per batch, {CROP} px crops")
+        for line in check(store, per_file, args.batch):
+            print(line)
         samples = args.batch * (args.batches + 1)
-        rows = {}
+        rows = {w: {name: [] for name in LOADERS} for w in args.workers}
         for _ in range(args.rounds):
             for w in args.workers:
-                rows.setdefault(w, {"ours": [], "per-file": []})
-                rows[w]["ours"].append(rate(ours_loader(store, args.batch, w, samples * max(1, w)), args.batches))
-                rows[w]["per-file"].append(rate(baseline_loader(work / "per_file", keys, args.batch, w, samples * max(1, w)),
-                                                args.batches))
+                for name in LOADERS:
+                    rows[w][name].append(rate(loader(name, store, per_file, args.batch, w, samples * max(1, w)),
+                                              args.batches))
         load = " ".join(f"{x:.2f}" for x in os.getloadavg())
         print(f"samples/s, median of {args.rounds} interleaved rounds; load average {load} (1, 5, 15 min)")
-        print(f"{'workers':>7} {'ours':>8} {'per-file':>9} {'x':>6}  x per round")
+        print(f"{'workers':>7} {'ours':>8} {'upstream':>9} {'same':>8} {'x upstream':>11} {'x same':>7}"
+              "  x upstream per round; x same per round")
         for w, r in rows.items():
-            ratios = np.array(r["ours"]) / np.array(r["per-file"])
-            print(f"{w:>7} {np.median(r['ours']):8.1f} {np.median(r['per-file']):9.1f} {np.median(ratios):6.2f}  "
-                  + " ".join(f"{x:.2f}" for x in ratios))
+            up, same = (np.array(r["ours"]) / np.array(r[name]) for name in ("upstream-style", "same crops"))
+            print(f"{w:>7} {np.median(r['ours']):8.1f} {np.median(r['upstream-style']):9.1f} "
+                  f"{np.median(r['same crops']):8.1f} {np.median(up):11.2f} {np.median(same):7.2f}  "
+                  + " ".join(f"{x:.2f}" for x in up) + "; " + " ".join(f"{x:.2f}" for x in same))
     finally:
         shutil.rmtree(work, ignore_errors=True)
 

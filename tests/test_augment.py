@@ -9,6 +9,8 @@ import pytest
 import torch
 import trimesh
 
+from hoidata import schema
+from hoidata.store import KEY, iter_records
 from hoisdf.data import StoreSpec, build_dataset
 from hoisdf.data.augment import (
     AugmentSettings,
@@ -17,7 +19,9 @@ from hoisdf.data.augment import (
     color_jitter,
     float_image,
     gaussian_blur,
+    mask_planes,
     rotation_z,
+    unpack_masks,
 )
 from hoisdf.model.encoding import project_points
 from hoisdf.model.rotation import matrix_to_axis_angle
@@ -144,7 +148,7 @@ def test_image_and_masks_follow_the_new_intrinsics(batch, augmented):
     compared, inside, hand_pixels = 0, [], 0
     for i in range(4):
         to_source = _output_to_source(out, i)
-        source_img, source_seg = float_image(batch["img"])[i].double().numpy(), batch["seg"][i].numpy()
+        source_img, source_seg = float_image(batch["img"])[i].double().numpy(), mask_planes(batch)[i].bool().numpy()
         # the image at each joint's pixel is the stored image at the matching source pixel
         for u, v in out["joints_2d"][i].round().long().tolist():
             if 0 <= u < size and 0 <= v < size:
@@ -175,11 +179,14 @@ def test_image_and_masks_follow_the_new_intrinsics(batch, augmented):
     assert len(inside) >= 5 and np.mean(inside) >= 0.9
 
 
-def test_eval_is_the_central_crop(batch):
+def test_eval_is_the_central_crop(batch, tiny_store):
     out = augment_batch(batch, AugmentSettings(input_size=64), None, train=False)
     torch.testing.assert_close(out["img"], float_image(batch["img"])[:, :, 32:96, 32:96], atol=1e-5, rtol=0)
-    assert torch.equal(out["seg"], batch["seg"][:, :, 16:48, 16:48].float())
-    torch.testing.assert_close(out["heatmap"], float_image(batch["heatmap"])[:, :, 16:48, 16:48], atol=0.01, rtol=0)
+    assert torch.equal(out["seg"], unpack_masks(batch["seg_bits"])[:, :, 16:48, 16:48])
+    # the heatmap rendered from the joints is the one the store holds (which the loader no longer sends)
+    stored = {r[KEY]: r[schema.HEATMAP] for r in iter_records(tiny_store)}
+    heatmaps = torch.stack([torch.from_numpy(stored[k])[None] for k in batch["key"]])
+    torch.testing.assert_close(out["heatmap"], float_image(heatmaps)[:, :, 16:48, 16:48], atol=0.01, rtol=0)
     shift = torch.tensor([[1.0, 0, -32], [0, 1, -32], [0, 0, 1]])
     torch.testing.assert_close(out["K"], shift @ batch["K"])
     torch.testing.assert_close(out["joints_2d"], batch["joints_2d"] - 32)
@@ -194,6 +201,7 @@ def test_untouched_entries_pass_through(batch, augmented):
                 "mirrored", "is_synthetic", "key"):
         assert augmented[key] is batch[key]
     assert augmented["seg"].dtype == torch.float32 and set(augmented["seg"].unique().tolist()) <= {0.0, 1.0}
+    assert "seg_bits" in batch and "seg_bits" not in augmented  # the packed masks are replaced by their planes
     assert augmented["heatmap"].shape == (4, 1, 32, 32) and augmented["heatmap"].max() <= 1.0
 
 

@@ -16,7 +16,7 @@ from hoidata.pipeline.runner import build_store
 from hoidata.pipeline.settings import load_build_config
 from hoidata.synth.render_synthetic import render_synthetic
 from hoisdf.data import StoreSpec, build_dataset, make_loader
-from hoisdf.data.augment import float_image
+from hoisdf.data.augment import AugmentSettings, augment_batch, float_image, unpack_masks
 from hoisdf.data.loader import _key_seed, sample_sdf
 
 CROP, N_HAND, N_OBJECT, NEAR = 128, 32, 16, 0.05
@@ -65,8 +65,7 @@ def test_batch_shapes_and_dtypes(stores):
     b, h = 4, CROP // 2
     batch = next(iter(_dataset(stores, batch_size=b)))
     expected = {
-        "img": ((b, 3, CROP, CROP), torch.uint8), "seg": ((b, 4, h, h), torch.bool),
-        "heatmap": ((b, 1, h, h), torch.uint8),
+        "img": ((b, 3, CROP, CROP), torch.uint8), "seg_bits": ((b, h, h), torch.uint8),
         "hand_points": ((b, N_HAND, 3), torch.float32), "hand_sdf": ((b, N_HAND), torch.float32),
         "obj_points": ((b, N_OBJECT, 3), torch.float32), "obj_sdf": ((b, N_OBJECT), torch.float32),
         "hand_near_points": ((b, N_HAND, 3), torch.float32), "hand_near_sdf": ((b, N_HAND), torch.float32),
@@ -84,10 +83,11 @@ def test_batch_shapes_and_dtypes(stores):
     for name, (shape, dtype) in expected.items():
         assert tuple(batch[name].shape) == shape and batch[name].dtype == dtype, name
     assert isinstance(batch["key"], list) and len(batch["key"]) == b and all(isinstance(k, str) for k in batch["key"])
-    assert batch["img"].max() > 0 and batch["heatmap"].max() > 200
+    assert batch["img"].max() > 0
     assert batch["img"].is_contiguous(memory_format=torch.channels_last)
     assert float_image(batch["img"]).dtype == torch.float32 and float_image(batch["img"]).max() <= 1
-    assert batch["seg"][:, 2].sum() >= batch["seg"][:, 0].sum()  # amodal hand covers the visible hand
+    planes = unpack_masks(batch["seg_bits"])
+    assert planes[:, 2].sum() >= planes[:, 0].sum() > 0  # amodal hand covers the visible hand
 
 
 def test_values_match_the_store(stores, records):
@@ -107,7 +107,7 @@ def test_values_match_the_store(stores, records):
                 np.testing.assert_array_equal(batch[f"{name}_points"][i].numpy(), xyz[rows])
                 np.testing.assert_array_equal(batch[f"{name}_sdf"][i].numpy(), dist[rows])
         np.testing.assert_array_equal(batch["img"][i].permute(1, 2, 0).numpy(), rec[schema.IMG])
-        np.testing.assert_array_equal(batch["seg"][i, 1].numpy(), (rec[schema.SEG] & 2) > 0)
+        np.testing.assert_array_equal(batch["seg_bits"][i].numpy(), rec[schema.SEG])
         np.testing.assert_allclose(batch["joints_3d"][i].numpy(), meta["joints_3d"], rtol=1e-6)
         np.testing.assert_allclose(batch["object_pose"][i].numpy(), meta["object_pose"], rtol=1e-6)
         assert batch["object_id"][i] == meta["object_id"]
@@ -206,15 +206,27 @@ def _previous_batch(records, keys, seed, epoch):
 
 @pytest.mark.parametrize("workers", [0, 1])
 def test_batches_equal_the_previous_loader_for_a_fixed_seed(stores, records, workers):
-    """Same keys and values as the loader gave before uint8 images (float_image restores the float32
-    values exactly), in the main process and through a worker's shared-memory collation."""
+    """Same keys and values as the loader gave before uint8 images and packed masks (float_image and
+    unpack_masks restore the previous values exactly; the stored heatmap is no longer sent, augment_batch never
+    read it), in the main process and through a worker's shared-memory collation; and augment_batch makes the
+    same network inputs from both batches."""
     dataset = _dataset(stores, batch_size=4, seed=5, epoch_samples=8)
     dataset.set_epoch(3)
     batches = list(make_loader(dataset, workers))
     assert len(batches) == 2
     for batch in batches:
         expected = _previous_batch(records, batch["key"], seed=5, epoch=3)
-        assert set(batch) == set(expected) | {"key"}
+        assert set(batch) == set(expected) - {"seg", "heatmap"} | {"seg_bits", "key"}
         for name, value in expected.items():
-            got = float_image(batch[name]) if name in ("img", "heatmap") else batch[name]
+            if name == "heatmap":
+                continue
+            got = {"img": lambda: float_image(batch["img"]), "seg": lambda: unpack_masks(batch["seg_bits"]).bool()
+                   }.get(name, lambda: batch[name])()
             assert got.dtype == value.dtype and torch.equal(got, value), name
+        for train in (True, False):
+            settings = AugmentSettings(input_size=64, rotation="uniform")
+            ours, before = (augment_batch(b, settings, torch.Generator().manual_seed(1), train)
+                            for b in (batch, {**expected, "key": batch["key"]}))
+            assert set(ours) == set(before)
+            for name, value in before.items():
+                assert name == "key" or torch.equal(ours[name], value), name

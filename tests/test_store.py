@@ -10,6 +10,7 @@ import socket
 import tarfile
 import warnings
 
+import cv2
 import numpy as np
 import pytest
 
@@ -323,3 +324,24 @@ def test_to_jsonable_numbers_and_non_finite_values():
     for bad in (np.array([[0.0, np.nan]]), np.float32([1.0, -np.inf])):
         with pytest.raises(DataError, match=r"'meta\.K': non-finite number (nan|-inf)"):
             to_jsonable({"K": bad}, "w", "meta")
+
+
+def test_decode_leaves_undecoded_members_out_but_checks_them():
+    """decode_record(undecoded=(HEATMAP,)) (what the training loader calls) does not return the heatmap, and still
+    refuses one that is cut short, of the wrong size, not a PNG, over the size limit or missing."""
+    from hoidata.store.codec import MAX_MEMBER_BYTES
+
+    key, img, seg, hm, sdf, meta = make_record(2)
+    members = {KEY: key, **encode_record(key, img, seg, hm, sdf, meta)}
+    out = decode_record(members, "shard.tar", undecoded=(HEATMAP,))
+    assert HEATMAP not in out and set(out) == {KEY, IMG, SEG, SDF, META}
+    np.testing.assert_array_equal(out[SEG], seg)
+    _, wrong_size = cv2.imencode(".png", np.zeros((CROP, CROP), np.uint8))
+    _, colour = cv2.imencode(".png", np.zeros((CROP // 2, CROP // 2, 3), np.uint8))
+    for bad, match in ((members[HEATMAP][:-20], "truncated PNG"), (wrong_size.tobytes(), r"expected \(16, 16\)"),
+                       (members[IMG], "not an 8-bit grey PNG"), (colour.tobytes(), "not an 8-bit grey PNG"),
+                       (b"\0" * (MAX_MEMBER_BYTES + 1), "at most")):
+        with pytest.raises(DataError, match=match):
+            decode_record({**members, HEATMAP: bad}, "shard.tar", undecoded=(HEATMAP,))
+    with pytest.raises(DataError, match="expected exactly"):
+        decode_record({k: v for k, v in members.items() if k != HEATMAP}, "shard.tar", undecoded=(HEATMAP,))

@@ -68,7 +68,8 @@ def _is_key(key) -> bool:
 
 
 def _check_images(where, key, img, seg, hm) -> None:
-    """img (S, S, 3) uint8; seg and hm (S // 2, S // 2) uint8 (both None for a record kind without them)."""
+    """img (S, S, 3) uint8; seg and hm (S // 2, S // 2) uint8 (None: not there or not decoded; the members a record
+    has are checked against its kind before)."""
     if not (isinstance(img, np.ndarray) and img.dtype == np.uint8 and img.ndim == 3
             and img.shape[2] == 3 and img.shape[0] == img.shape[1] >= 2):
         raise DataError(where, _field(key, IMG), f"expected square (S, S, 3) uint8, got {_describe(img)}")
@@ -79,8 +80,8 @@ def _check_images(where, key, img, seg, hm) -> None:
         side = 2 * seg.shape[0]
         raise DataError(where, _field(key, IMG), f"{img.shape[1]}x{img.shape[0]} px, but {SEG} and {HEATMAP} are "
                                                  f"{seg.shape[1]}x{seg.shape[0]}: expected a {side}x{side} image")
-    for member, arr in ((SEG, seg), (HEATMAP, hm)) if seg is not None or hm is not None else ():
-        if not (isinstance(arr, np.ndarray) and arr.dtype == np.uint8 and arr.shape == (half, half)):
+    for member, arr in ((SEG, seg), (HEATMAP, hm)):
+        if arr is not None and not (isinstance(arr, np.ndarray) and arr.dtype == np.uint8 and arr.shape == (half, half)):
             raise DataError(where, _field(key, member), f"expected ({half}, {half}) uint8, got {_describe(arr)}")
 
 
@@ -234,11 +235,27 @@ def _decode_image(data: bytes, where, key, member: str) -> np.ndarray:
     problem = incomplete_image(data)
     if problem:
         raise DataError(where, _field(key, member), problem)
-    flag = cv2.IMREAD_COLOR if member == IMG else cv2.IMREAD_UNCHANGED
+    # RGB straight from the decoder: the values of BGR then cvtColor (or [..., ::-1]), without the extra pass
+    flag = cv2.IMREAD_COLOR_RGB if member == IMG else cv2.IMREAD_UNCHANGED
     arr = cv2.imdecode(np.frombuffer(data, np.uint8), flag)
     if arr is None:
         raise DataError(where, _field(key, member), f"OpenCV cannot decode this {kind}")
-    return cv2.cvtColor(arr, cv2.COLOR_BGR2RGB) if member == IMG else arr  # same values as arr[..., ::-1], faster
+    return arr
+
+
+def _png_unread(data: bytes, where, key, member: str) -> np.ndarray:
+    """What can be checked of a PNG member without decoding it: an 8-bit grey PNG header (IHDR bit depth 8, colour
+    type 0) of a sane size, not cut short. Returns a read-only zero view of the header's (H, W), so the size checks
+    of the decoded members apply to it (the loader skips decoding what training does not use; ``hoidata verify``
+    decodes everything)."""
+    size = _image_size(data, member)
+    if size is None or not 0 < max(size) <= MAX_IMAGE_SIDE or data[24:26] != b"\x08\x00":
+        raise DataError(where, _field(key, member), f"not an 8-bit grey PNG of at most {MAX_IMAGE_SIDE} px "
+                                                    f"(header: {size})")
+    problem = incomplete_image(data)
+    if problem:
+        raise DataError(where, _field(key, member), problem)
+    return np.broadcast_to(np.zeros((), np.uint8), (size[1], size[0]))
 
 
 def _decode_sdf(data: bytes, where, key) -> np.ndarray:
@@ -248,12 +265,14 @@ def _decode_sdf(data: bytes, where, key) -> np.ndarray:
         raise DataError(where, _field(key, SDF), f"not a readable .npy array ({exc})") from None
 
 
-def decode_record(members: dict[str, bytes], where: str) -> dict:
+def decode_record(members: dict[str, bytes], where: str, undecoded: tuple[str, ...] = ()) -> dict:
     """{member name: bytes} (plus an optional ``__key__``, as WebDataset samples have) -> decoded record.
 
     Returns {"__key__": key, IMG: RGB uint8, SEG: uint8, HEATMAP: uint8, SDF: int16 (N, 6), META: dict}
     with META's shaped fields as numpy arrays; a record of a kind without some members (schema.RECORD_KINDS)
     has only its own (an ``eval`` record: IMG and META). Other ``__*__`` entries (``__url__``...) are ignored.
+    ``undecoded``: PNG members (SEG, HEATMAP) to check without decoding (present, within the size limit, a PNG
+    header of the right size, not cut short) and leave out of the result, for readers that do not use them.
     Any deviation from the schema raises DataError naming ``where`` (the shard) and the key/member.
     """
     key = members.get(KEY)
@@ -269,9 +288,12 @@ def decode_record(members: dict[str, bytes], where: str) -> dict:
             raise DataError(where, _field(key, name), f"expected at most {MAX_MEMBER_BYTES} bytes")
     out = {IMG: _decode_image(members[IMG], where, key, IMG)}
     if kind == FULL:
-        out[SEG] = _decode_image(members[SEG], where, key, SEG)
-        out[HEATMAP] = _decode_image(members[HEATMAP], where, key, HEATMAP)
+        for member in (SEG, HEATMAP):
+            read = _png_unread if member in undecoded else _decode_image
+            out[member] = read(members[member], where, key, member)
     _check_images(where, key, out[IMG], out.get(SEG), out.get(HEATMAP))
+    for member in undecoded:
+        out.pop(member, None)
     if SDF in given:
         out[SDF] = _decode_sdf(members[SDF], where, key)
         _check_sdf(where, key, out[SDF])

@@ -229,7 +229,9 @@ def _check_tar_end(data: _ShardBytes, end: int, path) -> None:
 def _members(data: _ShardBytes, path) -> Iterator[dict[str, bytes]]:
     """Raw records of one shard stream, in order (see read_shard_members)."""
     try:
-        tar = tarfile.open(fileobj=data, mode="r|", bufsize=1 << 20)  # "r|": a plain tar stream, never compressed
+        # "r|": a plain tar stream, never compressed. 64 KiB reads: tarfile's stream keeps the unread rest of its
+        # last read and copies it on every member read, so a 1 MiB buffer cost 0.6 ms a record against 0.2 here
+        tar = tarfile.open(fileobj=data, mode="r|", bufsize=1 << 16)
     except tarfile.TarError as exc:
         raise DataError(path, None, f"not a tar file ({exc})") from None
     record, seen = None, set()

@@ -211,6 +211,19 @@ def rotate_mano_global(pose: torch.Tensor, rot: torch.Tensor) -> torch.Tensor:
     return torch.cat([glob, pose[:, 3:]], 1)
 
 
+def unpack_masks(bits: torch.Tensor) -> torch.Tensor:
+    """The loader's ``seg_bits`` (B, H, W) uint8 -> (B, 4, H, W) float32 {0, 1} planes on the same device: visible
+    hand, visible object, amodal hand, amodal object (bits 0-3, hoidata.schema.SEG_*)."""
+    shifts = torch.arange(4, dtype=torch.uint8, device=bits.device)[:, None, None]
+    return ((bits[:, None] >> shifts) & 1).float()
+
+
+def mask_planes(batch: dict) -> torch.Tensor:
+    """(B, 4, H, W) float32 mask planes of a batch: unpacked from ``seg_bits`` (the loader's layout) or from a
+    ``seg`` (B, 4, H, W) bool/float batch (the loader's layout before issue 17, batches built by hand)."""
+    return unpack_masks(batch["seg_bits"]) if "seg_bits" in batch else batch["seg"].float()
+
+
 def float_image(img: torch.Tensor) -> torch.Tensor:
     """A loader image batch (B, 3, S, S) uint8 in [0, 255] -> float32 in [0, 1] (img / 255, on img's device);
     a float batch (already in [0, 1]) passes through as float32."""
@@ -222,7 +235,8 @@ def augment_batch(batch: dict, settings: AugmentSettings, generator: torch.Gener
 
     ``train=False``: the central S / context crop resized to R (test-time input). ``train=True``: random
     centre, scale, rotation, colour and blur per sample, drawn on the CPU from ``generator``.
-    Replaces img (B, 3, R, R), seg (B, 4, R/2, R/2) float {0, 1}, heatmap (B, 1, R/2, R/2) (re-rendered),
+    Replaces img (B, 3, R, R), seg (B, 4, R/2, R/2) float {0, 1} (from ``seg_bits``, which is dropped, or a
+    4-plane ``seg``), heatmap (B, 1, R/2, R/2) (rendered from the joints, whether the batch has one or not),
     K, joints_3d, joints_2d, hand_root, *_points, mano_pose, object_pose, hand_box, object_box; adds
     obj_center (B, 3) m (object box centre back-projected at the hand root's depth), rotation (B, 3, 3)
     and crop_scale (B,) = R / s. Every other entry is passed through unchanged.
@@ -243,9 +257,9 @@ def augment_batch(batch: dict, settings: AugmentSettings, generator: torch.Gener
         img = gaussian_blur(img, params["blur"].float(), math.ceil(3 * settings.blur_max))
     if train and settings.color:
         img = color_jitter(img, params["color"].float(), params["order"])
-    out = dict(batch)
+    out = {k: v for k, v in batch.items() if k != "seg_bits"}
     out["img"] = img
-    out["seg"] = (warp(batch["seg"].float(), theta, half) >= 0.5).float()
+    out["seg"] = (warp(mask_planes(batch), theta, half) >= 0.5).float()
     out["K"] = K_new
     out["joints_3d"] = batch["joints_3d"].float() @ rot.transpose(1, 2)
     out["joints_2d"] = transform_pixels(M, batch["joints_2d"].float())

@@ -105,11 +105,14 @@ class _Shuffle:
 
 
 class _Decode:
-    """Raw WebDataset sample -> :func:`hoidata.store.decode_record` output (errors name the shard)."""
+    """Raw WebDataset sample -> :func:`hoidata.store.decode_record` output (errors name the shard).
+
+    The heatmap PNG is checked (size limit, header, complete) but not decoded: augment_batch renders the heatmap
+    from the joints, so no consumer reads the stored one (``hoidata verify`` decodes it)."""
 
     def __call__(self, src):
         for sample in src:
-            yield decode_record(sample, sample.get("__url__", "<stream>"))
+            yield decode_record(sample, sample.get("__url__", "<stream>"), undecoded=(schema.HEATMAP,))
 
 
 def _pick_rows(rng: np.random.Generator, rows: np.ndarray, n: int) -> np.ndarray:
@@ -187,11 +190,9 @@ class _ToArrays:
         # seeded by the key, not by position, so the draw does not depend on the worker or shuffle
         rng = np.random.default_rng([self.seed, self.state.epoch, _key_seed(key)])
         out = sample_sdf(rec[schema.SDF], meta["sdf_counts"], rng, self.n_hand, self.n_object, self.near)
-        bits = np.arange(4, dtype=np.uint8)[:, None, None]
         out.update({
             "img": rec[schema.IMG],  # uint8 (S, S, 3): 1/4 of float32's bytes; augment_batch scales on the device
-            "seg": ((rec[schema.SEG][None] >> bits) & 1).astype(bool),
-            "heatmap": rec[schema.HEATMAP][None],
+            "seg_bits": rec[schema.SEG],  # the four masks as the bits of one byte; augment_batch unpacks them
             "K": _f32(meta["K"]), "hand_root": _f32(meta["hand_root"]),
             "joints_3d": _f32(meta["joints_3d"]), "joints_2d": _f32(meta["joints_2d"]),
             "mano_pose": _f32(meta["mano_pose"]), "mano_betas": _f32(meta["mano_betas"]),
@@ -327,8 +328,8 @@ def build_dataset(stores: list[StoreSpec], batch_size: int, epoch_samples: int |
 
     ==================  ===================  ======================================================
     img                 (B, 3, S, S) uint8   RGB crop 0-255, channels-last layout (float_image: [0, 1] f32)
-    seg                 (B, 4, H, H) bool    visible hand, visible object, amodal hand, amodal object
-    heatmap             (B, 1, H, H) uint8   joint heatmap, 255 = 1 (augment_batch renders its own)
+    seg_bits            (B, H, H) uint8      the store's seg.png: bit 0 visible hand, 1 visible object, 2 amodal
+                                             hand, 3 amodal object (augment.unpack_masks: (B, 4, H, H) planes)
     hand_points         (B, n_hand, 3) f32   metres, camera axes, relative to hand_root; hand-set and
                                              uniform rows
     hand_sdf            (B, n_hand) f32      metres, signed distance to the hand (negative inside)
