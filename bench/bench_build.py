@@ -27,8 +27,8 @@ from pathlib import Path
 import numpy as np
 
 from hoidata import schema, store
-from hoidata.datasets.toy import write_assets
-from hoidata.datasets.toy_dexycb import ToyDexYCBSize, write_toy_dexycb
+from hoidata.toy.make import write_assets
+from hoidata.toy.dexycb import ToyDexYCBSize, write_toy_dexycb
 from hoidata.pipeline.runner import build_store
 from hoidata.pipeline.settings import load_build_config
 

@@ -30,8 +30,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from hoidata.datasets.toy import write_assets
-from hoidata.datasets.toy_dexycb import ToyDexYCBSize, write_toy_dexycb
+from hoidata.toy.make import write_assets
+from hoidata.toy.dexycb import ToyDexYCBSize, write_toy_dexycb
 from hoidata.pipeline.ray_tasks import run_ray
 from hoidata.pipeline.runner import build_inputs, build_store, read_frames
 from hoidata.pipeline.settings import load_build_config

@@ -23,8 +23,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from hoidata.datasets.toy import write_assets
-from hoidata.datasets.toy_dexycb import ToyDexYCBSize, write_toy_dexycb
+from hoidata.toy.make import write_assets
+from hoidata.toy.dexycb import ToyDexYCBSize, write_toy_dexycb
 from hoidata.export import export_dataset
 from hoidata.pipeline.runner import build_store
 from hoidata.pipeline.settings import load_build_config

@@ -16,8 +16,8 @@ import time
 from pathlib import Path
 
 from hoidata import store
-from hoidata.datasets.toy import write_assets
-from hoidata.datasets.toy_ho3d import ToyHO3DSize, write_toy_ho3d
+from hoidata.toy.make import write_assets
+from hoidata.toy.ho3d import ToyHO3DSize, write_toy_ho3d
 from hoidata.synth.render_synthetic import render_synthetic
 
 

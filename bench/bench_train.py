@@ -76,8 +76,8 @@ def autocast(device: torch.device):
 
 def toy_store(work: Path, records: int = 32, workers: int = 1) -> tuple[Path, Path]:
     """Build a toy DexYCB train store (512 px crops) of about ``records`` records; returns (store, mano dir)."""
-    from hoidata.datasets.toy import write_assets
-    from hoidata.datasets.toy_dexycb import ToyDexYCBSize, write_toy_dexycb
+    from hoidata.toy.make import write_assets
+    from hoidata.toy.dexycb import ToyDexYCBSize, write_toy_dexycb
     from hoidata.pipeline.runner import build_store
     from hoidata.pipeline.settings import load_build_config
 

@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from hoidata import schema, store
-from hoidata.datasets.toy import write_assets
-from hoidata.datasets.toy_ho3d import ToyHO3DSize, write_toy_ho3d
+from hoidata.toy.make import write_assets
+from hoidata.toy.ho3d import ToyHO3DSize, write_toy_ho3d
 from hoidata.pipeline.records import RecordSettings
 from hoidata.pipeline.runner import build_store
 from hoidata.pipeline.settings import load_build_config

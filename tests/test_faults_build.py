@@ -275,7 +275,7 @@ def test_the_build_summary_names_the_readers_skips_and_their_reasons(tiny_dexycb
 
 
 def test_make_toy_never_mixes_old_and_new_files(tmp_path, capsys):
-    from hoidata.datasets.toy import split_rows
+    from hoidata.toy.make import split_rows
 
     out = tmp_path / "toy"
     base = ["make-toy", "--out", str(out), "--layout", "dexycb", "--frames", "1"]

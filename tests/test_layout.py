@@ -105,3 +105,36 @@ def test_hoidata_never_imports_hoisdf():
 def test_files_stay_within_the_size_budget():
     long = {str(p.relative_to(ROOT)): n for p in _modules().values() if (n := len(p.read_text().splitlines())) > MAX_LINES}
     assert not long, f"files over {MAX_LINES} lines: {long}"
+
+
+# hoidata's layers, bottom first: a module may import its own layer and the layers below, never one above, so the
+# data flows one way (readers -> frames -> records -> shards; the toy writers and the CLI on top).
+HOIDATA_LAYERS = (
+    ("hoidata.errors", "hoidata.atomic", "hoidata.schema"),
+    ("hoidata.safe_pickle", "hoidata.geometry", "hoidata.store", "hoidata.render"),
+    ("hoidata.hand", "hoidata.objects"),
+    ("hoidata.datasets",),
+    ("hoidata.pipeline",),
+    ("hoidata.synth", "hoidata.export"),
+    ("hoidata.toy",),
+    ("hoidata.cli",),
+)
+
+
+def _layer(module: str) -> int | None:
+    for level, prefixes in enumerate(HOIDATA_LAYERS):
+        if any(module == p or module.startswith(p + ".") for p in prefixes):
+            return level
+    return None
+
+
+def test_every_hoidata_module_has_a_layer():
+    missing = [m for m in _modules() if m.startswith("hoidata.") and _layer(m) is None]
+    assert not missing, f"hoidata modules in no layer of HOIDATA_LAYERS: {missing}"
+
+
+def test_hoidata_imports_only_its_own_layer_and_below():
+    up = {m: sorted(t for t in targets if t.startswith("hoidata.") and _layer(t) > _layer(m))
+          for m, targets in _graph().items() if m.startswith("hoidata.")}
+    up = {m: t for m, t in up.items() if t}
+    assert not up, f"imports that run up a layer: {up}"

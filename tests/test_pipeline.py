@@ -10,7 +10,7 @@ import pytest
 
 from hoidata import schema, store
 from hoidata.cli import main
-from hoidata.datasets.toy import write_assets
+from hoidata.toy.make import write_assets
 from hoidata.geometry.sdf import brute_force_signed_distance
 from hoidata.pipeline.runner import build_store
 from hoidata.pipeline.settings import load_build_config
@@ -152,7 +152,7 @@ def test_cli_verify_names_a_truncated_shard(built, tmp_path, capsys):
 
 
 def test_ho3d_build_converts_and_records_quality(tmp_path):
-    from hoidata.datasets.toy_ho3d import ToyHO3DSize, write_toy_ho3d
+    from hoidata.toy.ho3d import ToyHO3DSize, write_toy_ho3d
 
     root = tmp_path / "ho3d"
     mano_dir, models_dir = write_assets(root)

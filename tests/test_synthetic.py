@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from hoidata import schema, store
-from hoidata.datasets.toy import write_assets
-from hoidata.datasets.toy_ho3d import ToyHO3DSize, write_toy_ho3d
+from hoidata.toy.make import write_assets
+from hoidata.toy.ho3d import ToyHO3DSize, write_toy_ho3d
 from hoidata.errors import DataError
 from hoidata.pipeline.records import RecordSettings
 from hoidata.synth import views

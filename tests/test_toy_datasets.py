@@ -16,14 +16,14 @@ from hoidata.datasets.dexycb import SETTINGS, DexYCBReader
 from hoidata.datasets.dexycb_layout import read_labels
 from hoidata.datasets.frame import project
 from hoidata.datasets.ho3d import HO3DReader
-from hoidata.datasets.toy import write_assets
-from hoidata.datasets.toy_dexycb import (
+from hoidata.toy.make import write_assets
+from hoidata.toy.dexycb import (
     INVALID_FRAME,
     ToyDexYCBSize,
     sequence_side,
     write_toy_dexycb,
 )
-from hoidata.datasets.toy_ho3d import (
+from hoidata.toy.ho3d import (
     DEPTH_SCALE,
     ToyHO3DSize,
     pack_depth,

@@ -93,11 +93,6 @@ def project(points: np.ndarray, K: np.ndarray) -> np.ndarray:
     return uvw[..., :2] / uvw[..., 2:3]
 
 
-def box_from_points(uv: np.ndarray) -> np.ndarray:
-    """Tight box (4,) x1, y1, x2, y2 around pixel points (N, 2)."""
-    return np.concatenate([uv.min(0), uv.max(0)])
-
-
 @dataclass
 class Skip:
     """A frame a reader left out, and why (recorded in the store's index, never silent)."""

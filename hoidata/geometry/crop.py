@@ -18,6 +18,11 @@ DEFAULT_CONTEXT = 2.0
 BOX_EXPAND = 1.5  # hand box and object box are each expanded 1.5x about their centres (HOISDF)
 
 
+def box_from_points(uv: np.ndarray) -> np.ndarray:
+    """Tight box (4,) x1, y1, x2, y2 around pixel points (N, 2)."""
+    return np.concatenate([uv.min(0), uv.max(0)])
+
+
 def expand_box(box: np.ndarray, factor: float) -> np.ndarray:
     """Box (4,) x1, y1, x2, y2 scaled by `factor` about its centre."""
     c, half = (box[:2] + box[2:]) / 2, (box[2:] - box[:2]) / 2 * factor
@@ -35,8 +40,6 @@ def square_crop_box(hand_uv: np.ndarray, object_uv: np.ndarray, context: float =
     Each point set's tight box is expanded by BOX_EXPAND, the union is squared about its centre and
     scaled by `context`. Nothing is clipped to the image: pixels outside it become black.
     """
-    from hoidata.datasets.frame import box_from_points
-
     box = union_box(expand_box(box_from_points(hand_uv), BOX_EXPAND), expand_box(box_from_points(object_uv), BOX_EXPAND))
     centre = (box[:2] + box[2:]) / 2
     side = max(float(np.max(box[2:] - box[:2])) * context, min_side)

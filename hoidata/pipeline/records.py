@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from hoidata import schema
-from hoidata.datasets.frame import Frame, box_from_points, project
+from hoidata.datasets.frame import Frame, project
 from hoidata.geometry import crop as crop_ops
 from hoidata.geometry.mirror import (
     mirror_axis_angle,
@@ -216,7 +216,7 @@ def _common_meta(frame: Frame, key: str, kind: str, box: np.ndarray, K_crop: np.
         "split": frame.split, "frame_id": frame.frame_id, "side": frame.side, "mirrored": bool(frame.mirror),
         "tip_convention": frame.tip_convention, "K": K_crop, "crop_box": np.array([x1, y1, x1 + side, y1 + side]),
         "hand_root": frame.root_3d, "object_name": frame.object_name, "object_id": int(frame.object_id),
-        "object_pose": frame.object_pose, "object_box": box_from_points(project(obj_verts, K_crop)),
+        "object_pose": frame.object_pose, "object_box": crop_ops.box_from_points(project(obj_verts, K_crop)),
         "sample_index": int(frame.sample_index), "source": frame.source,
     }
 
@@ -228,7 +228,7 @@ def record_meta(frame: Frame, key: str, box: np.ndarray, K_crop: np.ndarray, han
         **_common_meta(frame, key, schema.FULL, box, K_crop, obj_verts),
         "joints_3d": frame.joints_3d, "joints_2d": project(frame.joints_3d, K_crop),
         "mano_pose": frame.mano_pose, "mano_betas": frame.mano_betas, "mano_transl": frame.mano_transl,
-        "hand_box": box_from_points(project(hand, K_crop)), "sdf_counts": np.asarray(counts, dtype=np.int64),
+        "hand_box": crop_ops.box_from_points(project(hand, K_crop)), "sdf_counts": np.asarray(counts, dtype=np.int64),
     }
 
 

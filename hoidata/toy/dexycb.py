@@ -22,7 +22,7 @@ import yaml
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
-from hoidata.datasets import toy_scenes
+from hoidata.toy import scenes as toy_scenes
 from hoidata.datasets.dexycb_layout import SERIALS, SUBJECTS
 from hoidata.datasets.frame import project
 from hoidata.hand.pose import axis_angle_to_pca

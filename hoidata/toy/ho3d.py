@@ -21,8 +21,9 @@ import torch
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
-from hoidata.datasets import toy_scenes
-from hoidata.datasets.frame import box_from_points, project
+from hoidata.toy import scenes as toy_scenes
+from hoidata.datasets.frame import project
+from hoidata.geometry.crop import box_from_points
 from hoidata.hand.model import DEXYCB_TO_MANO
 from hoidata.hand.pose import change_frame
 from hoidata.objects import box_corners

@@ -26,8 +26,8 @@ def make_toy(out: str | Path, layout: str, sequences: int | None = None, frames:
     `sequences` (per subject for DexYCB, training sequences for HO-3D) and `frames` (per sequence and
     camera) scale it; None keeps the default size. Returns what was written and how long it took.
     """
-    from hoidata.datasets.toy_dexycb import ToyDexYCBSize, write_toy_dexycb
-    from hoidata.datasets.toy_ho3d import ToyHO3DSize, write_toy_ho3d
+    from hoidata.toy.dexycb import ToyDexYCBSize, write_toy_dexycb
+    from hoidata.toy.ho3d import ToyHO3DSize, write_toy_ho3d
 
     if layout not in LAYOUTS:
         raise ValueError(f"unknown toy layout {layout!r}; expected one of {LAYOUTS}")
