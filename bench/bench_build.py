@@ -27,10 +27,10 @@ from pathlib import Path
 import numpy as np
 
 from hoidata import schema, store
-from hoidata.toy.make import write_assets
-from hoidata.toy.dexycb import ToyDexYCBSize, write_toy_dexycb
 from hoidata.pipeline.runner import build_store
 from hoidata.pipeline.settings import load_build_config
+from hoidata.toy.dexycb import ToyDexYCBSize, write_toy_dexycb
+from hoidata.toy.make import write_assets
 
 BACKENDS = ("bvh", "igl")  # record.sdf_backend: build-sdf's, then the baseline
 ALIGNSDF_BYTES = 2 * 20_000 * 6 * 4  # two files (hand, object) of 20k float32 rows of 6 columns, per frame

@@ -23,11 +23,11 @@ import tempfile
 import time
 from pathlib import Path
 
-from hoidata.toy.make import write_assets
-from hoidata.toy.dexycb import ToyDexYCBSize, write_toy_dexycb
 from hoidata.export import export_dataset
 from hoidata.pipeline.runner import build_store
 from hoidata.pipeline.settings import load_build_config
+from hoidata.toy.dexycb import ToyDexYCBSize, write_toy_dexycb
+from hoidata.toy.make import write_assets
 
 OVERRIDES = ['dataset.splits=["train"]', 'dataset.sides=["right"]', "store.records_per_shard=16"]
 

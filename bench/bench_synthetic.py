@@ -16,9 +16,9 @@ import time
 from pathlib import Path
 
 from hoidata import store
-from hoidata.toy.make import write_assets
-from hoidata.toy.ho3d import ToyHO3DSize, write_toy_ho3d
 from hoidata.synth.render_synthetic import render_synthetic
+from hoidata.toy.ho3d import ToyHO3DSize, write_toy_ho3d
+from hoidata.toy.make import write_assets
 
 
 def main() -> None:

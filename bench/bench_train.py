@@ -76,10 +76,10 @@ def autocast(device: torch.device):
 
 def toy_store(work: Path, records: int = 32, workers: int = 1) -> tuple[Path, Path]:
     """Build a toy DexYCB train store (512 px crops) of about ``records`` records; returns (store, mano dir)."""
-    from hoidata.toy.make import write_assets
-    from hoidata.toy.dexycb import ToyDexYCBSize, write_toy_dexycb
     from hoidata.pipeline.runner import build_store
     from hoidata.pipeline.settings import load_build_config
+    from hoidata.toy.dexycb import ToyDexYCBSize, write_toy_dexycb
+    from hoidata.toy.make import write_assets
 
     root = work / "data"
     mano, models = write_assets(root)

@@ -36,8 +36,8 @@ positive_int, non_negative_int = count_type(1), count_type(0)
 
 def cmd_make_toy(args: argparse.Namespace) -> int:
     """Write the procedural hand, objects and toy datasets in the real layouts, then check them."""
-    from hoidata.toy.make import make_toy, split_rows
     from hoidata.pipeline.inputs import format_rows, mano_rows, object_rows
+    from hoidata.toy.make import make_toy, split_rows
 
     out = Path(args.out)
     layouts = ("dexycb", "ho3d") if args.layout == "all" else (args.layout,)

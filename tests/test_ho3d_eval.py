@@ -24,8 +24,8 @@ SIZE = {"train_sequences": 1, "eval_sequences": 1, "frames": 4}
 
 @pytest.fixture(scope="module")
 def ho3d_root(tmp_path_factory):
-    from hoidata.toy.make import write_assets
     from hoidata.toy.ho3d import ToyHO3DSize, write_toy_ho3d
+    from hoidata.toy.make import write_assets
 
     root = tmp_path_factory.mktemp("ho3d")
     mano_dir, models_dir = write_assets(root)

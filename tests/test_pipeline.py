@@ -10,10 +10,10 @@ import pytest
 
 from hoidata import schema, store
 from hoidata.cli import main
-from hoidata.toy.make import write_assets
 from hoidata.geometry.sdf import brute_force_signed_distance
 from hoidata.pipeline.runner import build_store
 from hoidata.pipeline.settings import load_build_config
+from hoidata.toy.make import write_assets
 
 SMALL = ["dataset.splits=[\"train\"]", "record.crop_size=128", "record.n_hand=384", "record.n_object=256",
          "store.records_per_shard=5"]

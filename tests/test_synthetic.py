@@ -8,12 +8,12 @@ import pytest
 import torch
 
 from hoidata import schema, store
-from hoidata.toy.make import write_assets
-from hoidata.toy.ho3d import ToyHO3DSize, write_toy_ho3d
 from hoidata.errors import DataError
 from hoidata.pipeline.records import RecordSettings
 from hoidata.synth import views
 from hoidata.synth.render_synthetic import render_synthetic
+from hoidata.toy.ho3d import ToyHO3DSize, write_toy_ho3d
+from hoidata.toy.make import write_assets
 
 RECORD = RecordSettings(crop_size=128, n_hand=256, n_object=128)
 

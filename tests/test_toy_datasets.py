@@ -16,7 +16,9 @@ from hoidata.datasets.dexycb import SETTINGS, DexYCBReader
 from hoidata.datasets.dexycb_layout import read_labels
 from hoidata.datasets.frame import project
 from hoidata.datasets.ho3d import HO3DReader
-from hoidata.toy.make import write_assets
+from hoidata.errors import DataError
+from hoidata.hand import load_mano
+from hoidata.objects import load_object_mesh, object_mesh_path, repair_mesh
 from hoidata.toy.dexycb import (
     INVALID_FRAME,
     ToyDexYCBSize,
@@ -30,9 +32,7 @@ from hoidata.toy.ho3d import (
     unpack_depth,
     write_toy_ho3d,
 )
-from hoidata.errors import DataError
-from hoidata.hand import load_mano
-from hoidata.objects import load_object_mesh, object_mesh_path, repair_mesh
+from hoidata.toy.make import write_assets
 
 DEX_SIZE = ToyDexYCBSize(subjects=(0, 2), sequences=5, serials=(0, 7), frames=8)
 HO3D_SIZE = ToyHO3DSize(train_sequences=2, eval_sequences=1, frames=4)

@@ -202,10 +202,10 @@ def test_resume_two_plus_two_steps_equals_four(tiny_store, mano, tmp_path):
 
 
 def test_mixed_real_and_synthetic_training_reads_the_requested_ratio(tiny_store, mano, tmp_path):
-    from hoidata.toy.make import write_assets
-    from hoidata.toy.ho3d import ToyHO3DSize, write_toy_ho3d
     from hoidata.pipeline.records import RecordSettings
     from hoidata.synth.render_synthetic import render_synthetic
+    from hoidata.toy.ho3d import ToyHO3DSize, write_toy_ho3d
+    from hoidata.toy.make import write_assets
 
     mano_dir, models_dir = write_assets(tmp_path)
     write_toy_ho3d(tmp_path, mano_dir, models_dir, ToyHO3DSize(train_sequences=1, eval_sequences=0, frames=2),

@@ -22,11 +22,11 @@ import yaml
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
-from hoidata.toy import scenes as toy_scenes
 from hoidata.datasets.dexycb_layout import SERIALS, SUBJECTS
 from hoidata.datasets.frame import project
 from hoidata.hand.pose import axis_angle_to_pca
 from hoidata.render import skin_tone
+from hoidata.toy import scenes as toy_scenes
 
 HAND_LABEL = 255  # DexYCB seg: 0 background, 1..21 YCB class id, 255 hand
 INVALID_FRAME = 7  # in every third sequence this frame's annotation is marked invalid, as the toolkit does

@@ -21,12 +21,12 @@ import torch
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
-from hoidata.toy import scenes as toy_scenes
 from hoidata.datasets.frame import project
 from hoidata.geometry.crop import box_from_points
 from hoidata.hand.model import DEXYCB_TO_MANO
 from hoidata.hand.pose import change_frame
 from hoidata.objects import box_corners
+from hoidata.toy import scenes as toy_scenes
 
 GL = np.diag([1.0, -1.0, -1.0])  # OpenCV <-> OpenGL camera frame (its own inverse)
 DEPTH_SCALE = 0.00012498664727900177  # metres per unit of HO-3D's packed depth
