@@ -30,21 +30,13 @@ import tempfile
 import time
 from pathlib import Path
 
-from hoidata.toy.make import write_assets
-from hoidata.toy.dexycb import ToyDexYCBSize, write_toy_dexycb
+from bench_build import toy_root
+
 from hoidata.pipeline.ray_tasks import run_ray
 from hoidata.pipeline.runner import build_inputs, build_store, read_frames
 from hoidata.pipeline.settings import load_build_config
 from hoidata.pipeline.slurm import SlurmOptions, submit_parts
 from hoisdf.data import StoreSpec, build_dataset, make_loader
-
-
-def toy_root(frames: int, work: Path) -> Path:
-    root = work / "data"
-    mano, models = write_assets(root)
-    size = ToyDexYCBSize(subjects=(0,), sequences=4, serials=(0, 6, 7), frames=max(1, -(-frames // 12)))
-    write_toy_dexycb(root, mano, models, size, workers=2, progress=False)
-    return root
 
 
 def shard_bytes(out: Path) -> dict[str, bytes]:

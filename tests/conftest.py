@@ -39,8 +39,8 @@ def mano_left(mano_dir):
 @pytest.fixture(scope="session")
 def tiny_dexycb(tmp_path_factory):
     """A tiny toy DexYCB (1 subject, 2 sequences: right and left hand, 1 camera, 8 frames) with mano/ and models/."""
-    from hoidata.toy.make import write_assets
     from hoidata.toy.dexycb import ToyDexYCBSize, write_toy_dexycb
+    from hoidata.toy.make import write_assets
 
     root = tmp_path_factory.mktemp("tiny_dexycb")
     mano_dir, models_dir = write_assets(root)
@@ -55,12 +55,16 @@ def tiny_store(tiny_dexycb, tmp_path_factory):
 
     Right and left (mirrored) hands; for model, augmentation and trainer tests.
     """
+    return _build_tiny_store(tiny_dexycb, tmp_path_factory.mktemp("tiny_store") / "store", records_per_shard=64)
+
+
+def _build_tiny_store(tiny_dexycb, out, records_per_shard: int):
+    """The tiny toy DexYCB's train split built into ``out``: 128 px crops, 256 + 128 SDF rows."""
     from hoidata.pipeline.runner import build_store
     from hoidata.pipeline.settings import load_build_config
 
-    out = tmp_path_factory.mktemp("tiny_store") / "store"
     overrides = ['dataset.splits=["train"]', "record.crop_size=128", "record.n_hand=256", "record.n_object=128",
-                 "store.records_per_shard=64"]
+                 f"store.records_per_shard={records_per_shard}"]
     build_store(load_build_config("toy", overrides), tiny_dexycb, tiny_dexycb / "mano", tiny_dexycb / "models",
                 out, workers=1, part=(0, 1), progress=False)
     return out
@@ -70,8 +74,8 @@ def tiny_store(tiny_dexycb, tmp_path_factory):
 def dexycb_8cam(tmp_path_factory):
     """A toy DexYCB with all eight cameras, as the toolkit enumerates them: 1 subject, 3 train sequences (right,
     left, right), 2 frames; frame 1 of the third sequence is invalid (joint_3d -1) in every camera."""
-    from hoidata.toy.make import write_assets
     from hoidata.toy.dexycb import ToyDexYCBSize, write_toy_dexycb
+    from hoidata.toy.make import write_assets
 
     root = tmp_path_factory.mktemp("dexycb_8cam")
     mano_dir, models_dir = write_assets(root)
@@ -85,8 +89,8 @@ def dexycb_s0(tmp_path_factory):
     """A toy DexYCB with s0 train and test (and val): subjects 1 and 3, 5 sequences each (right, left, right,
     left, right; the fifth is val for subject 1 and test for subject 3), 1 camera, 6 frames: approach frames
     0-1 (hand not yet on the object), then a lift-and-turn; frame 4 of the third sequence is invalid."""
-    from hoidata.toy.make import write_assets
     from hoidata.toy.dexycb import ToyDexYCBSize, write_toy_dexycb
+    from hoidata.toy.make import write_assets
 
     root = tmp_path_factory.mktemp("dexycb_s0")
     mano_dir, models_dir = write_assets(root)
@@ -98,8 +102,8 @@ def dexycb_s0(tmp_path_factory):
 @pytest.fixture(scope="session")
 def ho3d_small(tmp_path_factory):
     """A toy HO-3D v2: 2 training sequences and 1 evaluation sequence of 3 frames."""
-    from hoidata.toy.make import write_assets
     from hoidata.toy.ho3d import ToyHO3DSize, write_toy_ho3d
+    from hoidata.toy.make import write_assets
 
     root = tmp_path_factory.mktemp("ho3d_small")
     mano_dir, models_dir = write_assets(root)
@@ -111,15 +115,8 @@ def ho3d_small(tmp_path_factory):
 @pytest.fixture(scope="session")
 def tiny_store_two_shards(tiny_dexycb, tmp_path_factory):
     """The tiny toy DexYCB train split in 2 shards of 8 records (128 px crops): for 2-process (DDP) tests."""
-    from hoidata.pipeline.runner import build_store
-    from hoidata.pipeline.settings import load_build_config
-
-    out = tmp_path_factory.mktemp("tiny_store_two_shards") / "store"
-    overrides = ['dataset.splits=["train"]', "record.crop_size=128", "record.n_hand=256", "record.n_object=128",
-                 "store.records_per_shard=8"]
-    build_store(load_build_config("toy", overrides), tiny_dexycb, tiny_dexycb / "mano", tiny_dexycb / "models",
-                out, workers=1, part=(0, 1), progress=False)
-    return out
+    return _build_tiny_store(tiny_dexycb, tmp_path_factory.mktemp("tiny_store_two_shards") / "store",
+                             records_per_shard=8)
 
 
 @pytest.fixture(scope="session")

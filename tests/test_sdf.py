@@ -49,22 +49,31 @@ def near_and_inside(vertices, faces, n: int, rng) -> np.ndarray:
     return np.concatenate([near, pulled])
 
 
-@pytest.fixture(scope="module")
-def hands(mano_right):
-    return {"flat": posed_hand(mano_right, 0.0, 1), "curled": posed_hand(mano_right, 1.2, 2)}
+def posed_hands(mano) -> dict:
+    """The toy hand flat, and curled so that it passes through itself."""
+    return {"flat": posed_hand(mano, 0.0, 1), "curled": posed_hand(mano, 1.2, 2)}
 
 
-@pytest.fixture(scope="module")
-def objects(tmp_path_factory):
-    """Repaired toy objects (trimesh, watertight), moved into the camera frame next to the hand."""
-    root = tmp_path_factory.mktemp("sdf_models")
+def posed_objects(root, seed: int) -> dict:
+    """{name: (vertices, faces)}: repaired toy objects (watertight), rotated at random (``seed`` + k) and moved
+    into the camera frame 5 cm behind the hand."""
     out = {}
     for k, path in enumerate(write_toy_objects(root, ["011_banana", "002_master_chef_can"])):
         mesh, report = repair_mesh(load_object_mesh(path))
         assert report.watertight
-        rot = Rotation.random(random_state=10 + k).as_matrix()
+        rot = Rotation.random(random_state=seed + k).as_matrix()
         out[path.parent.name] = (np.asarray(mesh.vertices) @ rot.T + CAMERA_T + [0, 0, 0.05], np.asarray(mesh.faces))
     return out
+
+
+@pytest.fixture(scope="module")
+def hands(mano_right):
+    return posed_hands(mano_right)
+
+
+@pytest.fixture(scope="module")
+def objects(tmp_path_factory):
+    return posed_objects(tmp_path_factory.mktemp("sdf_models"), 10)
 
 
 def assert_matches_reference(points, vertices, faces, watertight):

@@ -8,8 +8,7 @@ import igl
 import numpy as np
 import pytest
 import trimesh
-from scipy.spatial.transform import Rotation
-from test_sdf import CAMERA_T, near_and_inside, posed_hand
+from test_sdf import near_and_inside, posed_hands, posed_objects
 
 from hoidata.errors import DataError
 from hoidata.geometry import bvh as bvh_module
@@ -22,7 +21,6 @@ from hoidata.geometry.sdf import (
     validate_mesh,
 )
 from hoidata.geometry.signs import is_closed, winding_numbers
-from hoidata.objects import load_object_mesh, repair_mesh, write_toy_objects
 from hoidata.pipeline.settings import load_build_config
 
 # Metres: float64 rounding of distances up to ~0.6 m (one unit in the last place of 0.5 is 1.1e-16).
@@ -32,20 +30,12 @@ EXACT = 2e-16
 
 @pytest.fixture(scope="module")
 def hands(mano_right):
-    """As in test_sdf: the toy hand flat, and curled so that it passes through itself."""
-    return {"flat": posed_hand(mano_right, 0.0, 1), "curled": posed_hand(mano_right, 1.2, 2)}
+    return posed_hands(mano_right)
 
 
 @pytest.fixture(scope="module")
 def objects(tmp_path_factory):
-    """Repaired toy objects (watertight), rotated and moved next to the hand, camera frame."""
-    root = tmp_path_factory.mktemp("bvh_models")
-    out = {}
-    for k, path in enumerate(write_toy_objects(root, ["011_banana", "002_master_chef_can"])):
-        mesh, _ = repair_mesh(load_object_mesh(path))
-        rot = Rotation.random(random_state=20 + k).as_matrix()
-        out[path.parent.name] = (np.asarray(mesh.vertices) @ rot.T + CAMERA_T + [0, 0, 0.05], np.asarray(mesh.faces))
-    return out
+    return posed_objects(tmp_path_factory.mktemp("bvh_models"), 20)
 
 
 def query_points(vertices, faces, root, seed: int) -> np.ndarray:
