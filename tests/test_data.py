@@ -16,12 +16,7 @@ from hoidata.synth.render_synthetic import render_synthetic
 from hoidata.toy.ho3d import ToyHO3DSize, write_toy_ho3d
 from hoidata.toy.make import write_assets
 from hoisdf.data import StoreSpec, build_dataset, make_loader
-from hoisdf.data.augment import (
-    AugmentSettings,
-    augment_batch,
-    float_image,
-    unpack_masks,
-)
+from hoisdf.data.augment import AugmentSettings, augment_batch, float_image, unpack_masks
 from hoisdf.data.loader import _key_seed, sample_sdf
 
 CROP, N_HAND, N_OBJECT, NEAR = 128, 32, 16, 0.05

@@ -23,13 +23,7 @@ import os
 
 import numpy as np
 
-from hoidata.render.renderer import (
-    CV_TO_GL,
-    ZFAR,
-    ZNEAR,
-    RenderMesh,
-    pyrender_intrinsics,
-)
+from hoidata.render.renderer import CV_TO_GL, ZFAR, ZNEAR, RenderMesh, pyrender_intrinsics
 
 MAX_MESHES = 3  # amodal masks live in the green, blue and alpha channels
 MAX_LABEL = 255  # visible labels live in the red channel
