@@ -34,12 +34,21 @@ def count_type(low: int):
 positive_int, non_negative_int = count_type(1), count_type(0)
 
 
+def folder(args: argparse.Namespace, name: str, default: Path | None = None) -> Path | None:
+    """The folder option ``args.<name>`` as a local path (``default`` when not given): text naming a URL is one
+    error line before anything is read or written (:func:`hoidata.store.paths.local_folder`)."""
+    from hoidata.store.paths import local_folder
+
+    value = getattr(args, name)
+    return default if value is None else local_folder(value, f"hoidata {args.command} --{name.replace('_', '-')}")
+
+
 def cmd_make_toy(args: argparse.Namespace) -> int:
     """Write the procedural hand, objects and toy datasets in the real layouts, then check them."""
     from hoidata.pipeline.inputs import format_rows, mano_rows, object_rows
     from hoidata.toy.make import make_toy, split_rows
 
-    out = Path(args.out)
+    out = folder(args, "out")
     layouts = ("dexycb", "ho3d") if args.layout == "all" else (args.layout,)
     for layout in layouts:
         root = out / layout if args.layout == "all" else out
@@ -85,14 +94,14 @@ def cmd_build_sdf(args: argparse.Namespace) -> int:
     from hoidata.pipeline.runner import build_store, estimate_build
     from hoidata.pipeline.settings import load_build_config
 
+    root, out = folder(args, "root"), folder(args, "out")
+    mano, models = folder(args, "mano", root / "mano"), folder(args, "models", root / "models")
     cfg = load_build_config(args.dataset, args.overrides)
-    root = Path(args.root)
-    mano, models = Path(args.mano or root / "mano"), Path(args.models or root / "models")
     if args.estimate:
         for k, v in estimate_build(cfg, root, mano, models, workers=args.workers).items():
             print(f"{k:>30}: {v}")
         return 0
-    s = launch(args, functools.partial(build_store, cfg, root, mano, models, Path(args.out)), "build-sdf")
+    s = launch(args, functools.partial(build_store, cfg, root, mano, models, out), "build-sdf")
     if s is None:  # --dry-run
         return 0
     empty = f" ({s.empty_shards} empty: every frame skipped)" if s.empty_shards else ""
@@ -111,11 +120,14 @@ def cmd_export(args: argparse.Namespace) -> int:
     from hoidata.export import export_dataset
     from hoidata.pipeline.settings import load_build_config
 
+    from hoidata.store.paths import opened_store
+
+    root, out = folder(args, "root"), folder(args, "out")
+    mano, models = folder(args, "mano", root / "mano"), folder(args, "models", root / "models")
+    store = opened_store(args.store, "hoidata export --store") if args.store else None  # before anything is written
     cfg = load_build_config(args.dataset, args.overrides)
-    root = Path(args.root)
-    mano, models = Path(args.mano or root / "mano"), Path(args.models or root / "models")
-    task = functools.partial(export_dataset, args.format, cfg, root, mano, models, Path(args.out), splits=args.splits,
-                             store=Path(args.store) if args.store else None)
+    task = functools.partial(export_dataset, args.format, cfg, root, mano, models, out, splits=args.splits,
+                             store=store)
     s = launch(args, task, "export", finished=lambda summary: summary.finished)
     if s is None:  # --dry-run
         return 0
@@ -148,11 +160,12 @@ def cmd_render_synthetic(args: argparse.Namespace) -> int:
     from hoidata.pipeline.records import RecordSettings
     from hoidata.synth.render_synthetic import render_synthetic
 
-    source = Path(args.source)
-    mano, models = Path(args.mano or source / "mano"), Path(args.models or source / "models")
+    source, out = folder(args, "source"), folder(args, "out")
+    mano, models = folder(args, "mano", source / "mano"), folder(args, "models", source / "models")
     record = RecordSettings(crop_size=args.crop_size)
-    task = functools.partial(render_synthetic, source, Path(args.out), args.count, mano, models, seed=args.seed,
-                             backgrounds=args.backgrounds, record=record, records_per_shard=args.records_per_shard)
+    task = functools.partial(render_synthetic, source, out, args.count, mano, models, seed=args.seed,
+                             backgrounds=folder(args, "backgrounds"), record=record,
+                             records_per_shard=args.records_per_shard)
     s = launch(args, task, "render-synthetic")
     if s is None:  # --dry-run
         return 0
@@ -176,14 +189,16 @@ def cmd_verify(args: argparse.Namespace) -> int:
 
 def cmd_inspect(args: argparse.Namespace) -> int:
     from hoidata.store.inspect import inspect_store
+    from hoidata.store.paths import local_store
 
-    print(f"wrote {inspect_store(args.store, n=args.n, out=args.out)}")
+    store = local_store(args.store, "hoidata inspect")
+    print(f"wrote {inspect_store(store, n=args.n, out=folder(args, 'out'))}")
     return 0
 
 
 def cmd_toy_pipeline(args: argparse.Namespace) -> int:
     """The data half of the main job: toy datasets -> verified train and test stores -> inspection PNG."""
-    out = Path(args.out)
+    out = folder(args, "out")
     size = [*(["--sequences", str(args.sequences)] if args.sequences is not None else []),
             *(["--frames", str(args.frames)] if args.frames is not None else [])]
     root = out / "data" / "dexycb"
@@ -191,9 +206,10 @@ def cmd_toy_pipeline(args: argparse.Namespace) -> int:
     steps = [] if made.is_file() else [["make-toy", "--out", str(out / "data"), "--seed", str(args.seed), *size]]
     if made.is_file():
         print(f"{out / 'data'}: toy data made earlier with these settings; make-toy skipped")
-    for split in ("train", "test"):
+    for split in ("train", "test"):  # the whole store: a Slurm array task's part is not this command's (a seed
+        # sweep runs as an array), so --part 0/1 overrides what build-sdf would read from SLURM_ARRAY_TASK_ID
         steps.append(["build-sdf", "--dataset", "toy", "--root", str(root), "--out", str(out / "store" / split),
-                      "--workers", str(args.workers), f'dataset.splits=["{split}"]'])
+                      "--workers", str(args.workers), "--part", "0/1", f'dataset.splits=["{split}"]'])
     steps += [["verify", str(out / "store" / split)] for split in ("train", "test")]
     steps.append(["inspect", str(out / "store" / "train"), "--out", str(out / "store_grid.png")])
     for argv in steps:
@@ -311,7 +327,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     if not argv or argv[0] not in parser.commands:
         return parser.parse_args(argv)  # --help, --version, a missing or unknown command: argparse says it
     args = parser.commands[argv[0]].parse_intermixed_args(argv[1:])
-    args.command, args.argv = argv[0], argv
+    args.command, args.argv, args.command_parser = argv[0], argv, parser.commands[argv[0]]
     return args
 
 

@@ -79,6 +79,32 @@ def annotation(frame, ident: int, raw_vertices: np.ndarray) -> dict:
             "obj_rest_corners_3d": rest.tolist(), "bbox": gsdf_bbox(np.asarray(frame.joints_2d, float), corners_2d)}
 
 
+def check_store_inputs(store: Path, inputs: dict) -> None:
+    """Refuse a ``--store`` built from other inputs than the export's (``inputs``: MANO and model fingerprints,
+    as :func:`hoidata.pipeline.runner.build_inputs` gives them): its SDF rows are distances to its own meshes.
+
+    The store's ``build.json`` must hold input fingerprints; every MANO file and every object model both
+    fingerprint must be the same file. Frames are compared one by one when rows are re-used (:func:`_store_fits`:
+    key, mirroring, hand and object pose). The sampling settings need not match: each row is the exact distance
+    at its own point. A mismatch is one DataError naming the input, before anything is written.
+    """
+    from hoidata.errors import DataError, read_json
+
+    path = Path(store) / "build.json"
+    built = read_json(path, "store build file", "export without --store, or rebuild the store")
+    theirs = built.get("inputs") if isinstance(built, dict) else None
+    if not isinstance(theirs, dict) or not isinstance(theirs.get("mano"), dict):
+        raise DataError(path, "inputs", "no input fingerprints (a store of an older hoidata, or not a build-sdf "
+                                        "store): its SDF rows cannot be checked against this export's inputs")
+    for kind, words, option in (("mano", "MANO file", "--mano"), ("models", "object model", "--models")):
+        ours, stored = inputs.get(kind, {}), theirs.get(kind) or {}
+        for name in sorted(set(ours) & set(stored)):
+            if ours[name] != stored[name]:
+                raise DataError(path, f"inputs.{kind}.{name}", f"the store was built from another {words} {name} "
+                                f"than this export's {option}; its SDF rows would be distances to other meshes "
+                                "(rebuild the store from these inputs, or export without --store)")
+
+
 def _store_fits(record: dict | None, frame, key: str) -> bool:
     """A store record's SDF rows are this frame's: same key, not mirrored, same hand and object pose."""
     if record is None:

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from hoidata import schema
-from hoidata.errors import DataError
+from hoidata.errors import DataError, read_json
 from hoidata.export import gsdf, handoccnet, worker
 from hoidata.export.files import write_json
 from hoidata.pipeline.settings import BuildConfig, stated_count_warnings
@@ -83,19 +83,28 @@ def export_frames(cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path
     return frames, skips, ids
 
 
-def _spec(fmt: str, cfg: BuildConfig, splits, keys: list[str], options: dict) -> dict:
+def _spec(fmt: str, cfg: BuildConfig, splits, keys: list[str], options: dict, inputs: dict) -> dict:
+    """What ``export.json`` pins: format, settings, splits, frames, options, and the fingerprints of the inputs
+    (MANO files, object models, annotations: :func:`hoidata.pipeline.runner.build_inputs`, as ``build.json``)."""
     return json.loads(json.dumps({
         "format": fmt, "config": cfg.as_dict(), "splits": list(splits), "frames": len(keys),
         "keys_sha256": hashlib.sha256("\n".join(keys).encode()).hexdigest(), "options": options,
-        "schema_version": schema.SCHEMA_VERSION}))
+        "schema_version": schema.SCHEMA_VERSION, "inputs": inputs}))
 
 
 def _check_spec(work: Path, spec: dict) -> None:
+    """Pin a new export's folder to ``spec``; refuse a rerun whose settings, frames, options or inputs differ,
+    naming the first difference (the chunks kept would mix with new ones)."""
+    from hoidata.pipeline import fingerprint
+
     path = work / SPEC_FILE
     if path.is_file():
-        if json.loads(path.read_text()) != spec:
-            raise DataError(path, None, "this folder holds an export made with other settings, frames or options; "
-                                        "use a new --out folder (nothing was changed)")
+        old = read_json(path, "export.json", "use a new --out folder (nothing was changed)")
+        where = fingerprint.first_difference(old, spec)
+        if where is not None:
+            raise DataError(path, where, f"{fingerprint.describe_difference(where, 'export')}; this folder holds an "
+                                         "export made with other settings, frames or inputs: use a new --out "
+                                         "folder (nothing was changed)")
     else:
         write_json(path, spec, indent=1)
 
@@ -110,19 +119,33 @@ def chunk_path(work: Path, number: int) -> Path:
     return work / f"chunk-{number:06d}.json"
 
 
+def read_manifest(work: Path, number: int) -> dict:
+    """Chunk ``number``'s manifest, checked: {"entries": [{..., "files": [...]}], "skipped": [...]}; a missing,
+    damaged or malformed one is a DataError naming it."""
+    path = chunk_path(work, number)
+    hint = "rerun the export to write the chunk again"
+    value = read_json(path, "chunk manifest", hint)
+    entries = value.get("entries") if isinstance(value, dict) else None
+    ok = isinstance(entries, list) and isinstance(value.get("skipped"), list)
+    if not ok or not all(isinstance(e, dict) and isinstance(e.get("files"), list) and "split" in e for e in entries):
+        raise DataError(path, None, f"not a chunk manifest (expected 'entries' with 'files', and 'skipped'); {hint}")
+    return value
+
+
 def chunk_done(out: Path, work: Path, number: int) -> bool:
-    """A chunk is done when its manifest reads and every file it lists exists."""
+    """A chunk is done when its manifest reads and every file it lists exists; a damaged manifest is not done
+    (the chunk is exported again: the same files)."""
     try:
-        manifest = json.loads(chunk_path(work, number).read_text())
-    except (OSError, ValueError):
+        manifest = read_manifest(work, number)
+    except DataError:
         return False
-    return all((out / f).is_file() for e in manifest["entries"] for f in e["files"])
+    return all(isinstance(f, str) and (out / f).is_file() for e in manifest["entries"] for f in e["files"])
 
 
 def read_chunks(work: Path, numbers: list[int]):
     """The manifests' entries, in frame order (one chunk in memory at a time)."""
     for n in numbers:
-        yield from json.loads(chunk_path(work, n).read_text())["entries"]
+        yield from read_manifest(work, n)["entries"]
 
 
 def _export_chunk(job) -> tuple[int, int, list]:
@@ -158,7 +181,7 @@ def export_dataset(fmt: str, cfg: BuildConfig, root: Path, mano_dir: Path, model
         chunk_size: frames per unit of work (and of resume).
         engine: what runs the chunk jobs (see :func:`hoidata.pipeline.runner.run_shards`).
     """
-    from hoidata.pipeline.runner import run_shards
+    from hoidata.pipeline.runner import build_inputs, run_shards
 
     if fmt not in FORMATS:
         raise ValueError(f"unknown export format {fmt!r}; expected one of {FORMATS}")
@@ -176,10 +199,13 @@ def export_dataset(fmt: str, cfg: BuildConfig, root: Path, mano_dir: Path, model
     for line in stated_count_warnings(cfg.dataset, [f.split for f in frames]):
         print(line, file=sys.stderr)
     keys = [schema.record_key(f.dataset, f.split, f.frame_id) for f in frames]
+    inputs = build_inputs(frames, root, Path(mano_dir), Path(models_dir))
+    if store is not None and fmt == "gsdf":  # before anything is written: the store's rows must be of these inputs
+        gsdf.check_store_inputs(Path(store), inputs)
     opts = options(fmt, cfg, root, Path(mano_dir), Path(models_dir), store)
     work = work_dir(out, fmt, splits)
     work.mkdir(parents=True, exist_ok=True)
-    _check_spec(work, _spec(fmt, cfg, splits, keys, {k: str(v) for k, v in opts.items()}))
+    _check_spec(work, _spec(fmt, cfg, splits, keys, {k: str(v) for k, v in opts.items()}, inputs))
     opts["work"] = str(work)
 
     def make_job(n):
@@ -193,7 +219,7 @@ def export_dataset(fmt: str, cfg: BuildConfig, root: Path, mano_dir: Path, model
                             chunks_kept=run.shards_kept)
     summary.skipped = [{"frame_id": s.frame_id, "reason": s.reason, "path": s.path} for s in reader_skips]
     if done:
-        summary.skipped += [s for n in numbers for s in json.loads(chunk_path(work, n).read_text())["skipped"]]
+        summary.skipped += [s for n in numbers for s in read_manifest(work, n)["skipped"]]
         summary.exported = sum(1 for _ in read_chunks(work, numbers))
         finish = finish_function(fmt)
         summary.files, summary.sdf_sources, summary.notes = finish(out, cfg, splits, lambda: read_chunks(work, numbers),

@@ -145,8 +145,8 @@ def first_difference(old, new, prefix: str = "") -> str | None:
     return None if old == new else prefix
 
 
-def describe_difference(where: str) -> str:
-    """Plain words for a first_difference path of build.json."""
+def describe_difference(where: str, what: str = "store") -> str:
+    """Plain words for a first_difference path of build.json (or an export's export.json: ``what`` "export")."""
     head, _, rest = where.partition(".")
     if head == "inputs":
         kind, _, name = rest.partition(".")
@@ -154,12 +154,12 @@ def describe_difference(where: str) -> str:
                  "annotations": "the dataset's annotations (label files, meta.yml or calibration)",
                  "grasps": "the grasp source", "backgrounds": f"the background image {name}"}
         thing = words.get(kind, f"the input {rest}") if rest else "the input fingerprints (an older hoidata?)"
-        return f"{thing} changed since this store was started"
+        return f"{thing} changed since this {what} was started"
     if head == "config":
-        return f"the setting {rest} differs from the one this store was started with"
+        return f"the setting {rest} differs from the one this {what} was started with"
     if head in ("keys_sha256", "frames"):
-        return "the selected frames differ from those this store was started with"
-    return f"{where} differs from the one this store was started with"
+        return f"the selected frames differ from those this {what} was started with"
+    return f"{where} differs from the one this {what} was started with"
 
 
 def check_kept_inputs(read_stamps, numbers, root: Path) -> None:

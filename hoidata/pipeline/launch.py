@@ -16,15 +16,18 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import functools
+import os
+import shutil
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 
+from hoidata.errors import DataError
 from hoidata.pipeline import slurm
 
 LAUNCHERS = ("local", "slurm", "ray")
-_VALUED = ("--launcher", "--ray-address", "--slurm-partition", "--slurm-array", "--slurm-cpus", "--slurm-time",
-           "--slurm-extra", "--slurm-executor", "--part", "--workers")
-_FLAGS = ("--dry-run",)
+# what an array task's command line leaves out: where the jobs run, and the part and workers (the task's own)
+_NOT_FORWARDED = {"launcher", "ray_address", "slurm_array", "slurm_partition", "slurm_cpus", "slurm_time",
+                  "slurm_extra", "slurm_executor", "dry_run", "part", "workers", "help"}
 _SUMMED = ("records", "shards_written", "shards_kept", "chunks_written", "chunks_kept")  # this run's counts
 
 
@@ -61,17 +64,49 @@ def _slurm_options(args) -> slurm.SlurmOptions:
                               args.slurm_partition, extra, args.slurm_executor)
 
 
-def without_launcher(argv: Sequence[str]) -> list[str]:
-    """A command line without its launcher options, ``--part`` and ``--workers`` (the array task's line)."""
-    out, skip = [], 0
-    for item in argv:
-        if skip:
-            skip -= 1
-        elif item in _VALUED:
-            skip = 1
-        elif item not in _FLAGS and not item.startswith(tuple(f"{v}=" for v in _VALUED)):
-            out.append(item)
-    return out
+def task_command(parser: argparse.ArgumentParser, args: argparse.Namespace, command: str, workers: int) -> list[str]:
+    """The command line an array task runs, rebuilt from the PARSED values of ``args`` (never from the typed
+    text: argparse takes abbreviations such as ``--launch`` or ``--slurm-arr``, which a filter of exact names
+    would let through, and every task would submit an array again).
+
+    Every option of ``parser`` but the launcher's, ``--part`` and ``--workers`` is written under its full name as
+    ``--name=value`` (a value may start with ``-``), flags by name, values equal to the default left out;
+    then ``--workers N`` and the positional overrides. ``hoidata`` parses it back to the same values.
+    """
+    line, positional = ["hoidata", command], []
+    for action in parser._actions:  # noqa: SLF001 - argparse has no public list of a parser's arguments
+        if action.dest in _NOT_FORWARDED or action.dest is argparse.SUPPRESS:
+            continue
+        value = getattr(args, action.dest, action.default)
+        if not action.option_strings:
+            positional += [str(v) for v in (value or [])]
+        elif value != action.default:
+            flag = max(action.option_strings, key=len)
+            if action.nargs == 0:  # store_true / store_const
+                line.append(flag)
+            else:
+                text = ",".join(map(str, value)) if isinstance(value, (tuple, list)) else str(value)
+                line.append(f"{flag}={text}")
+    separator = ["--"] if any(p.startswith("-") for p in positional) else []
+    return [*line, "--workers", str(workers), *separator, *positional]
+
+
+def refuse_nested_array(environ=os.environ) -> None:
+    """Refuse to submit an array from inside a Slurm array task: with N tasks each submitting N more, only the
+    cluster's job limits would stop it (the array's own tasks take their part from the environment instead)."""
+    task = environ.get("SLURM_ARRAY_TASK_ID")
+    if task is not None:
+        raise DataError(None, None, f"--launcher slurm: this process runs inside Slurm array task {task} "
+                                    "(SLURM_ARRAY_TASK_ID); a task does not submit another array (run the command "
+                                    "without --launcher in the array's tasks)")
+
+
+def require_sbatch(executor: str) -> None:
+    """One line, before anything is submitted or written, where ``--launcher slurm`` cannot submit to Slurm."""
+    if executor == "slurm" and shutil.which("sbatch") is None:
+        raise DataError(None, None, "--launcher slurm: no sbatch on this machine's PATH (not a Slurm login node?); "
+                                    "--dry-run prints the sbatch line to run where Slurm is, --slurm-executor "
+                                    "local runs the parts here")
 
 
 def merge(summaries: list):
@@ -95,9 +130,11 @@ def launch(args, task: Callable, command: str, finished: Callable = lambda s: s.
         return task(workers=args.workers, part=part, engine=engine)
     options = _slurm_options(args)
     if args.dry_run:
-        line = ["hoidata", command, *without_launcher(args.argv[1:]), "--workers", str(options.cpus)]
+        line = task_command(args.command_parser, args, command, options.cpus)
         print(slurm.sbatch_command(line, options, args.out, f"hoidata-{command}"))
         return None
+    refuse_nested_array()
+    require_sbatch(options.executor)
     start = time.perf_counter()
     summary = merge(slurm.submit_parts(task, options, args.out, f"hoidata-{command}"))
     if not finished(summary):  # every part ran, yet none saw the others' files (a lagging shared filesystem)

@@ -1,7 +1,8 @@
 """Where a store lives and what in its folder is not part of it.
 
 :func:`resolve_store` is the one place that decides whether a store location is local or remote;
-:func:`local_store` refuses a remote one where a command needs a folder; :func:`replaced_dir` writes a folder
+:func:`local_folder` / :func:`local_store` refuse a URL where a command needs a folder, :func:`opened_store` also
+opens the index of a store a command reads; :func:`replaced_dir` writes a folder
 (the index) aside and swaps it in; :func:`stale_temps` finds the leftovers of such writes that did not finish
 (``index.zarr.tmp<pid>``); :func:`index_lock` serialises the processes that finish one store's index.
 """
@@ -37,13 +38,41 @@ def resolve_store(location) -> Path | RemoteStore:
     return Path(os.fspath(location))
 
 
+# text that names a URL, not a folder: any scheme:// (also ones no loader reads: ftp://, file://, gs:///x), and the
+# store schemes with one slash (a typo of one): Path() would squash them into a folder named 'http:' or 's3:'
+_URL_LIKE = re.compile(r"^(?:[A-Za-z][A-Za-z0-9+.-]+://|(?:https?|s3|gs):/)", re.IGNORECASE)
+
+
+def local_folder(location, what: str) -> Path:
+    """The local folder a command writes or reads (``what`` names the option, e.g. ``"build-sdf --out"``). Text
+    that names a URL (see ``_URL_LIKE``) is a DataError naming it, raised before anything is written, so a URL
+    never becomes a local folder named ``http:`` or ``s3:``. A ``Path``, and a name like ``s3:x`` or
+    ``pipe:cmd`` (no slash after the colon), is a folder, as :func:`resolve_store` has it."""
+    if isinstance(location, RemoteStore):
+        location = location.url
+    if isinstance(location, str) and (_URL_LIKE.match(location) or url_authority(location) is not None):
+        raise DataError(location, None, f"{what} needs a local path, not a URL; remote stores are read by the "
+                                        "training and evaluation loaders only (copy the store to a local store "
+                                        "folder first)")
+    return Path(os.fspath(location))
+
+
 def local_store(location, what: str) -> Path:
     """:func:`resolve_store` for commands that need a local folder (``what`` names the command): a URL is a
-    DataError saying so."""
-    where = resolve_store(location)
-    if isinstance(where, RemoteStore):
-        raise DataError(where.url, None, f"{what} works on a local store folder; remote stores are read by the "
-                                         "training and evaluation loaders only (copy the store to a folder first)")
+    DataError saying so (:func:`local_folder`)."""
+    return local_folder(location, what)
+
+
+def opened_store(location, what: str) -> Path:
+    """A store a command reads from (``export --store``): a local folder whose index opens, checked before the
+    command writes anything; else one DataError naming the store (a mistyped, unfinished or damaged one never
+    becomes a run where every frame is skipped)."""
+    from hoidata.store.index import read_index
+
+    where = local_folder(location, what)
+    if not where.is_dir():
+        raise DataError(where, None, f"{what}: no such store folder")
+    read_index(where)  # a DataError naming the index when it is missing or damaged
     return where
 
 
