@@ -34,6 +34,21 @@ def count_type(low: int):
 positive_int, non_negative_int = count_type(1), count_type(0)
 
 
+def local_path(text: str) -> Path:
+    """argparse type of an option that names a local folder or file (``python -m hoisdf.train --out``): text
+    naming a URL is refused before anything runs (:func:`hoidata.store.paths.local_folder`)."""
+    from hoidata.errors import DataError
+    from hoidata.store.paths import local_folder
+
+    try:
+        return local_folder(text, "this option")
+    except DataError as exc:
+        raise argparse.ArgumentTypeError(f"{text!r}: {exc.problem}") from None
+
+
+local_path.__name__ = "local path"
+
+
 def folder(args: argparse.Namespace, name: str, default: Path | None = None) -> Path | None:
     """The folder option ``args.<name>`` as a local path (``default`` when not given): text naming a URL is one
     error line before anything is read or written (:func:`hoidata.store.paths.local_folder`)."""
@@ -158,8 +173,9 @@ def print_skips(skips: list, who: str, limit: int = 10) -> None:
 def cmd_render_synthetic(args: argparse.Namespace) -> int:
     """Render perturbed grasps of a store or dataset from new views into a training store."""
     from hoidata.pipeline.records import RecordSettings
-    from hoidata.synth.render_synthetic import render_synthetic
+    from hoidata.synth.render_synthetic import check_count, render_synthetic
 
+    check_count(args.count)  # here, not in each array task
     source, out = folder(args, "source"), folder(args, "out")
     mano, models = folder(args, "mano", source / "mano"), folder(args, "models", source / "models")
     record = RecordSettings(crop_size=args.crop_size)

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from hoidata.atomic import write_atomic
-from hoidata.cli import non_negative_int, positive_int
+from hoidata.cli import local_path, non_negative_int, positive_int
 from hoidata.errors import DataError, run_cli
 from hoidata.schema import FULL
 from hoidata.store import RemoteStore, read_index, resolve_store
@@ -135,7 +135,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--shards", nargs="+", required=True, type=str, metavar="STORE",
                    help="stores to evaluate: folders or http(s)://, s3://, gs:// URLs")
     p.add_argument("--mano", required=True, type=Path, help="folder with MANO_RIGHT.pkl")
-    p.add_argument("--out", type=Path, default=None, help="output folder (default RUN/eval-<store name>)")
+    p.add_argument("--out", type=local_path, default=None, help="output folder (default RUN/eval-<store name>)")
     p.add_argument("--batch-size", type=positive_int, default=8)
     p.add_argument("--device", default=None, help="cpu, cuda, cuda:1 (default: cuda when present)")
     p.add_argument("--vis", type=non_negative_int, default=0, metavar="N", help="write vis/<key>.png for the first N samples")

@@ -19,6 +19,7 @@ from pathlib import Path
 import torch
 
 from hoidata.atomic import write_atomic
+from hoidata.cli import local_path
 from hoidata.errors import DataError, run_cli
 from hoidata.pipeline.runner import git_commit
 from hoidata.pipeline.settings import TRAIN_SECTIONS, apply_overrides, refuse_unused
@@ -109,7 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--val-shards", nargs="*", default=[], metavar="STORE", help="validation stores (folders or URLs)")
     p.add_argument("--mano", required=True, type=Path, help="folder with MANO_RIGHT.pkl")
     p.add_argument("--config", default=None, help="pipelines/<name>.toml or a path (default: upstream's released settings)")
-    p.add_argument("--out", type=Path, default=None, help="run folder (default runs/<config>)")
+    p.add_argument("--out", type=local_path, default=None, help="run folder (default runs/<config>)")
     p.add_argument("--resume", action="store_true", help="continue the run folder's last checkpoint")
     p.add_argument("--device", default=None, help="cpu, cuda, cuda:1 (default: cuda when present)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")

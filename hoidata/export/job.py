@@ -189,7 +189,7 @@ def export_dataset(fmt: str, cfg: BuildConfig, root: Path, mano_dir: Path, model
         raise DataError(None, "dataset.name",
                         f"the {fmt} format reads {' and '.join(DATASETS[fmt])}, not {cfg.dataset.name}")
     start, root, out = time.perf_counter(), Path(root), Path(out)
-    splits = tuple(splits or default_splits(fmt, cfg))
+    splits = tuple(dict.fromkeys(splits or default_splits(fmt, cfg)))  # train,train is one split
     if cfg.dataset.frame_list and len(splits) != 1:
         raise DataError(cfg.dataset.frame_list, "dataset.frame_list",
                         f"a frame list holds the ids of one split, not {splits}")

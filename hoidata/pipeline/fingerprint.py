@@ -62,17 +62,39 @@ def models(models_dir: Path, names, whole_folder: bool = False) -> dict[str, str
     return out
 
 
-def _relative(value, roots: tuple[str, ...]) -> str:
+def _relative(value, roots: tuple[str, ...], mark: str = "<root>") -> str:
     text = os.fspath(value)
     for root in roots:
-        if text.startswith(root):
-            return "<root>" + text[len(root):]
+        if text == root or text.startswith(root.rstrip(os.sep) + os.sep):
+            return mark + text[len(root.rstrip(os.sep)):]
     return text
 
 
+def root_spellings(root: Path) -> tuple[str, ...]:
+    """The ways a frame's paths may start with the dataset folder: as given (``Path`` drops a trailing slash and
+    ``./``) and resolved (absolute, links followed), longest first."""
+    return tuple(sorted({os.fspath(Path(root)), os.fspath(Path(root).resolve())}, key=len, reverse=True))
+
+
+def root_relative(value, root: Path):
+    """``value`` (a reader's ``source`` dict, a list or a string) with every path under ``root`` written relative
+    to it (``labels_000000.npz`` of ``ROOT/subject/.../labels_000000.npz``): what a record stores does not depend
+    on how ``--root`` was spelled (relative, absolute, through a link) or where the dataset lives."""
+    roots = root_spellings(root)
+    if isinstance(value, dict):
+        return {k: root_relative(v, root) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return type(value)(root_relative(v, root) for v in value)
+    if isinstance(value, (str, os.PathLike)):
+        text = _relative(value, roots, "")
+        return text.lstrip(os.sep) if text != os.fspath(value) else text
+    return value
+
+
 def annotations(frames, root: Path) -> str:
-    """One sha256 over every frame's fields but its in-memory pixels (arrays as float64, paths relative to root)."""
-    roots = tuple(sorted({os.fspath(Path(root)), os.fspath(Path(root).resolve())}, key=len, reverse=True))
+    """One sha256 over every frame's fields but its in-memory pixels (arrays as float64, paths relative to root,
+    also inside the ``source`` dict)."""
+    roots = root_spellings(root)
     digest = hashlib.sha256()
     for frame in frames:
         for f in fields(frame):
@@ -84,7 +106,7 @@ def annotations(frames, root: Path) -> str:
             elif isinstance(value, os.PathLike):
                 digest.update(_relative(value, roots).encode())
             elif isinstance(value, dict):
-                digest.update(_relative(json.dumps(value, sort_keys=True, default=str), roots).encode())
+                digest.update(json.dumps(root_relative(value, root), sort_keys=True, default=str).encode())
             else:
                 digest.update(repr(value).encode())
             digest.update(b"\0")

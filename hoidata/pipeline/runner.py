@@ -152,10 +152,14 @@ def _build_shard(job: ShardJob) -> tuple[int, int, list]:
 
     The shard (tar and sidecar) is written first, then its skips file: a shard counts as done only with both.
     """
+    import dataclasses
+
     records, skips, inputs = [], [], {}
     for frame, key in zip(job.frames, job.keys):
         if job.root is not None:
             inputs.update(fingerprint.frame_inputs(frame, Path(job.root)))
+            # the record's 'source' names files relative to the dataset folder, however --root was spelled
+            frame = dataclasses.replace(frame, source=fingerprint.root_relative(frame.source, Path(job.root)))
         try:
             records.append((key, _build_one(frame, key, job.settings)))
         except (DataError, ValueError) as e:  # a broken frame is skipped with its reason, the build goes on

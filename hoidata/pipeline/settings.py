@@ -186,6 +186,13 @@ def refuse_unused(overrides: list[str], used: tuple[str, ...], command: str, use
                                                           f"({user} reads them); leave this override out")
 
 
+def origin(path: Path, overrides, *keys: str) -> str:
+    """Who set ``keys`` (``section.key``), for an error about them: the pipeline file, and the command line's
+    overrides of them where there are any (an error caused by an override does not blame the file alone)."""
+    given = [item for item in overrides if item.partition("=")[0].strip() in keys]
+    return f"{path} with the command line's {' '.join(given)}" if given else str(path)
+
+
 def load_build_config(name_or_path: str, overrides: list[str] = ()) -> BuildConfig:
     """Read a pipeline TOML and apply ``section.key=value`` overrides (values parsed as TOML); overrides of the
     training sections are an error (the build does not use them)."""
@@ -194,10 +201,12 @@ def load_build_config(name_or_path: str, overrides: list[str] = ()) -> BuildConf
     record = section(RecordSettings, data.get("record", {}), path, "record")
     dataset = section(DatasetConfig, data.get("dataset", {}), path, "dataset")
     if dataset.name not in ("dexycb", "ho3d"):
-        raise DataError(path, "dataset.name", f"unknown dataset {dataset.name!r}; expected 'dexycb' or 'ho3d'")
+        raise DataError(origin(path, overrides, "dataset.name"), "dataset.name",
+                        f"unknown dataset {dataset.name!r}; expected 'dexycb' or 'ho3d'")
     if dataset.frame_list and (dataset.name != "dexycb" or len(dataset.splits) != 1):
-        raise DataError(path, "dataset.frame_list", "a frame list holds the toolkit ids of one DexYCB split: set "
-                                                    'dataset.splits to that split, e.g. dataset.splits=["test"]')
+        where = origin(path, overrides, "dataset.frame_list", "dataset.splits", "dataset.name")
+        raise DataError(where, "dataset.frame_list", "a frame list holds the toolkit ids of one DexYCB split: set "
+                                                     'dataset.splits to that split, e.g. dataset.splits=["test"]')
     _check_selection(dataset, path)
     if record.sdf_backend not in SDF_BACKENDS:
         raise DataError(path, "record.sdf_backend", f"unknown backend {record.sdf_backend!r}; expected one of {SDF_BACKENDS}")

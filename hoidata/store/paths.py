@@ -163,8 +163,19 @@ def index_lock(store_dir) -> Iterator[None]:
     import fcntl
     import sys
 
+    import stat
+
     path = Path(store_dir) / LOCK_NAME
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)  # the umask applies, as to any new file
+    try:  # never through a link planted at the lock's name: it would create or lock a file elsewhere
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o666)  # the umask applies
+    except OSError as exc:
+        if exc.errno != errno.ELOOP:
+            raise
+        raise DataError(path, None, "is a symbolic link; the index lock must be a plain file of the store folder "
+                                    "(remove the link; nothing was written)") from None
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise DataError(path, None, "is not a plain file; remove it (nothing was written)")
     try:
         try:
             fcntl.lockf(fd, fcntl.LOCK_EX)

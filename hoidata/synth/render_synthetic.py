@@ -28,6 +28,7 @@ from hoidata.pipeline.records import RecordSettings
 from hoidata.synth import views
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp")
+MAX_COUNT = 10_000_000  # samples of one run: its key list (~0.9 GB at the bound) is made before any rendering
 
 
 @dataclass(frozen=True)
@@ -174,6 +175,13 @@ def list_backgrounds(folder: Path | None) -> list[str]:
     return files
 
 
+def check_count(count: int) -> None:
+    """``--count`` within 1 .. MAX_COUNT, checked before the key list and the shard plan are allocated."""
+    if not 1 <= count <= MAX_COUNT:
+        raise ValueError(f"--count must be between 1 and {MAX_COUNT:,}, got {count:,}; render more as several "
+                         "stores (another --seed each) and train on all of them (--shards A B)")
+
+
 def render_synthetic(source: Path, out: Path, count: int, mano_dir: Path, models_dir: Path, seed: int = 0,
                      backgrounds: Path | None = None, workers: int = 1, part: tuple[int, int] = (0, 1),
                      settings: SynthSettings = SynthSettings(), record: RecordSettings = RecordSettings(),
@@ -187,8 +195,7 @@ def render_synthetic(source: Path, out: Path, count: int, mano_dir: Path, models
 
     start = time.perf_counter()
     out, source = Path(out), Path(source)
-    if count < 1:
-        raise ValueError(f"--count must be at least 1, got {count}")
+    check_count(count)
     files = list_backgrounds(backgrounds)
     if records_per_shard < 1:
         raise ValueError(f"--records-per-shard must be at least 1, got {records_per_shard}")

@@ -105,8 +105,9 @@ def load_checkpoint(run_or_file: str | os.PathLike, map_location="cpu") -> dict:
     try:
         payload = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as e:
-        first = (str(e).strip().splitlines() or [type(e).__name__])[0]
-        raise DataError(path, None, f"cannot read checkpoint: {first}") from e
+        from hoidata.safe_pickle import refusal_text
+
+        raise DataError(path, None, f"cannot read checkpoint: {refusal_text(e)}") from e
     if not isinstance(payload, dict):
         raise DataError(path, None, f"expected a checkpoint dict, got {type(payload).__name__}")
     for key in ("model", "config"):
