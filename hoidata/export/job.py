@@ -99,7 +99,7 @@ def _check_spec(work: Path, spec: dict) -> None:
 
     path = work / SPEC_FILE
     if path.is_file():
-        old = read_json(path, "export.json", "use a new --out folder (nothing was changed)")
+        old = read_json(path, "valid export.json", "use a new --out folder (nothing was changed)")
         where = fingerprint.first_difference(old, spec)
         if where is not None:
             raise DataError(path, where, f"{fingerprint.describe_difference(where, 'export')}; this folder holds an "

@@ -25,8 +25,9 @@ def read_shard_skips(out: Path, number: int) -> dict:
     path = Path(out) / _extra_name(number)
     try:
         value = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, ValueError) as exc:
-        raise DataError(path, None, f"unreadable skips file ({exc}); rerun the build to rewrite it") from None
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:  # RecursionError: nested too deeply
+        raise DataError(path, None, f"unreadable skips file ({type(exc).__name__}: {exc}); rerun the build to "
+                                    "rewrite it") from None
     ok = isinstance(value, dict) and isinstance(value.get("skipped"), list) and isinstance(value.get("records"), int)
     if not ok or not all(isinstance(s, dict) and {"frame_id", "reason"} <= set(s) for s in value["skipped"]):
         raise DataError(path, None, "not a skips file (expected 'skipped' entries and 'records'); rerun the build")

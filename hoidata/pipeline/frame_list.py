@@ -28,8 +28,8 @@ def read_frame_list(path) -> tuple[int, ...]:
         raise DataError(path, None, "frame list not found")
     try:
         items = json.loads(path.read_text())
-    except (UnicodeDecodeError, ValueError) as err:
-        raise DataError(path, None, f"not a JSON list: {err}") from None
+    except (UnicodeDecodeError, ValueError, RecursionError) as err:  # RecursionError: nested too deeply
+        raise DataError(path, None, f"not a JSON list: {type(err).__name__}: {err}") from None
     if not isinstance(items, list) or not items:
         raise DataError(path, None, "expected a non-empty JSON list of sample ids")
     ids = []

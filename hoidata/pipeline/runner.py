@@ -192,8 +192,8 @@ def _check_build_file(out: Path, config: dict, keys: list[str], inputs: dict) ->
     if path.is_file():
         try:
             old = json.loads(path.read_text())
-        except (OSError, UnicodeDecodeError, ValueError) as exc:
-            raise DataError(path, None, f"unreadable ({exc}); use a new --out folder") from None
+        except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:  # RecursionError: nested too deeply
+            raise DataError(path, None, f"unreadable ({type(exc).__name__}: {exc}); use a new --out folder") from None
         where = fingerprint.first_difference(old, spec)
         if where is not None:
             raise DataError(path, where, f"{fingerprint.describe_difference(where)}; resuming would mix records: "

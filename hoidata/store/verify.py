@@ -145,8 +145,8 @@ def read_sidecar(store_dir, number: int) -> ShardInfo:
     path = Path(store_dir) / sidecar_name(number)
     try:
         value = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, ValueError) as exc:
-        raise DataError(path, None, f"unreadable sidecar ({exc})") from None
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:  # RecursionError: nested too deeply
+        raise DataError(path, None, f"unreadable sidecar ({type(exc).__name__}: {exc})") from None
     info = ShardInfo.from_dict(value, path)
     if info.number != number:
         raise DataError(path, "number", f"{info.number}, expected {number}")
