@@ -135,7 +135,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     from hoidata.export import export_dataset
     from hoidata.pipeline.settings import load_build_config
 
-    from hoidata.store.paths import opened_store
+    from hoidata.store.verify import opened_store
 
     root, out = folder(args, "root"), folder(args, "out")
     mano, models = folder(args, "mano", root / "mano"), folder(args, "models", root / "models")

@@ -38,8 +38,8 @@ LAUNCHER_DESTS = ("launcher", "ray_address", "slurm_array", "slurm_partition", "
                   "slurm_extra", "slurm_executor", "dry_run", "part", "workers")
 COMMANDS = {  # each command's own options, abbreviated where argparse lets them be (other prefixes than the probe's)
     "build-sdf": ["--datas", "toy", "--ro", "R", "--mod", "M", "--ou", "OUT", "record.n_hand=256"],
-    "export": ["--form", "gsdf", "--datas", "toy", "--ro", "R", "--ou", "OUT", "--sto", "{store}", "--spl", "train,test",
-               "--man=-odd-mano-folder", "dataset.frame_stride=2"],
+    "export": ["--form", "gsdf", "--datas", "toy", "--ro", "R", "--ou", "OUT", "--sto", "{store}", "--spl",
+               "train,test", "--man=-odd-mano-folder", "dataset.frame_stride=2"],
     "render-synthetic": ["--sou", "SRC", "--ou", "OUT", "--cou", "12", "--records-per", "4", "--crop", "64"],
 }
 

@@ -1,8 +1,7 @@
 """Where a store lives and what in its folder is not part of it.
 
 :func:`resolve_store` is the one place that decides whether a store location is local or remote;
-:func:`local_folder` / :func:`local_store` refuse a URL where a command needs a folder, :func:`opened_store` also
-opens the index of a store a command reads; :func:`replaced_dir` writes a folder
+:func:`local_folder` / :func:`local_store` refuse a URL where a command needs a folder; :func:`replaced_dir` writes a folder
 (the index) aside and swaps it in; :func:`stale_temps` finds the leftovers of such writes that did not finish
 (``index.zarr.tmp<pid>``); :func:`index_lock` serialises the processes that finish one store's index.
 """
@@ -61,19 +60,6 @@ def local_store(location, what: str) -> Path:
     """:func:`resolve_store` for commands that need a local folder (``what`` names the command): a URL is a
     DataError saying so (:func:`local_folder`)."""
     return local_folder(location, what)
-
-
-def opened_store(location, what: str) -> Path:
-    """A store a command reads from (``export --store``): a local folder whose index opens, checked before the
-    command writes anything; else one DataError naming the store (a mistyped, unfinished or damaged one never
-    becomes a run where every frame is skipped)."""
-    from hoidata.store.index import read_index
-
-    where = local_folder(location, what)
-    if not where.is_dir():
-        raise DataError(where, None, f"{what}: no such store folder")
-    read_index(where)  # a DataError naming the index when it is missing or damaged
-    return where
 
 
 _TEMP_RE = re.compile(rf"^{re.escape(INDEX_NAME)}\.(tmp|old)(\d+)$")

@@ -1,4 +1,5 @@
-"""Store integrity: verify every record against the index, and find the shards a resumed build keeps."""
+"""Store integrity: verify every record against the index, find the shards a resumed build keeps, and open a store
+a command reads from (:func:`opened_store`)."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from hoidata.errors import DataError
 from hoidata.schema import META, META_FIELDS
 from hoidata.store.codec import KEY
 from hoidata.store.index import ShardInfo, StoreIndex, read_index
-from hoidata.store.paths import is_stale_token, local_store, stale_temps
+from hoidata.store.paths import is_stale_token, local_folder, local_store, stale_temps
 from hoidata.store.shards import iter_records, sidecar_name
 
 
@@ -190,3 +191,14 @@ def completed_shards(store_dir, expected: Sequence[ShardInfo], clean: bool = Tru
         if path.is_file() and path.stat().st_size == info.size and (not check_bytes or file_digest(path)[1] == info.sha256):
             done.add(plan.number)
     return done
+
+
+def opened_store(location, what: str) -> Path:
+    """A store a command reads from (``export --store``): a local folder whose index opens, checked before the
+    command writes anything; else one DataError naming the store (a mistyped, unfinished or damaged one never
+    becomes a run where every frame is skipped)."""
+    where = local_folder(location, what)
+    if not where.is_dir():
+        raise DataError(where, None, f"{what}: no such store folder")
+    read_index(where)  # a DataError naming the index when it is missing or damaged
+    return where
