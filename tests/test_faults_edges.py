@@ -417,3 +417,23 @@ def test_an_error_caused_by_an_override_names_the_command_line(tmp_path):
         load_build_config("toy", [f"dataset.frame_list={frame_list}", 'dataset.splits=["train"]',
                                   "record.sdf_backend=nope"])
     assert "command line" not in str(caught.value) and "toy.toml" in str(caught.value)
+
+
+def test_the_proximity_filter_reads_the_models_the_build_was_given(tiny_dexycb, tmp_path):
+    """DexYCB's proximity filter (the dexycb preset) uses --models, as the SDF stage and export do, not ROOT/models."""
+    from hoidata.export.job import export_frames
+    from hoidata.pipeline.runner import read_frames
+    from hoidata.pipeline.settings import load_build_config
+
+    root = tmp_path / "dataset"  # the dataset without its models folder: they live elsewhere
+    root.mkdir()
+    for item in tiny_dexycb.iterdir():
+        if item.name != "models":
+            (root / item.name).symlink_to(item)
+    cfg = load_build_config("dexycb", ['dataset.splits=["train"]', "dataset.complete_subjects=false",
+                                       "dataset.frame_stride=1"])
+    assert cfg.dataset.proximity_mm > 0
+    frames, skips = read_frames(cfg, root, root / "mano", tiny_dexycb / "models")
+    exported, _, _ = export_frames(cfg, root, root / "mano", tiny_dexycb / "models", ("train",))
+    assert [f.frame_id for f in frames] == [f.frame_id for f in exported]  # both commands select the same frames
+    assert frames and not any("not found" in s.reason for s in skips), [s.reason for s in skips][:3]

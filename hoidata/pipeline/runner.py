@@ -40,15 +40,17 @@ from hoidata.pipeline.settings import BuildConfig, stated_count_warnings
 BUILD_FILE = "build.json"
 
 
-def read_frames(cfg: BuildConfig, root: Path, mano_dir: Path) -> tuple[list, list[Skip]]:
-    """All frames of the configured splits, in reader order, and the reader's skips."""
+def read_frames(cfg: BuildConfig, root: Path, mano_dir: Path,
+                models_dir: Path | None = None) -> tuple[list, list[Skip]]:
+    """All frames of the configured splits, in reader order, and the reader's skips. ``models_dir`` (default
+    ``root/models``) is what DexYCB's proximity filter reads: the build's ``--models``, as export's."""
     frames, skips = [], []
     for split in cfg.dataset.splits:
         if cfg.dataset.name == "dexycb":
             from hoidata.datasets.dexycb import DexYCBReader
 
             listed = read_frame_list(cfg.dataset.frame_list) if cfg.dataset.frame_list else None
-            reader = DexYCBReader(root, mano_dir, split, cfg.dataset.dexycb_setting(), on_error="skip",
+            reader = DexYCBReader(root, mano_dir, split, cfg.dataset.dexycb_setting(), models_dir, on_error="skip",
                                   frame_ids=None if listed is None else frozenset(listed))
         elif cfg.dataset.name == "ho3d":
             from hoidata.datasets.ho3d import HO3DReader
@@ -215,7 +217,7 @@ def build_store(cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path, 
     """Build (or resume) the store in `out`; see the module docstring (``engine``: see :func:`run_shards`)."""
     root, out, models_dir = Path(root), Path(out), Path(models_dir)
     start = time.perf_counter()
-    frames, reader_skips = read_frames(cfg, root, Path(mano_dir))
+    frames, reader_skips = read_frames(cfg, root, Path(mano_dir), models_dir)
     if not frames:
         raise DataError(root, None, f"no frames to build for splits {cfg.dataset.splits}: "
                                     f"{describe_skips(reader_skips, 'the reader skipped')}")
@@ -317,7 +319,7 @@ def _run(results, summary: BuildSummary, bar, start: float) -> None:
 def estimate_build(cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path, workers: int = 1,
                    sample: int = 6) -> dict:
     """Time and disk of a build, from `sample` frames spread over the selection; writes nothing."""
-    frames, skips = read_frames(cfg, Path(root), Path(mano_dir))
+    frames, skips = read_frames(cfg, Path(root), Path(mano_dir), Path(models_dir))
     if not frames:
         raise DataError(root, None, "no frames to build")
     picks = sorted({int(i) for i in range(0, len(frames), max(1, len(frames) // sample))})[:sample]
