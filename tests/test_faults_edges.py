@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 from test_faults_build import SMALL, _build
+from test_synthetic import ho3d_source, synth_store  # noqa: F401 - fixtures used below
 
 from hoidata.cli import main as hoidata
 from hoidata.cli import parse_args
@@ -437,3 +438,14 @@ def test_the_proximity_filter_reads_the_models_the_build_was_given(tiny_dexycb, 
     exported, _, _ = export_frames(cfg, root, root / "mano", tiny_dexycb / "models", ("train",))
     assert [f.frame_id for f in frames] == [f.frame_id for f in exported]  # both commands select the same frames
     assert frames and not any("not found" in s.reason for s in skips), [s.reason for s in skips][:3]
+
+
+def test_a_synthetic_store_resumes_with_its_source_spelled_another_way(ho3d_source, synth_store, tmp_path,  # noqa: F811
+                                                                       monkeypatch):
+    from test_synthetic import _render
+
+    out = shutil.copytree(synth_store[0], tmp_path / "store")
+    (tmp_path / "link").symlink_to(ho3d_source)
+    monkeypatch.chdir(tmp_path)
+    again = _render(Path("link/./"), out)  # the same source through a link, relative: nothing to do
+    assert again.shards_written == 0 and again.shards_kept > 0

@@ -75,7 +75,7 @@ def task_command(parser: argparse.ArgumentParser, args: argparse.Namespace, comm
     """
     line, positional = ["hoidata", command], []
     for action in parser._actions:  # noqa: SLF001 - argparse has no public list of a parser's arguments
-        if action.dest in _NOT_FORWARDED or action.dest is argparse.SUPPRESS:
+        if action.dest in _NOT_FORWARDED or action.dest == argparse.SUPPRESS:
             continue
         value = getattr(args, action.dest, action.default)
         if not action.option_strings:

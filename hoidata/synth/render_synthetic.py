@@ -201,7 +201,8 @@ def render_synthetic(source: Path, out: Path, count: int, mano_dir: Path, models
         raise ValueError(f"--records-per-shard must be at least 1, got {records_per_shard}")
     grasps = load_grasps(source, load_mano(mano_dir, dtype=torch.float64))  # fail early, in the parent
     keys = [schema.record_key("synthetic", "train", f"{seed}_{i:08d}") for i in range(count)]
-    config = {"synthetic": asdict(settings), "record": asdict(record), "source": str(source), "count": count,
+    # the source resolved: a resume with --source spelled another way (relative, absolute, a link) is the same run
+    config = {"synthetic": asdict(settings), "record": asdict(record), "source": str(source.resolve()), "count": count,
               "seed": seed, "backgrounds": [Path(f).name for f in files], "records_per_shard": records_per_shard}
     runner._check_build_file(out, json.loads(json.dumps(config)), keys, _inputs(grasps, mano_dir, models_dir, files))
     per = records_per_shard
