@@ -126,7 +126,8 @@ def cmd_build_sdf(args: argparse.Namespace) -> int:
           f"{len(s.skipped)} frames while building")
     print_skips(s.reader_skipped, "reader")
     print_skips(s.skipped, "build")
-    print("index.zarr written" if s.index_written else "index not written yet: other parts still have shards to build")
+    print("index.zarr already lists every shard: nothing written" if s.index_kept else "index.zarr written"
+          if s.index_written else "index not written yet: other parts still have shards to build")
     return 0
 
 

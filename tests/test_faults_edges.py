@@ -449,3 +449,14 @@ def test_a_synthetic_store_resumes_with_its_source_spelled_another_way(ho3d_sour
     monkeypatch.chdir(tmp_path)
     again = _render(Path("link/./"), out)  # the same source through a link, relative: nothing to do
     assert again.shards_written == 0 and again.shards_kept > 0
+
+
+def test_a_rerun_of_a_finished_store_says_nothing_was_written(tiny_dexycb, tmp_path, capsys):
+    out = tmp_path / "store"
+    argv = ["build-sdf", "--dataset", "toy", "--root", str(tiny_dexycb), "--out", str(out), *SMALL]
+    assert hoidata(argv) == 0 and "index.zarr written" in capsys.readouterr().out
+    before = _tree(out)
+    assert hoidata(argv) == 0  # the probe's D4 ran this on a read-only disk: it said "index.zarr written"
+    printed = capsys.readouterr().out
+    assert "0 shards written" in printed and "index.zarr already lists every shard: nothing written" in printed
+    assert "index.zarr written" not in printed and _tree(out) == before

@@ -76,7 +76,8 @@ class BuildSummary:
     empty_shards: int = 0  # shards whose frames were all skipped
     shards_kept: int = 0
     seconds: float = 0.0
-    index_written: bool = False
+    index_written: bool = False  # the store is complete: its index lists every shard
+    index_kept: bool = False  # ... and this run found it so (an earlier run or another part wrote it)
 
     @property
     def frames_per_second(self) -> float:
