@@ -13,7 +13,7 @@ import os
 import shutil
 import threading
 from pathlib import Path
-from urllib.parse import unquote
+from urllib.parse import parse_qs, unquote
 
 import pytest
 
@@ -57,13 +57,13 @@ class _Handler(http.server.BaseHTTPRequestHandler):
         path, _, query = self.path.partition("?")
         mode, _, rest = unquote(path).lstrip("/").partition("/")
         self.log.append((self.command, mode, rest, self.headers.get("Range")))
-        if (mode == "token" and query != TOKEN) or (mode == "auth" and self.headers.get("Authorization") != AUTH):
+        if (mode == "token" and parse_qs(query) != parse_qs(TOKEN)) or (mode == "auth" and self.headers.get("Authorization") != AUTH):
             return self._plain(403 if mode == "token" else 401)
         file = self.root / rest
         if not file.is_file():
             return self._plain(404)
         data = file.read_bytes()
-        kind = mode if rest.endswith(".tar") else "ok"
+        kind = mode if rest.endswith(".tar") else "stallhead" if mode == "stallindex" and "/c/" in rest else "ok"
         if kind == "stallhead":
             self.stop.wait(60)
             return None
@@ -269,6 +269,15 @@ def test_a_stalled_head_is_one_line_naming_the_url(server, blob, quick):
     with pytest.raises(DataError, match=r"cannot read: the server sent nothing for 0.4 s .*\(2 attempts\)") as err:
         _finishes(lambda: http_sizes([f"{base}/ok/{blob[1]}", url]))
     assert str(err.value).startswith(url)
+
+
+def test_a_stalled_index_read_is_one_line_naming_the_url(server, tiny_store_two_shards, quick):
+    if not (server[0] / "store").exists():
+        _publish(server, tiny_store_two_shards, "store")
+    url = f"{server[1]}/stallindex/store"  # zarr.json answers, every chunk of the index stalls
+    with pytest.raises(DataError, match="Timeout") as err:
+        _finishes(lambda: store.read_index(url))
+    assert str(err.value).startswith(f"{url}/index.zarr: ") and "\n" not in str(err.value)
 
 
 def test_sizes_the_server_does_not_state_are_unknown_not_missing(server, blob, quick):
