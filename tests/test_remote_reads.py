@@ -57,9 +57,14 @@ class _Handler(http.server.BaseHTTPRequestHandler):
         path, _, query = self.path.partition("?")
         mode, _, rest = unquote(path).lstrip("/").partition("/")
         self.log.append((self.command, mode, rest, self.headers.get("Range")))
-        if (mode == "token" and parse_qs(query) != parse_qs(TOKEN)) or (mode == "auth" and self.headers.get("Authorization") != AUTH):
-            return self._plain(403 if mode == "token" else 401)
+        if mode == "token" and parse_qs(query) != parse_qs(TOKEN):
+            return self._plain(403)
+        if mode == "auth" and self.headers.get("Authorization") != AUTH:
+            return self._plain(401)
         file = self.root / rest
+        fresh = sum(entry[1:3] == (mode, rest) for entry in self.log) == 1  # the first request for this file
+        if mode == "busy" or (mode == "busyonce" and fresh):
+            return self._plain(503, b"try again later")
         if not file.is_file():
             return self._plain(404)
         data = file.read_bytes()
@@ -209,10 +214,10 @@ def test_no_total_time_cap_only_connect_and_idle_read_timeouts(monkeypatch):
         monkeypatch.delenv(name)
 
 
-@pytest.mark.parametrize("mode", ["ok", "slow", "drop", "norange", "nolen", "chunked", "gzip"])
+@pytest.mark.parametrize("mode", ["ok", "slow", "drop", "busyonce", "norange", "nolen", "chunked", "gzip"])
 def test_a_healthy_server_is_read_whole_whatever_its_pace_and_framing(server, blob, quick, mode):
     """Slow: 100 kB at 1 KiB per 20 ms takes ~2 s, five times the 0.4 s idle timeout; drop: every response breaks
-    after 3000 bytes, so the read resumes ~34 times; the others answer 200 with the whole body, whatever the Range."""
+    after 3000 bytes, so the read resumes ~34 times; busyonce: 503 on the first request, then served; the others answer 200 with the whole body, whatever the Range."""
     _, base, log = server
     data, name = blob
     start = len(log)
@@ -249,7 +254,8 @@ def test_a_slow_consumer_never_times_out_a_healthy_server(server, quick, mode, s
 
 @pytest.mark.parametrize("mode, what", [("stallhead", "the server sent nothing for 0.4 s"),
                                         ("stallbody", "the server sent nothing for 0.4 s"),
-                                        ("cutnorange", "the connection was closed before the response was complete")])
+                                        ("cutnorange", "the connection was closed before the response was complete"),
+                                        ("busy", "HTTP 503 Service Unavailable")])
 def test_a_stalled_or_breaking_server_is_one_line_naming_the_url(server, blob, quick, mode, what):
     _, base, _ = server
     data, name = blob
@@ -258,8 +264,8 @@ def test_a_stalled_or_breaking_server_is_one_line_naming_the_url(server, blob, q
         _read_all(url, len(data))
     line = str(err.value)
     assert line.startswith(f"{url}: cannot read: {what}") and "\n" not in line, line
-    assert "HOIDATA_REMOTE" in line or mode == "cutnorange"
-    arrived = {"stallhead": 0, "stallbody": (16 << 10) // 2, "cutnorange": len(data) // 2}[mode]
+    assert "HOIDATA_REMOTE" in line or mode in ("cutnorange", "busy")
+    arrived = {"stallhead": 0, "stallbody": (16 << 10) // 2, "cutnorange": len(data) // 2, "busy": 0}[mode]
     assert f"at byte {arrived} of {len(data)} (2 attempts)" in line, line  # where it broke off, after a retry
 
 

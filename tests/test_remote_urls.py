@@ -38,7 +38,8 @@ def served(tmp_path_factory, tiny_store_two_shards):
 def test_file_names_join_the_path_and_the_query_stays():
     where = store.resolve_store("https://h:8443/stores/dexycb/?sv=2024&sig=a%2Bb%3D")
     assert where.name == "dexycb" and where.base == "https://h:8443/stores/dexycb"
-    assert where.file("index.zarr/zarr.json").url == "https://h:8443/stores/dexycb/index.zarr/zarr.json?sv=2024&sig=a%2Bb%3D"
+    joined = "https://h:8443/stores/dexycb/index.zarr/zarr.json?sv=2024&sig=a%2Bb%3D"
+    assert where.file("index.zarr/zarr.json").url == joined
     assert where.file("shard-000000.tar").name == "shard-000000.tar"
     assert str(where) == "https://h:8443/stores/dexycb?sv=***&sig=***"  # a signature is a secret too
 
@@ -90,8 +91,10 @@ def test_a_store_weight_after_a_root_url_parses():
 
 def test_redaction_masks_user_info_and_query_values_only():
     line = "error: http://alice:s3cr3t@host:81/s/x.tar?sig=abc&v=1: cannot read (see s3://bucket/a, /tmp/u@x)"
-    assert redact_urls(line) == "error: http://***@host:81/s/x.tar?sig=***&v=***: cannot read (see s3://bucket/a, /tmp/u@x)"
-    assert str(DataError("https://tok@h/s", None, "http://u:pw@h/s: HTTP 401")) == "https://***@h/s: http://***@h/s: HTTP 401"
+    masked = "error: http://***@host:81/s/x.tar?sig=***&v=***: cannot read (see s3://bucket/a, /tmp/u@x)"
+    assert redact_urls(line) == masked
+    error = DataError("https://tok@h/s", None, "http://u:pw@h/s: HTTP 401")  # the path and the problem
+    assert str(error) == "https://***@h/s: http://***@h/s: HTTP 401"
 
 
 def _every_file_text(folder: Path) -> str:

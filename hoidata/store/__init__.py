@@ -6,6 +6,8 @@
 - :mod:`hoidata.store.index`: the zarr index (``write_index``, ``read_index``)
 - :mod:`hoidata.store.paths`: local or remote (``resolve_store``), leftovers of unfinished writes, the index lock
 - :mod:`hoidata.store.remote`: stores at http(s)://, s3://, gs:// URLs, read through fsspec (``RemoteStore``)
+- :mod:`hoidata.store.httpread`: http(s) files read in range-request blocks, resumed, under idle timeouts
+  (``HttpReader``, ``RemoteOptions``)
 - :mod:`hoidata.store.verify`: integrity (``verify_store``) and the shards a resumed build keeps
 - :mod:`hoidata.store.inspect`: a PNG contact sheet of a store
 

@@ -122,6 +122,8 @@ def _describe(exc: BaseException, options: RemoteOptions) -> str:
     import aiohttp
 
     name = type(exc).__name__
+    if isinstance(exc, _Busy):
+        return str(exc)
     if isinstance(exc, aiohttp.ClientConnectorError) and not isinstance(exc, asyncio.TimeoutError):
         return f"cannot connect ({exc.os_error.strerror or exc.os_error})" if exc.os_error else "cannot connect"
     if "Connect" in name and isinstance(exc, asyncio.TimeoutError):
@@ -146,9 +148,9 @@ def stated_size(status: int, headers) -> int:
     return int(length) if length.isdigit() else UNKNOWN_SIZE
 
 
-async def _attempts(url: str, options: RemoteOptions, what: str, request):
+async def _attempts(url: str, options: RemoteOptions, request):
     """``await request()`` with up to ``options.retries`` more attempts after a retryable failure; the last
-    failure is a DataError naming ``url`` and ``what`` was being done."""
+    failure is a DataError naming ``url``."""
     failures = 0
     while True:
         try:
@@ -159,7 +161,7 @@ async def _attempts(url: str, options: RemoteOptions, what: str, request):
             failures += 1
             if not _retryable(exc) or failures > options.retries:
                 tries = f" ({failures} attempts)" if failures > 1 else ""
-                raise DataError(url, None, f"cannot read{what}: {_describe(exc, options)}{tries}") from None
+                raise DataError(url, None, f"cannot read: {_describe(exc, options)}{tries}") from None
             await asyncio.sleep(options.backoff(failures))
 
 
@@ -174,19 +176,20 @@ async def _size(fs, url: str, options: RemoteOptions) -> int | None:
     async def head():
         session = await fs.set_session()
         # identity: the size of the bytes themselves, not of a compressed body
-        async with session.head(url, allow_redirects=True, headers={"Accept-Encoding": "identity"}) as resp:
+        async with session.head(fs.encode_url(url), allow_redirects=True,
+                                headers={"Accept-Encoding": "identity"}) as resp:
             if resp.status in (404, 410):
                 return None
             if resp.status not in (405, 501):  # a server without HEAD: ask a GET's headers below
                 _check_status(url, resp.status, resp.reason)
                 return stated_size(resp.status, resp.headers)
-        async with session.get(url, headers={"Accept-Encoding": "identity"}) as resp:
+        async with session.get(fs.encode_url(url), headers={"Accept-Encoding": "identity"}) as resp:
             if resp.status in (404, 410):
                 return None
             _check_status(url, resp.status, resp.reason)
             return stated_size(resp.status, resp.headers)
 
-    return await _attempts(url, options, "", head)
+    return await _attempts(url, options, head)
 
 
 def http_sizes(urls: list[str], options: RemoteOptions | None = None) -> list[int | None]:

@@ -5,17 +5,18 @@ of those schemes; a ``Path`` or any other text is a local folder. A remote store
 index through zarr's fsspec store, its shard sizes with one request per shard (concurrent), and each shard as
 one sequential stream (:func:`open_stream`; for http(s) in bounded range-request blocks that resume where a
 connection broke, :mod:`hoidata.store.httpread`; any static file server works, with or without range requests).
-Timeouts and retries: :class:`~hoidata.store.httpread.RemoteOptions` (environment variables). The shard reader (:func:`hoidata.store.read_checked_shard`) applies the same checks to a stream
-as to a local file: size against the index before reading, member sizes before reading a member, keys in
-order, the count and the tar's end.
+Timeouts and retries: :class:`~hoidata.store.httpread.RemoteOptions` (environment variables). The shard reader
+(:func:`hoidata.store.read_checked_shard`) applies the same checks to a stream as to a local file: size against
+the index before reading, member sizes before reading a member, keys in order, the count and the tar's end.
 
 fsspec needs a package per scheme: aiohttp for http(s) (in the ``cluster`` extra), s3fs for ``s3://``,
 gcsfs for ``gs://`` (install them yourself; credentials come from their usual environment variables and files).
 Every failure -- a missing package, a missing file, a refused connection, an HTTP error, a stalled server -- is a
-DataError naming the URL. A URL prints with its user info and query values masked (:func:`hoidata.errors.redact_urls`),
-so a password never reaches an error line, a run's ``config.json`` or a result file. An http(s) store URL may carry
-a query (a token): file names join its path and every request sends the query. A fragment (``#...``) is never sent
-to a server, so a store URL with one is refused, as is a query on ``s3://`` / ``gs://``.
+DataError naming the URL. A URL prints with its user info and query values masked
+(:func:`hoidata.errors.redact_urls`), so a password never reaches an error line, a run's ``config.json`` or a
+result file. An http(s) store URL may carry a query (a token): file names join its path and every request sends
+the query. A fragment (``#...``) is never sent to a server, so a store URL with one is refused, as is a query on
+``s3://`` / ``gs://``.
 """
 
 from __future__ import annotations
