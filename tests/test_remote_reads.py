@@ -201,8 +201,8 @@ def test_no_total_time_cap_only_connect_and_idle_read_timeouts(monkeypatch):
     timeout = storage_options("http", RemoteOptions())["client_kwargs"]["timeout"]
     assert timeout.total is None and timeout.connect is None
     assert (timeout.sock_connect, timeout.sock_read) == (RemoteOptions.connect_timeout, RemoteOptions.read_timeout)
-    stall = RemoteOptions()  # a stalled server is reported within about a minute
-    assert (stall.retries + 1) * stall.read_timeout + sum(stall.backoff(i + 1) for i in range(stall.retries)) <= 75
+    stall = RemoteOptions()  # a stalled server is reported within about a minute, also after a partial block
+    assert (stall.retries + 2) * stall.read_timeout + sum(stall.backoff(i + 1) for i in range(stall.retries)) <= 65
     monkeypatch.setenv("HOIDATA_REMOTE_READ_TIMEOUT", "7.5")
     monkeypatch.setenv("HOIDATA_REMOTE_RETRIES", "0")
     assert RemoteOptions.from_env() == RemoteOptions(read_timeout=7.5, retries=0)

@@ -40,12 +40,13 @@ class RemoteOptions:
     connect_timeout: seconds to open a connection. read_timeout: seconds without a single byte from the server
     (before the headers or within a body) after which a request counts as stalled. retries: further attempts of a
     request that failed without delivering a byte (a request that delivers bytes resets the count); between
-    attempts the reader waits 0.5 s, 1 s, 2 s ... but never longer than ``read_timeout``. Defaults: a stalled
-    server is reported after 3 x 20 s + 1.5 s, about a minute.
+    attempts the reader waits 0.5 s, 1 s, 2 s ... but never longer than ``read_timeout``. Defaults: a server that
+    stalls is reported 3 x 15 s + 1.5 s after it stopped, or one idle timeout more (61.5 s) when the request it
+    stalled in had delivered bytes: about a minute.
     """
 
     connect_timeout: float = 10.0
-    read_timeout: float = 20.0
+    read_timeout: float = 15.0
     retries: int = 2
 
     ENV = {"connect_timeout": "HOIDATA_REMOTE_CONNECT_TIMEOUT", "read_timeout": "HOIDATA_REMOTE_READ_TIMEOUT",
@@ -238,7 +239,7 @@ class HttpReader:
         self.url, self.options, self.size = url, options or RemoteOptions.from_env(), size
         self.fs = http_filesystem(self.options)
         self.offset = 0  # bytes of the file received so far
-        self._chunks, self._pos = deque(), 0  # received, not yet read (one block at most); read position in the first
+        self._chunks, self._pos = deque(), 0  # received, not yet read (a block at most); position in the first
         self._stream, self._skip = None, 0  # the open 200 response of a server that ignores Range; bytes to drop
         self._end = False  # the end of the file was seen
 
@@ -353,3 +354,9 @@ class HttpReader:
                 sync(self.fs.loop, self._close_stream)
             except Exception:  # noqa: BLE001 - nothing more to read; a failing close changes nothing
                 pass
+
+    def __enter__(self) -> HttpReader:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

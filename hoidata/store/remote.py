@@ -216,18 +216,10 @@ class _Stream:
         self.close()
 
 
-class _HttpStream(HttpReader):
-    def __enter__(self) -> _HttpStream:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-
 def open_stream(file: RemoteFile, size: int | None = None):
     """``file`` opened for one sequential pass (a context manager with ``read(n)``); ``size``: the bytes the caller
     expects (for messages)."""
     if _is_http(file.url):
         filesystem(file.url)  # a missing package: one line
-        return _HttpStream(file.url, size=size)
+        return HttpReader(file.url, size=size)
     return _Stream(file)
