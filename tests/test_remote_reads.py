@@ -11,6 +11,8 @@ import gzip
 import http.server
 import os
 import shutil
+import socket
+import sys
 import threading
 from pathlib import Path
 from urllib.parse import parse_qs, unquote
@@ -57,14 +59,9 @@ class _Handler(http.server.BaseHTTPRequestHandler):
         path, _, query = self.path.partition("?")
         mode, _, rest = unquote(path).lstrip("/").partition("/")
         self.log.append((self.command, mode, rest, self.headers.get("Range")))
-        if mode == "token" and parse_qs(query) != parse_qs(TOKEN):
-            return self._plain(403)
-        if mode == "auth" and self.headers.get("Authorization") != AUTH:
-            return self._plain(401)
+        if self._refused(mode, rest, query):
+            return None
         file = self.root / rest
-        fresh = sum(entry[1:3] == (mode, rest) for entry in self.log) == 1  # the first request for this file
-        if mode == "busy" or (mode == "busyonce" and fresh):
-            return self._plain(503, b"try again later")
         if not file.is_file():
             return self._plain(404)
         data = file.read_bytes()
@@ -104,6 +101,24 @@ class _Handler(http.server.BaseHTTPRequestHandler):
         else:
             self.wfile.write(body)
         return None
+
+    def _refused(self, mode: str, rest: str, query: str) -> bool:
+        """Answer without the file where the mode says so: no token or password, busy, redirected."""
+        fresh = sum(entry[1:3] == (mode, rest) for entry in self.log) == 1  # the first request for this file
+        if mode == "token" and parse_qs(query) != parse_qs(TOKEN):
+            self._plain(403)
+        elif mode == "auth" and self.headers.get("Authorization") != AUTH:
+            self._plain(401)
+        elif mode == "busy" or (mode == "busyonce" and fresh):
+            self._plain(503, b"try again later")
+        elif mode in ("loop", "moved"):  # a redirect to itself, or to the same file in "ok" mode
+            self.send_response(302)
+            self.send_header("Location", self.path if mode == "loop" else f"/ok/{rest}")
+            self.send_header("Content-Length", "0")
+            self.end_headers()
+        else:
+            return False
+        return True
 
     def _whole(self, kind: str, data: bytes, head: bool) -> None:
         """The whole file with status 200 whatever the Range header says; sized, close-delimited, chunked or
@@ -214,10 +229,11 @@ def test_no_total_time_cap_only_connect_and_idle_read_timeouts(monkeypatch):
         monkeypatch.delenv(name)
 
 
-@pytest.mark.parametrize("mode", ["ok", "slow", "drop", "busyonce", "norange", "nolen", "chunked", "gzip"])
+@pytest.mark.parametrize("mode", ["ok", "slow", "drop", "busyonce", "moved", "norange", "nolen", "chunked", "gzip"])
 def test_a_healthy_server_is_read_whole_whatever_its_pace_and_framing(server, blob, quick, mode):
     """Slow: 100 kB at 1 KiB per 20 ms takes ~2 s, five times the 0.4 s idle timeout; drop: every response breaks
-    after 3000 bytes, so the read resumes ~34 times; busyonce: 503 on the first request, then served; the others answer 200 with the whole body, whatever the Range."""
+    after 3000 bytes, so the read resumes ~34 times; busyonce: 503 on the first request, then served; moved: a 302
+    to the file in "ok" mode; the others answer 200 with the whole body, whatever the Range."""
     _, base, log = server
     data, name = blob
     start = len(log)
@@ -252,11 +268,14 @@ def test_a_slow_consumer_never_times_out_a_healthy_server(server, quick, mode, s
         reader.close()
 
 
-@pytest.mark.parametrize("mode, what", [("stallhead", "the server sent nothing for 0.4 s"),
-                                        ("stallbody", "the server sent nothing for 0.4 s"),
-                                        ("cutnorange", "the connection was closed before the response was complete"),
-                                        ("busy", "HTTP 503 Service Unavailable")])
-def test_a_stalled_or_breaking_server_is_one_line_naming_the_url(server, blob, quick, mode, what):
+@pytest.mark.parametrize("mode, what, arrived", [
+    ("stallhead", "the server sent nothing for 0.4 s (HOIDATA_REMOTE_READ_TIMEOUT)", 0),
+    ("stallbody", "the server sent nothing for 0.4 s (HOIDATA_REMOTE_READ_TIMEOUT)", (16 << 10) // 2),
+    ("cutnorange", "the connection was closed before the response was complete", 50_000),
+    ("busy", "HTTP 503 Service Unavailable", 0),
+    ("loop", "more than 10 redirects", 0)])
+def test_a_stalled_or_breaking_server_is_one_line_naming_the_url(server, blob, quick, mode, what, arrived):
+    """After a retry (not for a redirect loop: trying again changes nothing), the line says where it broke off."""
     _, base, _ = server
     data, name = blob
     url = f"{base}/{mode}/{name}"
@@ -264,9 +283,8 @@ def test_a_stalled_or_breaking_server_is_one_line_naming_the_url(server, blob, q
         _read_all(url, len(data))
     line = str(err.value)
     assert line.startswith(f"{url}: cannot read: {what}") and "\n" not in line, line
-    assert "HOIDATA_REMOTE" in line or mode in ("cutnorange", "busy")
-    arrived = {"stallhead": 0, "stallbody": (16 << 10) // 2, "cutnorange": len(data) // 2, "busy": 0}[mode]
-    assert f"at byte {arrived} of {len(data)} (2 attempts)" in line, line  # where it broke off, after a retry
+    tries = "" if mode == "loop" else " (2 attempts)"
+    assert line.endswith(f"at byte {arrived} of {len(data)}{tries}"), line
 
 
 def test_a_stalled_head_is_one_line_naming_the_url(server, blob, quick):
@@ -284,6 +302,27 @@ def test_a_stalled_index_read_is_one_line_naming_the_url(server, tiny_store_two_
     with pytest.raises(DataError, match="Timeout") as err:
         _finishes(lambda: store.read_index(url))
     assert str(err.value).startswith(f"{url}/index.zarr: ") and "\n" not in str(err.value)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="relies on Linux dropping SYNs to a full backlog")
+def test_a_server_that_never_accepts_is_one_line_within_the_connect_timeout(quick, monkeypatch):
+    monkeypatch.setenv("HOIDATA_REMOTE_CONNECT_TIMEOUT", "0.3")
+    with socket.socket() as listener:
+        listener.bind(("127.0.0.1", 0))
+        listener.listen(0)  # never accepted; once the queue is full the kernel drops new SYNs: connect() waits
+        url = f"http://127.0.0.1:{listener.getsockname()[1]}/store/shard-000000.tar"
+        fillers = [socket.socket() for _ in range(3)]
+        for sock in fillers:
+            sock.setblocking(False)
+            sock.connect_ex(listener.getsockname())
+        try:
+            with pytest.raises(DataError) as err:
+                _finishes(lambda: http_sizes([url]))
+        finally:
+            for sock in fillers:
+                sock.close()
+    assert str(err.value) == (f"{url}: cannot read: no connection within 0.3 s (HOIDATA_REMOTE_CONNECT_TIMEOUT) "
+                              "(2 attempts)")
 
 
 def test_sizes_the_server_does_not_state_are_unknown_not_missing(server, blob, quick):

@@ -125,6 +125,8 @@ def _describe(exc: BaseException, options: RemoteOptions) -> str:
     name = type(exc).__name__
     if isinstance(exc, _Busy):
         return str(exc)
+    if isinstance(exc, aiohttp.TooManyRedirects):
+        return f"more than {len(exc.history)} redirects (a redirect loop?)"
     if isinstance(exc, aiohttp.ClientConnectorError) and not isinstance(exc, asyncio.TimeoutError):
         return f"cannot connect ({exc.os_error.strerror or exc.os_error})" if exc.os_error else "cannot connect"
     if "Connect" in name and isinstance(exc, asyncio.TimeoutError):
