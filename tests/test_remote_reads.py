@@ -351,6 +351,7 @@ def test_a_store_served_without_sizes_or_with_drops_reads_as_its_folder(server, 
     for source, (keys, size) in expected.items():
         records = list(store.read_checked_shard(source, keys, size))
         assert [r["__key__"] for r in records] == list(keys)
+        assert [r["__key__"] for r in store.read_shard_members(source)] == list(keys)  # no size given: to the end
 
 
 @pytest.mark.parametrize("change, match", [(lambda b: b[:-2048], "truncated"),
