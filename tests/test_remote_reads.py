@@ -216,6 +216,10 @@ def test_no_total_time_cap_only_connect_and_idle_read_timeouts(monkeypatch):
     timeout = storage_options("http", RemoteOptions())["client_kwargs"]["timeout"]
     assert timeout.total is None and timeout.connect is None
     assert (timeout.sock_connect, timeout.sock_read) == (RemoteOptions.connect_timeout, RemoteOptions.read_timeout)
+    # gcsfs hands its requests_timeout to every request (None there would mean no timeout at all); s3fs: botocore
+    assert storage_options("gs", RemoteOptions()) == {"requests_timeout": timeout}
+    assert storage_options("s3", RemoteOptions(retries=4))["config_kwargs"] == {
+        "connect_timeout": 10.0, "read_timeout": 15.0, "retries": {"max_attempts": 5}}
     stall = RemoteOptions()  # a stalled server is reported within about a minute, also after a partial block
     assert (stall.retries + 2) * stall.read_timeout + sum(stall.backoff(i + 1) for i in range(stall.retries)) <= 65
     monkeypatch.setenv("HOIDATA_REMOTE_READ_TIMEOUT", "7.5")

@@ -81,7 +81,9 @@ def storage_options(scheme: str, options: RemoteOptions, query: str = "") -> dic
     """fsspec keyword arguments for ``scheme`` with ``options`` as its timeouts. http(s): aiohttp's timeouts with
     no total cap (aiohttp's default is 300 s for the whole request, reading included), a connect timeout and an
     idle-read timeout; ``query`` (a store URL's query) is sent with every request, since zarr joins names onto the
-    URL's path. s3://: botocore's connect/read timeouts and attempts (s3fs); gs://: aiohttp's timeouts (gcsfs)."""
+    URL's path. s3://: botocore's connect/read timeouts and attempts (s3fs's ``config_kwargs``); gs://: aiohttp's
+    timeouts for each request (gcsfs's ``requests_timeout``: gcsfs passes it to every request, so a session-wide
+    timeout would be replaced by its default of none at all)."""
     import aiohttp
 
     timeout = aiohttp.ClientTimeout(total=None, connect=None, sock_connect=options.connect_timeout,
@@ -90,7 +92,7 @@ def storage_options(scheme: str, options: RemoteOptions, query: str = "") -> dic
         return {"config_kwargs": {"connect_timeout": options.connect_timeout, "read_timeout": options.read_timeout,
                                   "retries": {"max_attempts": options.retries + 1}}}
     if scheme == "gs":
-        return {"session_kwargs": {"timeout": timeout}}
+        return {"requests_timeout": timeout}
     return {"client_kwargs": {"timeout": timeout}, **({"params": _query_pairs(query)} if query else {})}
 
 
