@@ -80,6 +80,8 @@ class _Handler(http.server.BaseHTTPRequestHandler):
                 return self._plain(416)
             status, body = 206, data[first:last + 1]
         self.send_response(status)
+        if kind == "flood":  # a chunked range answer that sends far more than its Content-Range says
+            return self._chunked(body * 4, head, f"bytes {first}-{last}/{len(data)}")
         self.send_header("Content-Length", str(len(body)))
         if status == 206:
             self.send_header("Content-Range", f"bytes {first}-{last}/{len(data)}")
@@ -129,20 +131,27 @@ class _Handler(http.server.BaseHTTPRequestHandler):
             self.send_header("Content-Encoding", "gzip")
         if kind in ("gzip", "norange", "cutnorange"):
             self.send_header("Content-Length", str(len(body)))
-        elif kind == "chunked":
-            self.send_header("Transfer-Encoding", "chunked")
         self.send_header("Connection", "close")
-        self.end_headers()
         self.close_connection = True
+        if kind == "chunked":
+            return self._chunked(body, head)
+        self.end_headers()
+        if not head:
+            self.wfile.write(body[: len(body) // 2] if kind == "cutnorange" else body)
+        return None
+
+    def _chunked(self, body: bytes, head: bool, content_range: str | None = None) -> None:
+        """The rest of a response (status sent) with ``body`` in chunked transfer encoding: no Content-Length."""
+        self.send_header("Transfer-Encoding", "chunked")
+        if content_range:
+            self.send_header("Content-Range", content_range)
+        self.end_headers()
         if head:
             return
-        if kind == "chunked":
-            for start in range(0, len(body), 4000):
-                piece = body[start:start + 4000]
-                self.wfile.write(b"%x\r\n%s\r\n" % (len(piece), piece))
-            self.wfile.write(b"0\r\n\r\n")
-        else:
-            self.wfile.write(body[: len(body) // 2] if kind == "cutnorange" else body)
+        for start in range(0, len(body), 4000):
+            piece = body[start:start + 4000]
+            self.wfile.write(b"%x\r\n%s\r\n" % (len(piece), piece))
+        self.wfile.write(b"0\r\n\r\n")
 
 
 class _Server(http.server.ThreadingHTTPServer):
@@ -277,9 +286,11 @@ def test_a_slow_consumer_never_times_out_a_healthy_server(server, quick, mode, s
     ("stallbody", "the server sent nothing for 0.4 s (HOIDATA_REMOTE_READ_TIMEOUT)", (16 << 10) // 2),
     ("cutnorange", "the connection was closed before the response was complete", 50_000),
     ("busy", "HTTP 503 Service Unavailable", 0),
-    ("loop", "more than 10 redirects", 0)])
+    ("loop", "more than 10 redirects", 0),
+    ("flood", "the server sent more than the 16384 bytes of its Content-Range", 0)])
 def test_a_stalled_or_breaking_server_is_one_line_naming_the_url(server, blob, quick, mode, what, arrived):
-    """After a retry (not for a redirect loop: trying again changes nothing), the line says where it broke off."""
+    """After a retry (not for a redirect loop or a flood: trying again changes nothing), the line says where it
+    broke off; a range answer longer than its Content-Range is cut at the block (memory stays bounded)."""
     _, base, _ = server
     data, name = blob
     url = f"{base}/{mode}/{name}"
@@ -287,7 +298,7 @@ def test_a_stalled_or_breaking_server_is_one_line_naming_the_url(server, blob, q
         _read_all(url, len(data))
     line = str(err.value)
     assert line.startswith(f"{url}: cannot read: {what}") and "\n" not in line, line
-    tries = "" if mode == "loop" else " (2 attempts)"
+    tries = "" if mode in ("loop", "flood") else " (2 attempts)"
     assert line.endswith(f"at byte {arrived} of {len(data)}{tries}"), line
 
 

@@ -278,7 +278,7 @@ class HttpReader:
                 sync(self.fs.loop, self._fetch, got)
                 if got or self._end:
                     break
-                raise DataError(self.url, None, f"cannot read: an empty response at byte {self.offset}")
+                raise DataError(self.url, None, f"cannot read: an empty response{self._where()}")
             except DataError:
                 raise
             except Exception as exc:  # noqa: BLE001 - aiohttp's and the OS's errors: sorted right here
@@ -286,13 +286,16 @@ class HttpReader:
                     break
                 failures += 1
                 if not _retryable(exc) or failures > self.options.retries:
-                    of = f" of {self.size}" if self.size is not None and self.size >= 0 else ""
                     tries = f" ({failures} attempts)" if failures > 1 else ""
-                    raise DataError(self.url, None, f"cannot read: {_describe(exc, self.options)} at byte "
-                                                    f"{self.offset}{of}{tries}") from None
+                    raise DataError(self.url, None, f"cannot read: {_describe(exc, self.options)}{self._where()}"
+                                                    f"{tries}") from None
                 time.sleep(self.options.backoff(failures))
         self.offset += got.size
         return got
+
+    def _where(self) -> str:
+        """`` at byte N of SIZE``: where the read stands, for messages."""
+        return f" at byte {self.offset}" + (f" of {self.size}" if self.size is not None and self.size >= 0 else "")
 
     async def _fetch(self, got: _Chunks) -> None:
         """Append the next block to ``got`` (a range request, or the open stream of a server without ranges)."""
@@ -324,8 +327,12 @@ class HttpReader:
         if match is None or int(match.group(1)) != self.offset:
             raise DataError(self.url, None, f"cannot read: asked for bytes from {self.offset}, the server answered "
                                             f"Content-Range {resp.headers.get('Content-Range')!r}")
+        asked = min(BLOCK_SIZE, int(match.group(2)) - self.offset + 1)
         async for chunk in resp.content.iter_any():
             got.append(chunk)
+            if got.size > asked:  # a body without a length that goes on: memory stays bounded by the block
+                raise DataError(self.url, None, f"cannot read: the server sent more than the {asked} bytes of "
+                                                f"its Content-Range{self._where()}")
         total = match.group(3)
         if total.isdigit() and self.offset + got.size >= int(total):
             self._end = True
