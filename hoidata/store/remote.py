@@ -114,15 +114,14 @@ class RemoteStore:
         return self
 
 
-def filesystem(url: str, options: RemoteOptions | None = None, query: str = ""):
-    """(fsspec filesystem, path within it) for a store URL (without its query; ``query`` is sent with every
-    request), with ``options`` (default: from the environment) as its timeouts; a missing package is one line
-    saying which."""
+def filesystem(url: str, options: RemoteOptions | None = None):
+    """(fsspec filesystem, path within it) for a store URL, with ``options`` (default: from the environment) as its
+    timeouts; a missing package is one line saying which."""
     scheme = _scheme(url)
     try:
         import fsspec
 
-        return fsspec.core.url_to_fs(url, **storage_options(scheme, options or RemoteOptions.from_env(), query))
+        return fsspec.core.url_to_fs(url, **storage_options(scheme, options or RemoteOptions.from_env()))
     except ImportError as exc:
         raise DataError(url, None, f"reading {scheme}:// stores needs the {PACKAGES.get(scheme, '?')} package "
                                    f"(pip install {PACKAGES.get(scheme, 'fsspec')}; {exc})") from None

@@ -203,7 +203,7 @@ class _ShardBytes:
         self.file, self.limit, self.offset, self.last_data, self.digest = file, limit, 0, -1, digest
 
     def read(self, n: int = -1) -> bytes:
-        room = (self.offset + (1 << 62) if self.limit is None else self.limit) - self.offset
+        room = (1 << 62) if self.limit is None else self.limit - self.offset
         n = room if n is None or n < 0 or n > room else n
         chunk = self.file.read(n) if n > 0 else b""
         data = len(chunk.rstrip(b"\0"))

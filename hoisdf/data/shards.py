@@ -17,8 +17,7 @@ import torch
 from webdataset.utils import pytorch_worker_info
 
 from hoidata.errors import DataError
-from hoidata.store import read_checked_shard, read_index, resolve_store, shard_sizes, shard_source
-from hoidata.store.httpread import UNKNOWN_SIZE
+from hoidata.store import UNKNOWN_SIZE, read_checked_shard, read_index, resolve_store, shard_sizes, shard_source
 
 
 class ShardStream:
