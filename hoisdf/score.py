@@ -8,8 +8,11 @@ Each subcommand prints a table and, with ``--out FILE.json``, writes the numbers
 malformed file is one ``error:`` line naming the file, the entry and the field (exit 2; ``--debug`` for the
 traceback). docs/scoring.md describes the inputs, score names and units.
 
-A subcommand is a module listed in :data:`SUBCOMMANDS` that defines ``HELP`` (one line), ``add_arguments(parser)``,
-``score(args) -> dict`` (JSON-ready apart from NaN) and ``format_result(result) -> str``.
+A subcommand is a module listed in :data:`SUBCOMMANDS` (name -> module path, imported when the parser is built)
+that defines ``HELP`` (one line), ``add_arguments(parser)`` (its own options; ``--out`` and ``--debug`` are added
+here), ``score(args) -> dict`` (the numbers and ``samples`` / ``official`` / ``note``; NaN becomes null in the JSON)
+and ``format_result(result) -> str`` (the printed table). Errors the user can act on are raised as
+:class:`hoidata.errors.DataError` naming the file, the entry and the field.
 """
 
 from __future__ import annotations
@@ -30,7 +33,8 @@ SUBCOMMANDS = {
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="hoisdf score", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="hoisdf score", description="Score result files of any method offline, with "
+                                "no model and no store (docs/scoring.md).")
     sub = p.add_subparsers(dest="command", required=True, metavar="{" + ",".join(SUBCOMMANDS) + "}")
     for name, module_name in SUBCOMMANDS.items():
         module = importlib.import_module(module_name)

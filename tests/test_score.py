@@ -272,3 +272,17 @@ def test_bad_dexycb_files_are_one_line(case, match, dexycb_8cam, tmp_path, capsy
     path.write_text("\n".join(lines) + "\n")
     code, _, err = _run(capsys, "dexycb", "--pred", path, "--root", dexycb_8cam, "--split", "s0_train")
     assert code == 2 and len(err.strip().splitlines()) == 1 and re.search(match, err), err
+
+
+def test_console_script_runs_the_scorer(ho3d_small, tmp_path, capsys):
+    import tomllib
+    from pathlib import Path
+
+    from hoisdf.cli import main
+
+    scripts = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())["project"]["scripts"]
+    assert scripts["hoisdf"] == "hoisdf.cli:main"
+    (tmp_path / "pred.json").write_text(json.dumps(by_hand(*_gt(ho3d_small))))
+    assert main(["score", "ho3d", "--pred", str(tmp_path / "pred.json"), "--gt", str(ho3d_small)]) == 0
+    assert "xyz_procrustes_al_mean3d" in capsys.readouterr().out
+    assert main(["nonsense"]) == 2
