@@ -58,6 +58,12 @@ GOLDEN_DEXYCB = {
     "root-relative": {"mpjpe": 8.080373043011601, "auc": 0.8383477633477632},
     "procrustes": {"mpjpe": 4.756887962354868, "auc": 0.9049543049543051},
 }
+# ... and for test_golden_dexycb_file_written_by_our_writer's file (write_dexycb_hpe)
+GOLDEN_DEXYCB_WRITER = {
+    "absolute": {"mpjpe": 7.899170763806919, "auc": 0.841955266955267},
+    "root-relative": {"mpjpe": 8.085179049396745, "auc": 0.8382515632515632},
+    "procrustes": {"mpjpe": 4.764530506118059, "auc": 0.9046055796055794},
+}
 
 
 def _gt(root):
@@ -202,6 +208,32 @@ def test_bad_ho3d_files_are_one_line(case, match, ho3d_small, tmp_path, capsys):
     assert re.search(match, lines[0]) and not (tmp_path / "o.json").exists()
 
 
+@pytest.mark.parametrize("mistake, words", [
+    ("dexycb_order", "look like DexYCB/manopth order"),
+    ("millimetres", "are the joints in millimetres?"),
+    ("opencv", "every joint has positive z"),
+])
+def test_common_mistakes_are_scored_with_a_warning(mistake, words, ho3d_small, tmp_path, capsys):
+    """Files the server would score without complaint, but wrongly: scored the same way, with a warning line."""
+    from hoidata.hand import MANO_TO_DEXYCB
+
+    xyz, verts = _gt(ho3d_small)
+    if mistake == "dexycb_order":
+        xyz = xyz[:, MANO_TO_DEXYCB]
+    elif mistake == "millimetres":
+        xyz, verts = xyz * 1000, verts * 1000
+    else:
+        xyz, verts = xyz * [1, -1, -1], verts * [1, -1, -1]
+    (tmp_path / "pred.json").write_text(json.dumps([xyz.tolist(), verts.tolist()]))
+    code, printed, _ = _run(capsys, "ho3d", "--pred", tmp_path / "pred.json", "--gt", ho3d_small, "--out",
+                            tmp_path / "s.json")
+    assert code == 0 and "warning: " in printed and words in printed
+    assert any(words in w for w in json.loads((tmp_path / "s.json").read_text())["warnings"])
+    (tmp_path / "good.json").write_text(json.dumps(by_hand(*_gt(ho3d_small))))
+    _run(capsys, "ho3d", "--pred", tmp_path / "good.json", "--gt", ho3d_small, "--out", tmp_path / "g.json")
+    assert json.loads((tmp_path / "g.json").read_text())["warnings"] == []
+
+
 def test_zip_member_found_as_the_server_does(ho3d_small, tmp_path, capsys):
     pred = json.dumps(by_hand(*_gt(ho3d_small)))
     with zipfile.ZipFile(tmp_path / "sub.zip", "w") as zf:
@@ -242,6 +274,26 @@ def test_golden_dexycb_file_written_by_hand(dexycb_8cam, tmp_path, capsys):
     assert code == 0 and result["samples"] == 40 and result["ignored"] == 8 and "procrustes" in printed
     assert GOLDEN_DEXYCB, "golden numbers missing"
     for alignment, values in GOLDEN_DEXYCB.items():
+        for name, value in values.items():
+            assert result[alignment][name] == pytest.approx(value, rel=1e-7, abs=1e-9), (alignment, name)
+
+
+def test_golden_dexycb_file_written_by_our_writer(dexycb_8cam, tmp_path, capsys):
+    """hpe_by_hand's joints, moved by up to 0.3 mm more, written by write_dexycb_hpe (the writer evaluate uses:
+    metres in, 6 decimals of mm out), in index order."""
+    from hoisdf.evaluation.submissions import write_dexycb_hpe
+
+    hpe_by_hand(dexycb_8cam, tmp_path / "hand.txt")
+    rows = [ln.split(",") for ln in (tmp_path / "hand.txt").read_text().splitlines()]
+    ids = np.array([int(r[0]) for r in rows])
+    joints = np.array([[float(v) for v in r[1:]] for r in rows]).reshape(-1, 21, 3) / 1000.0
+    joints += 3e-4 * np.cos(np.arange(joints.size).reshape(joints.shape) * 0.37)  # below the 4 decimals above
+    write_dexycb_hpe(tmp_path / "ours.txt", ids[::-1], joints[::-1])
+    _run(capsys, "dexycb", "--pred", tmp_path / "ours.txt", "--root", dexycb_8cam, "--split", "s0_train",
+         "--out", tmp_path / "s.json")
+    result = json.loads((tmp_path / "s.json").read_text())
+    assert GOLDEN_DEXYCB_WRITER, "golden numbers missing"
+    for alignment, values in GOLDEN_DEXYCB_WRITER.items():
         for name, value in values.items():
             assert result[alignment][name] == pytest.approx(value, rel=1e-7, abs=1e-9), (alignment, name)
 

@@ -49,9 +49,11 @@ def _parse_split(name: str) -> tuple[str, str]:
 
 
 def toolkit_ground_truth(root: Path, name: str) -> tuple[dict[int, np.ndarray], int, str, bool]:
-    """The toolkit's HPE ground truth of a split: ({sample index: (21, 3) mm float64} of the valid samples, the
-    split's size, a description per index for messages (callable), whether every subject of the split is present
-    with its 100 sequences). Raises DataError naming a missing or malformed label file."""
+    """The toolkit's HPE ground truth of a split ``name`` (e.g. 's0_test') under ``root``.
+
+    Returns ({sample index: (21, 3) mm float64} of the valid samples in index order, the split's size, {sample
+    index: 'subject/sequence/serial frame f'} for messages, whether every subject of the split is present with
+    its 100 sequences). Raises DataError naming a missing or malformed label file."""
     setup, split = _parse_split(name)
     root = Path(root)
     enum = toolkit_split(root, setup, split)
@@ -91,10 +93,11 @@ def score(args) -> dict:
     "auc": ratio}}`` for :data:`~hoisdf.evaluation.official.HPE_ALIGNMENTS`, plus ``split``, ``samples`` (valid
     samples scored), ``ignored`` (lines of invalid samples), ``official``, ``note``, ``pred_file``, ``root``."""
     gt, size, where, complete = toolkit_ground_truth(args.root, args.split)
+    if not gt:
+        raise DataError(args.root, None, f"no sample of {args.split} with hand joints here ({size} samples found; "
+                        "is this the DexYCB folder, with the split's subject folders?)")
     ids, pred_mm = read_dexycb_hpe(args.pred, unit="mm")
     rows = match_results(Path(args.pred), ids, gt, size, where)
-    if not gt:
-        raise DataError(args.root, None, f"{args.split} has no sample with hand joints here")
     scores = dexycb_hpe_scores(pred_mm[rows], np.stack(list(gt.values())))
     note = (f"the whole {args.split} split, as hpe_eval.py scores it" if complete else
             f"some subjects of {args.split} are missing or incomplete under {args.root}: NOT the official number")

@@ -18,7 +18,14 @@ from pathlib import Path
 import numpy as np
 
 from hoidata.errors import DataError
-from hoisdf.evaluation.official import HO3D_EVALUATION_SIZES, HO3D_SCORES, HO3D_UNITS, ho3d_challenge_scores, read_ho3d_gt
+from hoidata.hand import DEXYCB_TO_MANO
+from hoisdf.evaluation.official import (
+    HO3D_EVALUATION_SIZES,
+    HO3D_SCORES,
+    HO3D_UNITS,
+    ho3d_challenge_scores,
+    read_ho3d_gt,
+)
 from hoisdf.evaluation.submissions import read_ho3d_lists
 
 HELP = "HO-3D challenge pred.json / pred.zip against the released evaluation ground truth (scores.txt's 14 numbers)"
@@ -87,13 +94,28 @@ def _select(pred: tuple, gt: tuple, rows: np.ndarray | None, full: int, pred_pat
     raise DataError(pred_path, None, f"{n} samples: neither the full split ({full}) nor the subset ({len(rows)})")
 
 
+def _wrist_profile(xyz: np.ndarray) -> np.ndarray:
+    """(21,) median over samples of each joint's distance to joint 0: the joint order's fingerprint."""
+    return np.median(np.linalg.norm(xyz - xyz[:, :1], axis=-1), axis=0)
+
+
 def _warnings(pred_xyz: np.ndarray, gt_xyz: np.ndarray) -> list[str]:
-    """Signs of a file in the wrong frame or order (pred.json carries no ids, so the order cannot be checked)."""
+    """Signs of a file in the wrong frame, unit, joint order or sample order (scored anyway, as the server would:
+    pred.json carries no ids, so its order cannot be checked directly)."""
+    if not len(pred_xyz):
+        return []
     out = []
-    if len(pred_xyz) and np.all(pred_xyz[..., 2] > 0):
+    if np.all(pred_xyz[..., 2] > 0):
         out.append("every joint has positive z: the challenge expects the OpenGL frame (scene at negative z); "
                    "the server's pred.py refuses such a file")
-    wrist = float(np.median(np.linalg.norm(pred_xyz[:, 0] - gt_xyz[:, 0], axis=-1))) if len(pred_xyz) else 0.0
+    prof, ref = _wrist_profile(pred_xyz), _wrist_profile(gt_xyz)
+    if np.median(prof) > 50 * max(np.median(ref), 1e-6):
+        out.append("the hand is over 50 times the ground truth's size: are the joints in millimetres? "
+                   "(metres expected)")
+    elif np.abs(prof[DEXYCB_TO_MANO] - ref).mean() < 0.5 * np.abs(prof - ref).mean():
+        out.append("the joints look like DexYCB/manopth order (wrist, thumb 1-4, ...): the challenge expects HO-3D's "
+                   "(16 MANO joints, then the 5 tips)")
+    wrist = float(np.median(np.linalg.norm(pred_xyz[:, 0] - gt_xyz[:, 0], axis=-1)))
     if wrist > WRIST_WARNING_M:
         out.append(f"median wrist error {wrist * 100:.1f} cm: check the frame (OpenGL, metres) and the sample "
                    "order (evaluation.txt's)")
