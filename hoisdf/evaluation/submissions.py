@@ -153,10 +153,15 @@ def _as_point_list(items, path: Path, field: str, count: int | None) -> np.ndarr
         raise DataError(path, field, f"expected a list of samples, got {type(items).__name__}")
     if len(items) == 0:
         return np.zeros((0, count or 0, 3))
-    bad = _bad_entry(items, count)
-    if bad is not None:
-        raise DataError(path, f"{field}[{bad[0]}]", bad[1])
-    arr = np.array(items, dtype=np.float64)
+    try:
+        arr = np.array(items, dtype=np.float64)
+    except (ValueError, TypeError):
+        arr = None
+    ok = arr is not None and arr.ndim == 3 and arr.shape[2] == 3 and (count is None or arr.shape[1] == count)
+    if not (ok and np.isfinite(arr).all()):  # find and name the first bad item (the slow path, errors only)
+        bad = _bad_entry(items, count)
+        if bad is not None:
+            raise DataError(path, f"{field}[{bad[0]}]", bad[1])
     return arr.reshape(len(items), -1, 3)
 
 
