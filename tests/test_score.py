@@ -338,3 +338,18 @@ def test_console_script_runs_the_scorer(ho3d_small, tmp_path, capsys):
     assert main(["score", "ho3d", "--pred", str(tmp_path / "pred.json"), "--gt", str(ho3d_small)]) == 0
     assert "xyz_procrustes_al_mean3d" in capsys.readouterr().out
     assert main(["nonsense"]) == 2
+
+
+@pytest.mark.parametrize("argv, match", [
+    (["--split", "s7_test"], "unknown DexYCB setup 's7'"),
+    (["--split", "s0_tset"], "unknown DexYCB split 'tset'"),
+    (["--root", "{tmp}"], r"no sample of s0_train with hand joints here \(0 samples found"),
+])
+def test_bad_dexycb_arguments_are_one_line(argv, match, dexycb_8cam, tmp_path, capsys):
+    import re
+
+    hpe_by_hand(dexycb_8cam, tmp_path / "result.txt")
+    base = {"--pred": str(tmp_path / "result.txt"), "--root": str(dexycb_8cam), "--split": "s0_train"}
+    base[argv[0]] = argv[1].format(tmp=tmp_path)
+    code, _, err = _run(capsys, "dexycb", *[x for kv in base.items() for x in kv])
+    assert code == 2 and len(err.strip().splitlines()) == 1 and re.search(match, err), err

@@ -133,10 +133,13 @@ def score(args) -> dict:
         raise DataError(args.pred, "verts_list", "every sample has no vertices: the server's eval.py cannot score "
                         "that (it fails aligning them); give the (778, 3) MANO vertices, or any (V, 3) points")
     subset = args.subset is not None or args.ids is not None
-    rows = subset_rows(read_order(args.gt), args.subset, args.ids) if subset else None
-    if subset and len(read_order(args.gt)) != len(gt[0]):
-        raise DataError(Path(args.gt) / "evaluation.txt", None, f"{len(read_order(args.gt))} entries, the ground "
-                        f"truth has {len(gt[0])}")
+    rows = None
+    if subset:
+        order = read_order(args.gt)
+        if len(order) != len(gt[0]):
+            raise DataError(Path(args.gt) / "evaluation.txt", None, f"{len(order)} entries, the ground truth has "
+                            f"{len(gt[0])}")
+        rows = subset_rows(order, args.subset, args.ids)
     (pred_xyz, pred_verts), (gt_xyz, gt_verts) = _select(pred, gt, rows, len(gt[0]), Path(args.pred))
     scores = ho3d_challenge_scores(pred_xyz, pred_verts, gt_xyz, gt_verts)
     size = HO3D_EVALUATION_SIZES[args.version]
