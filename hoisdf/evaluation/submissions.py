@@ -162,6 +162,8 @@ def _as_point_list(items, path: Path, field: str, count: int | None) -> np.ndarr
         bad = _bad_entry(items, count)
         if bad is not None:
             raise DataError(path, f"{field}[{bad[0]}]", bad[1])
+        if arr is None or arr.size:  # no single bad item, yet not an (N, K, 3) array of finite numbers
+            raise DataError(path, field, f"expected (N, {count or 'K'}, 3) finite numbers")
     return arr.reshape(len(items), -1, 3)
 
 
