@@ -9,7 +9,24 @@ traceback instead. Anything else is a bug and keeps its traceback.
 from __future__ import annotations
 
 import os
+import re
 import sys
+
+# a URL's user info (``scheme://user:password@``) and its query's values (presigned signatures, tokens): secrets
+_USERINFO = re.compile(r"(?i)\b([a-z][a-z0-9+.-]*://)[^/?#@\s]+@")
+_QUERY = re.compile(r"(?i)(\b[a-z][a-z0-9+.-]*://[^\s?#]*\?)([^\s#]*?)(?=[\s#'\"]|: |:$|$)")
+_VALUE = re.compile(r"=[^&;]*")
+
+
+def redact_urls(text: str) -> str:
+    """``text`` with the secrets of every URL in it masked: its user info (``http://alice:pw@host`` ->
+    ``http://***@host``) and each query value (``?X-Amz-Signature=abc`` -> ``?X-Amz-Signature=***``).
+
+    The one redaction of the project: error lines (every :class:`DataError` and :func:`run_cli`'s line), and
+    whatever records a store (a run's ``config.json``, evaluation results) go through it.
+    """
+    text = _USERINFO.sub(r"\1***@", text)
+    return _QUERY.sub(lambda m: m.group(1) + _VALUE.sub("=***", m.group(2)), text)
 
 
 class DataError(ValueError):
@@ -26,7 +43,7 @@ class DataError(ValueError):
         self.field = field
         self.problem = problem
         parts = [p for p in (self.path, None if field is None else repr(field)) if p]
-        super().__init__(": ".join(parts + [problem]))
+        super().__init__(redact_urls(": ".join(parts + [problem])))  # a URL's password never reaches a message
 
     def __reduce__(self):
         return type(self), (self.path, self.field, self.problem)
@@ -85,5 +102,5 @@ def run_cli(prog: str, work, debug: bool = False) -> int:
         message = user_message(exc)
         if debug or message is None:
             raise
-        print(f"{prog + ': ' if prog else ''}error: {message}", file=sys.stderr)
+        print(f"{prog + ': ' if prog else ''}error: {redact_urls(message)}", file=sys.stderr)
         return 2

@@ -55,7 +55,7 @@ def read_frames(cfg: BuildConfig, root: Path, mano_dir: Path,
         elif cfg.dataset.name == "ho3d":
             from hoidata.datasets.ho3d import HO3DReader
 
-            reader = HO3DReader(root, mano_dir, split, on_error="skip")
+            reader = HO3DReader(root, mano_dir, split, on_error="skip", version=cfg.dataset.version)
         else:
             raise ValueError(f"unknown dataset {cfg.dataset.name!r}; expected 'dexycb' or 'ho3d'")
         read = list(reader.frames())  # frames without hand labels become 'eval' records (schema.RECORD_KINDS)

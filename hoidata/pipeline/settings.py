@@ -34,6 +34,7 @@ def pipelines_dir() -> Path:
 @dataclass(frozen=True)
 class DatasetConfig:
     name: str = "dexycb"  # reader: 'dexycb' | 'ho3d'
+    version: str = "v2"  # HO-3D release: 'v2' (PNG frames) | 'v3' (JPEG frames, its own lists; --dataset ho3d_v3)
     setting: str = "dexycb"  # a name for the frame selection (recorded)
     setup: str = "s0"  # DexYCB toolkit setup: s0 (seen), s1 (unseen subjects), s2 (unseen views), s3 (unseen objects)
     splits: tuple[str, ...] = ("train", "test")  # splits to build (DexYCB: train/val/test; HO-3D: train/evaluation)
@@ -203,6 +204,9 @@ def load_build_config(name_or_path: str, overrides: list[str] = ()) -> BuildConf
     if dataset.name not in ("dexycb", "ho3d"):
         raise DataError(origin(path, overrides, "dataset.name"), "dataset.name",
                         f"unknown dataset {dataset.name!r}; expected 'dexycb' or 'ho3d'")
+    if dataset.version not in ("v2", "v3"):
+        raise DataError(origin(path, overrides, "dataset.version"), "dataset.version",
+                        f"unknown HO-3D version {dataset.version!r}; expected 'v2' or 'v3'")
     if dataset.frame_list and (dataset.name != "dexycb" or len(dataset.splits) != 1):
         where = origin(path, overrides, "dataset.frame_list", "dataset.splits", "dataset.name")
         raise DataError(where, "dataset.frame_list", "a frame list holds the toolkit ids of one DexYCB split: set "

@@ -12,7 +12,7 @@ from hoidata.errors import DataError
 from hoidata.geometry.mirror import mirror_points
 from hoidata.store import read_index
 from hoisdf.evaluation.inference import Collected
-from hoisdf.evaluation.official import dexycb_hpe_scores, toolkit_gt_mm
+from hoisdf.evaluation.official import HO3D_EVALUATION_SIZES, dexycb_hpe_scores, toolkit_gt_mm
 from hoisdf.evaluation.submissions import hpe_missing_ids, read_dexycb_hpe, write_dexycb_hpe, write_ho3d_pred
 
 TABLE = (("MJE", "rr_mje"), ("PA-MJE", "pa_mje"), ("OCE", "oce"), ("MCE", "mce"), ("ADD-S", "add_s"))
@@ -133,6 +133,11 @@ def _export_ho3d(col: Collected, sel: np.ndarray, joints: np.ndarray, path, out_
                                                                order=order))
     except ValueError as err:
         print(f"--ho3d-order: {path}: not written: {err}")
+        return written
+    fits = [v for v, n in HO3D_EVALUATION_SIZES.items() if n == len(order)]
+    print(f"pred.json: {len(order)} samples in the order of --ho3d-order: " + (
+        f"the size of the HO-3D {fits[0]} challenge's evaluation split" if fits else
+        "not the size of a challenge split (v2 11,524, v3 20,137), so the server would refuse it"))
     return written
 
 
