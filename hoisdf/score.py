@@ -21,9 +21,9 @@ import argparse
 import importlib
 import json
 import sys
-from pathlib import Path
 
 from hoidata.atomic import write_atomic
+from hoidata.cli import local_path
 from hoidata.errors import run_cli
 
 SUBCOMMANDS = {
@@ -40,7 +40,7 @@ def build_parser() -> argparse.ArgumentParser:
         module = importlib.import_module(module_name)
         sp = sub.add_parser(name, help=module.HELP, description=module.HELP)
         module.add_arguments(sp)
-        sp.add_argument("--out", type=Path, default=None, metavar="FILE.json", help="also write the numbers here")
+        sp.add_argument("--out", type=local_path, default=None, metavar="FILE.json", help="also write the numbers here")
         sp.add_argument("--debug", action="store_true", help="on an error, show the traceback instead of one line")
         sp.set_defaults(module=module)
     return p

@@ -146,14 +146,15 @@ def test_a_url_where_a_folder_is_needed_is_one_line_before_anything_is_written(u
     assert not list(tmp_path.iterdir())  # no folder named 'http:', 's3:', 'o1', ...
 
 
-@pytest.mark.parametrize("module", ["hoisdf.train", "hoisdf.evaluate", "hoisdf.toy"])
+@pytest.mark.parametrize("module", ["hoisdf.train", "hoisdf.evaluate", "hoisdf.toy", "hoisdf.score"])
 def test_the_model_commands_refuse_a_url_as_out(module, tmp_path, monkeypatch, capsys):
     import importlib
 
     monkeypatch.chdir(tmp_path)
     main = importlib.import_module(module).main
     args = {"hoisdf.train": ["--shards", "s", "--mano", "m"], "hoisdf.evaluate": ["--ckpt", "c", "--shards", "s",
-                                                                                   "--mano", "m"]}.get(module, [])
+                                                                                   "--mano", "m"],
+            "hoisdf.score": ["ho3d", "--pred", "p.json", "--gt", "g"]}.get(module, [])
     for url in ("s3://bucket/run", "gs://b/run", "https://host/run"):
         with pytest.raises(SystemExit) as stop:
             main([*args, "--out", url])
