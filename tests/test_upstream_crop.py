@@ -226,3 +226,34 @@ def test_bad_crop_settings_are_one_line(overrides, field):
 def test_ho3d_upstream_crop_is_for_the_evaluation_split():
     with pytest.raises(DataError, match="record.crop_splits"):
         load_build_config("ho3d", ['record.crop="upstream"', 'record.crop_splits=["train"]'])
+
+
+def test_upstream_crop_codec_rules(tmp_path):
+    """img.png exactly when meta holds the crop fields (all or none); bit-exact round trip; the tar holds img.png."""
+    from test_store import make_record
+
+    from hoidata.store import ShardWriter, decode_record, encode_record
+
+    key, img, seg, hm, sdf, meta = make_record(0)
+    img = np.random.default_rng(1).integers(0, 256, img.shape, dtype=np.uint8)  # noise: JPEG would change it
+    crop = {"crop": "upstream", "grid_hand_box": np.arange(4.0), "grid_object_box": np.arange(4.0) + 1,
+            "object_anchor": np.array([0.01, -0.02, 0.5], np.float32)}
+    members = encode_record(key, img, seg, hm, sdf, {**meta, **crop})
+    assert schema.IMG_LOSSLESS in members and schema.IMG not in members
+    out = decode_record(members, "here")
+    assert np.array_equal(out[schema.IMG], img) and out[schema.META]["crop"] == "upstream"
+    assert np.array_equal(out[schema.META]["object_anchor"].astype(np.float32), crop["object_anchor"])
+    with ShardWriter(tmp_path, 4) as writer:
+        writer.add(key, members)
+    assert np.array_equal(next(store.iter_records([tmp_path / store.shard_name(0)]))[schema.IMG], img)
+    plain = encode_record(key, img, seg, hm, sdf, meta)
+    bad = [({**plain, schema.IMG_LOSSLESS: plain[schema.IMG]}, "expected exactly"),  # both images
+           ({**members, schema.META: plain[schema.META]}, "stores its image as img.png"),  # PNG, no crop fields
+           ({**plain, schema.META: members[schema.META]}, "stores its image as img.png")]  # crop fields, JPEG
+    for case, message in bad:
+        with pytest.raises(DataError, match=message):
+            decode_record(case, "here")
+    with pytest.raises(DataError, match="come together"):
+        encode_record(key, img, seg, hm, sdf, {**meta, "crop": "upstream"})
+    with pytest.raises(DataError, match="'crop'"):
+        encode_record(key, img, seg, hm, sdf, {**meta, **crop, "crop": "project"})

@@ -45,10 +45,10 @@ class RecordSettings:
     part_radius: float = 0.05  # metres: samples farther than this from the hand get no part label (-1)
     heatmap_sigma: float = schema.HEATMAP_SIGMA  # px (at the heatmap's resolution): Gaussian of each joint in hm.png
     sdf_backend: str = "bvh"  # hoidata.geometry.sdf.signed_distance backend: "bvh", or "igl" (the previous path)
-    # "project": the crop above (crop_size, context, bilinear, JPEG). "upstream": records of crop_splits get upstream
-    # HOISDF's test crop exactly (256 px, PIL nearest from the original frame, lossless img.png, its K, grid boxes and
-    # object anchor in meta), what the released weights expect; see docs/stores.md
-    crop: str = "project"
+    # "project": the crop above (crop_size, context, bilinear, JPEG); "upstream": crop_splits' records are upstream
+    # HOISDF's test crop exactly (256 px, PIL nearest from the original frame, lossless img.png, its K, grid boxes
+    # and object anchor in meta), what the released weights expect
+    crop: str = "project"  # "project" | "upstream" (upstream HOISDF's exact test crop, docs/stores.md)
     crop_splits: tuple[str, ...] = ("test", "evaluation")  # splits whose records follow `crop` (others: "project")
     LIMITS: ClassVar[dict] = {"crop_size": (">= 32", "<= 4096"), "context": ("> 0",), "n_hand": (">= 1",),
                               "n_object": (">= 1",), "uniform_fraction": (">= 0", "<= 1"), "cube": ("> 0",),
