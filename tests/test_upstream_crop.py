@@ -144,8 +144,9 @@ def _tiny_run(path: Path, mano_dir: Path) -> Path:
                                    "model.grid_resolution=16", "model.hand_layers=1", "model.decoder_layers=1",
                                    "model.object_layers=1"])
     torch.manual_seed(0)
-    save_checkpoint(path / "checkpoints" / "last.pt", {"model": build_model(cfg.model, load_mano(mano_dir)).state_dict(),
-                                                       "config": cfg.as_dict(), "progress": {}})
+    model = build_model(cfg.model, load_mano(mano_dir))
+    payload = {"model": model.state_dict(), "config": cfg.as_dict(), "progress": {}}
+    save_checkpoint(path / "checkpoints" / "last.pt", payload)
     return path
 
 

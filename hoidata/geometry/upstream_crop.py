@@ -85,7 +85,8 @@ def warp_nearest(image, affine: np.ndarray, size: int) -> np.ndarray:
     from PIL import Image
 
     inv = np.linalg.inv(affine)
-    out = image.transform((size, size), Image.AFFINE, (inv[0, 0], inv[0, 1], inv[0, 2], inv[1, 0], inv[1, 1], inv[1, 2]))
+    data = (inv[0, 0], inv[0, 1], inv[0, 2], inv[1, 0], inv[1, 1], inv[1, 2])
+    out = image.transform((size, size), Image.AFFINE, data)
     return np.asarray(out.crop((0, 0, size, size)))
 
 

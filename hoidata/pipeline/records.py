@@ -177,7 +177,7 @@ def crop_view(raw: Frame, frame: Frame, obj: ObjectAsset, object_uv: np.ndarray,
     ``hand_uv`` (N, 2): the project crop's object and hand points in ``frame``'s pixels."""
     if uses_upstream_crop(raw, settings):
         if obj.upstream_box21 is None:
-            raise DataError(raw.image_path, "record.crop", f"no points.xyz box for {obj.name} (upstream's crop needs it)")
+            raise DataError(raw.image_path, "record.crop", f"no points.xyz box for {obj.name} (the upstream crop's)")
         view = upstream_view(raw, obj.upstream_box21)
         return {"img": view.image, "K": np.asarray(view.K, np.float64), "box": upstream_crop_box(view),
                 "to_pixels": pixel_affine(view.affine), "to_K": np.asarray(view.affine, np.float64),
@@ -271,7 +271,8 @@ def build_eval_record(frame: Frame, obj: ObjectAsset, key: str, settings: Record
     The crop is squared around the dataset's given hand box and the posed object's 21-point box, each
     expanded by ``crop.BOX_EXPAND``, times ``settings.context``: the training crop's rule with the given box in
     place of the joints (with ``settings.crop = "upstream"``: upstream's crop, see :func:`crop_view`).
-    ``hand_root`` is the given root joint, ``hand_box`` the given box in crop pixels. Returns the dict :func:`build_record` returns, with ``seg``, ``heatmap`` and ``sdf`` None.
+    ``hand_root`` is the given root joint, ``hand_box`` the given box in crop pixels. Returns the dict
+    :func:`build_record` returns, with ``seg``, ``heatmap`` and ``sdf`` None.
     """
     if frame.hand_box is None:
         raise DataError(frame.source.get("meta", frame.image_path), "hand_box",

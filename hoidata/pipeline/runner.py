@@ -153,7 +153,8 @@ def _build_one(frame, key: str, settings):
         rec = build_eval_record(frame, objects[frame.object_name], key, settings)
     else:
         mano = hand_model(frame.side, frame.fix_left_shapedirs)  # the model the frame's labels were made with
-        rec = build_record(frame, mano, objects[frame.object_name], _renderer(record_size(frame, settings)), key, settings)
+        renderer = _renderer(record_size(frame, settings))
+        rec = build_record(frame, mano, objects[frame.object_name], renderer, key, settings)
     return store.encode_record(key, rec["img"], rec["seg"], rec["heatmap"], rec["sdf"], rec["meta"])
 
 

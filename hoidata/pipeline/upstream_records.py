@@ -112,7 +112,7 @@ def upstream_view(frame: Frame, box3d: np.ndarray) -> up.UpstreamCrop:
         image, inputs, factor = decode_as_upstream(frame), _ho3d_inputs(frame, box3d), HAND_GRID_FACTOR["ho3d"]
     else:
         raise DataError(frame.image_path, "record.crop", "upstream's test crop exists for DexYCB frames and HO-3D's "
-                                                         f"evaluation split, not for a {frame.dataset} {frame.split} frame")
+                                                         f"evaluation split, not a {frame.dataset} {frame.split} frame")
     if image.size != IMAGE_SIZE:
         raise DataError(frame.image_path, None, f"upstream's crop expects {IMAGE_SIZE[0]}x{IMAGE_SIZE[1]} frames")
     view = up.upstream_crop(image, hand_grid_factor=factor, **inputs)
@@ -130,6 +130,6 @@ def crop_meta(view: up.UpstreamCrop) -> dict:
 
 
 def crop_box(view: up.UpstreamCrop) -> np.ndarray:
-    """(x1, y1, side) of the crop square in source pixels (the record's ``crop_box`` is x1, y1, x1 + side, y1 + side)."""
+    """(x1, y1, side) of the crop square, source pixels (the record's ``crop_box``: x1, y1, x1 + side, y1 + side)."""
     half = view.side / 2
     return np.array([view.centre[0] - half, view.centre[1] - half, view.side], np.float64)
