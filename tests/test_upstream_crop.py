@@ -258,3 +258,13 @@ def test_upstream_crop_codec_rules(tmp_path):
         encode_record(key, img, seg, hm, sdf, {**meta, "crop": "upstream"})
     with pytest.raises(DataError, match="'crop'"):
         encode_record(key, img, seg, hm, sdf, {**meta, **crop, "crop": "project"})
+
+
+def test_an_empty_crop_box_is_a_reason_not_a_crash():
+    from PIL import Image
+
+    from hoidata.geometry.upstream_crop import upstream_crop
+
+    outside = np.array([[700.0, 500.0], [720.0, 530.0]], np.float32)  # hand and object both beyond 640 x 480
+    with pytest.raises(ValueError, match="empty"):
+        upstream_crop(Image.new("RGB", (640, 480)), np.eye(3), outside, outside + 5, 1.1, np.float32(0.5), True)

@@ -151,10 +151,13 @@ def upstream_crop(image, K: np.ndarray, hand_uv: np.ndarray, object_uv: np.ndarr
     given hand box as its two corners; object_uv (21, 2): the projected box keypoints; hand_grid_factor: 1.1
     (DexYCB) or 1.2 (HO-3D); anchor_depth: the hand root's z (DexYCB, float32) or HO3D_ANCHOR_DEPTH;
     k_about_pp: DexYCB's K comes from the principal-point round trip's affine (see :func:`crop_affines`).
+    Raises ValueError when the clipped box is empty (the build skips such a frame with this reason).
     """
     crop_hand, crop_obj = joints_box(hand_uv, CROP_FACTOR), joints_box(object_uv, CROP_FACTOR)
     grid_hand, grid_obj = joints_box(hand_uv, hand_grid_factor), joints_box(object_uv, OBJECT_GRID_FACTOR)
     centre, side = fused_square(crop_hand, crop_obj, image.size)
+    if not np.isfinite(side) or side < 1:  # upstream would divide by zero; its full-set filter drops such frames
+        raise ValueError(f"upstream's crop box is empty (side {side} px): hand and object outside the image")
     affine, affine_k = crop_affines(centre, side, size, K)
     grid_hand = transform_points(grid_hand.reshape(2, 2), affine).flatten()
     grid_obj = transform_points(grid_obj.reshape(2, 2), affine).flatten()
