@@ -117,6 +117,10 @@ def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=No
         "units": "mm for lengths, ratios for AUC and F-scores",
     }
     out_dir.mkdir(parents=True, exist_ok=True)
+    flags = col.get("upstream_crop")
+    result["upstream_crop_records"] = 0 if flags is None else int((flags > 0.5).sum())
+    note = crop_note(config.model, flags, len(col.keys))
+    result["notes"] = [note] if note else []
     result["files"], result["dexycb_hpe"] = export(col, stores, out_dir, ho3d_order, indexes)
     if ho3d_gt is not None:
         result["ho3d_challenge"] = score_ho3d_files(result["files"], ho3d_gt, out_dir)
@@ -126,6 +130,21 @@ def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=No
         write_vis(col, meshes, mano, out_dir / "vis")
     rows = {"HOISDF (this run)": summary["all"], **({"mean-pose baseline": base_summary} if base_summary else {})}
     return {**result, "table": format_table(rows, col.get("verts") is not None, bool(col.get("ho3d").any()))}
+
+
+def crop_note(model_settings, flags, n: int) -> str | None:
+    """One line when a model that computes as upstream's does (``model.pixel_convention == "upstream"``, e.g.
+    imported released weights) is evaluated on records that are not upstream's test crops (``flags``: per-sample
+    1 / 0, or None); else None. The setting is read defensively: runs from before it have no such field."""
+    convention = getattr(model_settings, "pixel_convention", None)
+    if convention is None and isinstance(model_settings, dict):
+        convention = model_settings.get("pixel_convention")
+    others = n if flags is None else int(n - (np.asarray(flags) > 0.5).sum())
+    if convention != "upstream" or others == 0:
+        return None
+    return (f"note: the model follows upstream's pixel convention, but {others} of {n} records are not upstream test "
+            "crops: it sees other pixels, boxes and object anchor than upstream's (rebuild the store with "
+            "record.crop=\"upstream\", docs/stores.md)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -174,6 +193,8 @@ def _run(args) -> int:
     print(f"{result['samples']} samples, checkpoint {result['checkpoint']} (epoch {result['epoch']}), "
           f"boxes {result['test_boxes']}; lengths in mm")
     print(result["table"])
+    for note in result["notes"]:
+        print(note)
     if result["counts"]["hand_metrics"] == 0:
         print("no hand ground truth in these records (nan above); an HO-3D evaluation split is scored by --ho3d-gt "
               "or the challenge server")

@@ -204,9 +204,23 @@ def load_build_config(name_or_path: str, overrides: list[str] = ()) -> BuildConf
     _check_selection(dataset, path)
     if record.sdf_backend not in SDF_BACKENDS:
         raise DataError(path, "record.sdf_backend", f"unknown backend {record.sdf_backend!r}; expected one of {SDF_BACKENDS}")
+    _check_crop(record, dataset, path)
     return BuildConfig(dataset,
                        replace(record, sigmas=tuple(record.sigmas)),
                        section(StoreConfig, data.get("store", {}), path, "store"))
+
+
+def _check_crop(record: RecordSettings, dataset: DatasetConfig, path: Path) -> None:
+    """record.crop names a crop; upstream's HO-3D test crop exists for its evaluation split only (its training
+    split has no upstream test crop to reproduce)."""
+    from hoidata.pipeline.upstream_records import CROPS
+
+    if record.crop not in CROPS:
+        raise DataError(path, "record.crop", f"expected one of {CROPS}, got {record.crop!r}")
+    odd = sorted(set(record.crop_splits) & set(dataset.splits) - {"evaluation"})
+    if record.crop == "upstream" and dataset.name == "ho3d" and odd:
+        raise DataError(path, "record.crop_splits", f"upstream's HO-3D test crop exists for the evaluation split "
+                                                    f"only, not for {odd}")
 
 
 def _check_selection(dataset: DatasetConfig, path: Path) -> None:

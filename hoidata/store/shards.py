@@ -28,7 +28,7 @@ from pathlib import Path
 
 from hoidata.atomic import write_json_atomic
 from hoidata.errors import DataError
-from hoidata.schema import MEMBERS, kind_of_members
+from hoidata.schema import MEMBERS, WRITE_ORDER, kind_of_members
 from hoidata.store.codec import (
     KEY,
     MAX_MEMBER_BYTES,
@@ -84,7 +84,7 @@ class _OpenShard:
 
     def add(self, key: str, members: dict[str, bytes]) -> None:
         _check_members_to_write(key, members)
-        for member in MEMBERS:  # schema order, whatever order the dict has
+        for member in WRITE_ORDER:  # schema order, whatever order the dict has
             if member not in members:  # a record kind without this member
                 continue
             data = bytes(members[member])
