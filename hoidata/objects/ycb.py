@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from hoidata.errors import DataError
+from hoidata.errors import DataError, naming_os_errors
 from hoidata.objects.meshops import (
     MeshReport,
     check_mesh,
@@ -198,8 +198,12 @@ def load_simplified(models_dir: str | os.PathLike, name: str, n_vertices: int = 
         return cached
     mesh = simplify_mesh(load_object_mesh(obj_path), n_vertices)
     cache_dir.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile(dir=cache_dir, suffix=".npz.tmp", delete=False) as tmp:
-        np.savez(tmp, vertices=np.asarray(mesh.vertices, np.float64), faces=np.asarray(mesh.faces, np.int64))
+    with naming_os_errors(cache_file), tempfile.NamedTemporaryFile(dir=cache_dir, suffix=".npz.tmp", delete=False) as tmp:
+        try:
+            np.savez(tmp, vertices=np.asarray(mesh.vertices, np.float64), faces=np.asarray(mesh.faces, np.int64))
+        except BaseException:
+            Path(tmp.name).unlink(missing_ok=True)
+            raise
     os.replace(tmp.name, cache_file)
     return mesh
 
