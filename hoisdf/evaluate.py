@@ -35,6 +35,8 @@ from hoisdf.evaluation import metrics as M
 from hoisdf.evaluation.inference import infer, load_for_eval, resolve_device, run_folder
 from hoisdf.evaluation.official import format_ho3d_scores
 from hoisdf.evaluation.outputs import (
+    checked_ho3d_order,
+    clear_results,
     export,
     format_table,
     json_safe,
@@ -58,7 +60,9 @@ def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=No
              baseline_store=None, progress: bool = True, workers: int = 4, ho3d_gt=None,
              precision: str = "fp32") -> dict:
     """Evaluate a checkpoint on stores; write the result files to ``out_dir`` and return metrics.json's content
-    (plus ``table``, the printed table).
+    (plus ``table``, the printed table). The result files an earlier run left in ``out_dir`` are removed first
+    (:func:`~hoisdf.evaluation.outputs.clear_results`), so a failed run never leaves one of them looking current;
+    ``metrics.json`` is written last.
 
     Args:
         run: run folder or checkpoint file. stores: store folders or URLs (hoidata.store.resolve_store). mano_dir:
@@ -67,7 +71,9 @@ def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=No
         vis: pictures of the first ``vis`` samples. limit: evaluate only the first ``limit`` samples.
         boxes: override the model's ``test_boxes`` ("gt" | "predicted").
         plausibility: samples (the first ones) for the plausibility report (0: none).
-        ho3d_order: HO-3D ``evaluation.txt`` -> pred.json / pred.zip. baseline_store: store whose labels
+        ho3d_order: HO-3D ``evaluation.txt`` -> pred.json / pred.zip; checked before any work against every HO-3D
+            store (:mod:`hoisdf.evaluation.ho3d_list`); a store or list that cannot give a complete submission is
+            a DataError, never a missing file. baseline_store: store whose labels
             give the mean pose (default: the first evaluated store). workers: loader processes.
         ho3d_gt: folder with the challenge's ``evaluation_xyz.json`` / ``evaluation_verts.json``: the written
             pred.json is scored against them (``metrics.json["ho3d_challenge"]``, ``scores.txt``).
@@ -76,15 +82,17 @@ def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=No
     from hoidata.hand import load_mano
 
     stores = [resolve_store(s) for s in ([stores] if isinstance(stores, (str, Path, RemoteStore)) else stores)]
+    out_dir = Path(out_dir) if out_dir else run_folder(Path(run)) / f"eval-{'+'.join(s.name for s in stores)}"
+    clear_results(out_dir)  # whatever happens next, no earlier run's result file stays beside this run's
     if boxes not in (None, "gt", "predicted"):
         raise ValueError(f"boxes must be 'gt' or 'predicted', got {boxes!r}")
     if ho3d_gt is not None and ho3d_order is None:
         raise ValueError("--ho3d-gt scores the pred.json that --ho3d-order writes: give both")
+    indexes = {s: read_index(s) for s in stores}
+    order = checked_ho3d_order(ho3d_order, ho3d_gt, indexes, limit) if ho3d_order is not None else None
     device = resolve_device(device)
     mano = load_mano(mano_dir, side="right")
     model, config, info = load_for_eval(run, mano, device, boxes)
-    out_dir = Path(out_dir) if out_dir else run_folder(Path(run)) / f"eval-{'+'.join(s.name for s in stores)}"
-    indexes = {s: read_index(s) for s in stores}
     objects = {name: mesh for index in indexes.values() for name, mesh in index.objects.items()}
     col = infer(model, mano, config, stores, batch_size, device, limit, vis, progress, workers, indexes, precision)
     missing = sorted(set(col.names) - set(objects))
@@ -121,13 +129,13 @@ def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=No
     result["upstream_crop_records"] = 0 if flags is None else int((flags > 0.5).sum())
     note = crop_note(config.model, flags, len(col.keys))
     result["notes"] = [note] if note else []
-    result["files"], result["dexycb_hpe"] = export(col, stores, out_dir, ho3d_order, indexes)
+    result["files"], result["dexycb_hpe"] = export(col, stores, out_dir, order, indexes)
     if ho3d_gt is not None:
         result["ho3d_challenge"] = score_ho3d_files(result["files"], ho3d_gt, out_dir)
     write_per_object(out_dir / "per_object.csv", summary, counts)
-    write_atomic(out_dir / "metrics.json", json.dumps(json_safe(result), indent=2).encode())
     if vis:
         write_vis(col, meshes, mano, out_dir / "vis")
+    write_atomic(out_dir / "metrics.json", json.dumps(json_safe(result), indent=2).encode())  # last: the run is done
     rows = {"HOISDF (this run)": summary["all"], **({"mean-pose baseline": base_summary} if base_summary else {})}
     return {**result, "table": format_table(rows, col.get("verts") is not None, bool(col.get("ho3d").any()))}
 

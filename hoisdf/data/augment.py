@@ -65,26 +65,27 @@ def draw_params(batch_size: int, settings: AugmentSettings, generator: torch.Gen
     color (B, 4) brightness, contrast, saturation factors and hue shift (turns), order (4,) colour-op order,
     blur (B,) sigma in output pixels. ``train=False``: the identity (central crop, nothing else).
     """
-    b = batch_size
+    b, cpu = batch_size, {"device": "cpu"}  # explicit: a default device set by the user must not move these
     if not train:
-        return {"shift": torch.zeros(b, 2), "scale": torch.ones(b), "angle": torch.zeros(b),
-                "color": torch.tensor([1.0, 1.0, 1.0, 0.0]).repeat(b, 1), "order": torch.arange(4),
-                "blur": torch.zeros(b)}
-    shift = settings.center_jitter * (2 * torch.rand(b, 2, generator=generator) - 1)
-    scale = (1 + settings.scale_sigma * torch.randn(b, generator=generator)).clamp(settings.scale_min,
-                                                                                   settings.scale_max)
+        return {"shift": torch.zeros(b, 2, **cpu), "scale": torch.ones(b, **cpu), "angle": torch.zeros(b, **cpu),
+                "color": torch.tensor([1.0, 1.0, 1.0, 0.0], **cpu).repeat(b, 1), "order": torch.arange(4, **cpu),
+                "blur": torch.zeros(b, **cpu)}
+    shift = settings.center_jitter * (2 * torch.rand(b, 2, generator=generator, **cpu) - 1)
+    scale = (1 + settings.scale_sigma * torch.randn(b, generator=generator, **cpu)).clamp(settings.scale_min,
+                                                                                         settings.scale_max)
     if settings.rotation == "dexycb":
-        angle = torch.randn(b, generator=generator).clamp(-2, 2) * (math.pi / 6)
-        angle = angle * (torch.rand(b, generator=generator) < settings.rot_prob)
+        angle = torch.randn(b, generator=generator, **cpu).clamp(-2, 2) * (math.pi / 6)
+        angle = angle * (torch.rand(b, generator=generator, **cpu) < settings.rot_prob)
     elif settings.rotation == "uniform":
-        angle = (2 * torch.rand(b, generator=generator) - 1) * math.pi
+        angle = (2 * torch.rand(b, generator=generator, **cpu) - 1) * math.pi
     else:
-        angle = torch.zeros(b)
-    factors = 0.5 + torch.rand(b, 3, generator=generator)
-    hue = 0.15 * (2 * torch.rand(b, 1, generator=generator) - 1)
-    color = torch.cat([factors, hue], 1) if settings.color else torch.tensor([1.0, 1.0, 1.0, 0.0]).repeat(b, 1)
-    order = torch.randperm(4, generator=generator)
-    blur = settings.blur_max * torch.rand(b, generator=generator)
+        angle = torch.zeros(b, **cpu)
+    factors = 0.5 + torch.rand(b, 3, generator=generator, **cpu)
+    hue = 0.15 * (2 * torch.rand(b, 1, generator=generator, **cpu) - 1)
+    identity = torch.tensor([1.0, 1.0, 1.0, 0.0], **cpu).repeat(b, 1)
+    color = torch.cat([factors, hue], 1) if settings.color else identity
+    order = torch.randperm(4, generator=generator, **cpu)
+    blur = settings.blur_max * torch.rand(b, generator=generator, **cpu)
     return {"shift": shift, "scale": scale, "angle": angle, "color": color, "order": order, "blur": blur}
 
 
@@ -273,7 +274,7 @@ def augment_batch(batch: dict, settings: AugmentSettings, generator: torch.Gener
     for key in POINT_KEYS:
         if key in batch:
             out[key] = batch[key].float() @ rot.transpose(1, 2)
-    rot4 = torch.eye(4, device=device).repeat(b, 1, 1)
+    rot4 = torch.eye(4, device=device, dtype=rot.dtype).repeat(b, 1, 1)
     rot4[:, :3, :3] = rot
     out["object_pose"] = rot4 @ batch["object_pose"].float()
     out["mano_pose"] = rotate_mano_global(batch["mano_pose"].float(), rot)
