@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import warnings
 from pathlib import Path
 
 import torch
@@ -55,7 +56,9 @@ def import_snapshot(snapshot: Path, setting: str, mano_dir: Path, out: Path) -> 
         model = build_model(config.model, None)
     U.check_mano(network, mano_dir, snapshot)
     state = U.convert_network(payload["network"], model.state_dict(), snapshot, ik=setting == "ho3d_render")
-    load_weights(model, state, snapshot)  # the model's own strict check of names and shapes
+    with warnings.catch_warnings():  # "copying into a meta parameter is a no-op": only the check is wanted
+        warnings.simplefilter("ignore")
+        load_weights(model, state, snapshot)  # the model's own strict check of names and shapes
     epoch = payload.get("epoch")
     info = {"snapshot": str(Path(snapshot).resolve()), "sha256": sha, "setting": setting,
             "epoch": epoch if isinstance(epoch, int) else None, "mapped": len(state),
