@@ -72,7 +72,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m hoisdf.import_upstream", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("snapshot", type=Path, help="the authors' snapshot_*.pth.tar")
-    p.add_argument("--setting", required=True, choices=sorted(U.SETTINGS), help="upstream's cfg.setting it was trained with")
+    p.add_argument("--setting", required=True, choices=sorted(U.SETTINGS),
+                   help="upstream's cfg.setting it was trained with")
     p.add_argument("--mano", required=True, type=Path, help="folder with MANO_RIGHT.pkl (checked against the snapshot)")
     p.add_argument("--out", required=True, type=Path, help="run folder to write")
     p.add_argument("--debug", action="store_true", help="on an error, show the traceback instead of one line")

@@ -55,7 +55,8 @@ def test_mask_boxes_follow_the_convention():
     mask[0, 2:5, 1:4] = 1.0  # rows 2-4, columns 1-3 of an 8 px map of a 64 px input
     assert masks_to_boxes(mask, 0.5, 64).tolist() == [[7.5, 15.5, 31.5, 39.5]]
     s = 63 / 7  # upstream: mask pixel i sits at input pixel i * (S-1)/(w-1)
-    assert torch.allclose(masks_to_boxes(mask, 0.5, 64, "upstream"), torch.tensor([[0.5 * s, 1.5 * s, 3.5 * s, 4.5 * s]]))
+    expected = torch.tensor([[0.5 * s, 1.5 * s, 3.5 * s, 4.5 * s]])
+    assert torch.allclose(masks_to_boxes(mask, 0.5, 64, "upstream"), expected)
 
 
 def test_project_default_stays_pixel_centres():

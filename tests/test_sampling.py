@@ -217,5 +217,6 @@ def test_sheared_grid_equals_the_reference_lattice_value_by_value():
 def test_regular_grid_is_the_integer_lattice():
     grid = grid_points(5)
     assert torch.equal(grid[:5, 2], torch.tensor([-1.0, -0.5, 0.0, 0.5, 1.0]))
-    assert torch.equal(grid[5], torch.tensor([-1.0, -0.5, -1.0])) and torch.equal(grid[25], torch.tensor([-0.5, -1.0, -1.0]))
+    assert torch.equal(grid[5], torch.tensor([-1.0, -0.5, -1.0]))
+    assert torch.equal(grid[25], torch.tensor([-0.5, -1.0, -1.0]))
     assert torch.unique(grid[:, 1]).numel() == 5

@@ -149,7 +149,8 @@ class HOISDF(nn.Module):
         the gradient through the projection)."""
         return pixel_aligned_features(pyramid, points_cam, K, self.image_size, detach, self.pixels)
 
-    def field(self, decoder: SDFDecoder, sdf_in: torch.Tensor, scaled: torch.Tensor, clamp: bool = True) -> torch.Tensor:
+    def field(self, decoder: SDFDecoder, sdf_in: torch.Tensor, scaled: torch.Tensor,
+              clamp: bool = True) -> torch.Tensor:
         """Scaled SDF (B, N) of a decoder at scaled points (B, N, 3) with their ``sdf_in`` features, clamped to
         +-``sdf_clamp`` (``clamp=False``: the raw value, which the grid ranking uses, as the reference)."""
         out = full(decoder(sdf_in, fourier_encode(scaled, self.n_freq), scaled))

@@ -147,7 +147,8 @@ def check_mano(network: dict, mano_dir, path) -> None:
         got, want = present[name], expected[name]
         if got.shape != want.shape or not torch.allclose(got.double(), want.double(), rtol=0, atol=1e-6):
             diff = (got.double() - want.double()).abs().max().item() if got.shape == want.shape else None
-            what = f"max |difference| {diff:.3g}" if diff is not None else f"shape {tuple(got.shape)} vs {tuple(want.shape)}"
+            what = (f"max |difference| {diff:.3g}" if diff is not None
+                    else f"shape {tuple(got.shape)} vs {tuple(want.shape)}")
             raise DataError(path, field, f"differs from the MANO_RIGHT.pkl in {mano_dir} ({what}): "
                                          "the snapshot was trained with other MANO files")
 
