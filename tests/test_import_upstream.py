@@ -184,6 +184,11 @@ def test_every_upstream_key_is_mapped_or_dropped():
         shapes = {k: s for k, s, *_ in _key_list(setting)}
         for new, old in mapped.items():
             assert list(expected[new].reshape(-1 if shapes[old] == [1] else expected[new].shape).shape) == shapes[old]
+    for setting, arch in U.SETTINGS.items():  # the resolved settings of each --setting
+        m = released_config(setting).model
+        assert (m.decoder, m.pose_regressor) == (arch["decoder"], arch["pose_regressor"])
+        assert (m.pixel_convention, m.sheared_grid, m.normalize_input, m.density_sign, m.object_rotation, m.weights) \
+            == ("upstream", True, False, "code", "axis_angle", "")
 
 
 def _zeros_network(setting="dexycb"):
