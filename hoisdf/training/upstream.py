@@ -109,7 +109,7 @@ def read_snapshot(path: Path) -> tuple[dict, str]:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # truncated zip, not a pickle, a pickle with code: all "not a snapshot"
         first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
-        raise DataError(path, None, f"not a readable PyTorch snapshot ({first[:160]})") from None
+        raise DataError(path, None, f"not a readable PyTorch snapshot ({type(exc).__name__}: {first[:160]})") from None
     if not isinstance(payload, dict) or not isinstance(payload.get("network"), dict):
         raise DataError(path, "network", "missing: not an upstream HOISDF snapshot "
                                          "({'epoch', 'network', 'optimizer', ...} from its main/train.py)")
