@@ -126,7 +126,10 @@ def frame_metrics(hand_v, hand_f, obj_v, obj_f, tolerance: float = TOLERANCE,
     """Every metric of the module docstring for one frame.
 
     Args:
-        hand_v, hand_f: closed hand mesh, metres. obj_v, obj_f: posed object mesh, metres.
+        hand_v: (V, 3) closed hand mesh vertices, metres.
+        hand_f: (F, 3) its faces.
+        obj_v: (W, 3) posed object vertices, metres.
+        obj_f: (G, 3) its faces.
         tolerance: error bound of both volumes, m^3; rel_tolerance: or this fraction of each volume.
         threshold: contact distance, metres.
         n_points: the first ``n_points`` hand vertices are the hand's points for depth and contact (778 for

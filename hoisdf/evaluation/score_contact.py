@@ -161,10 +161,16 @@ def score_contact(pred, store, mano_dir, order=None, tolerance: float = TOLERANC
     """Per-frame and mean plausibility of the predicted hands (see the module docstring).
 
     Args:
-        pred: pred.json / pred.zip / .npz. store: store folder. mano_dir: MANO folder. order: evaluation.txt
-            (pred.json only). tolerance: volume error bound, m^3; rel_tolerance: or this fraction of the volume.
-        threshold: contact distance, metres. limit: only the first ``limit`` frames (a subset, said so in the
-            result). workers: processes (0 or 1: this one). max_cells: evaluation budget per volume and frame.
+        pred: pred.json / pred.zip / .npz.
+        store: store folder.
+        mano_dir: MANO folder.
+        order: evaluation.txt (pred.json only).
+        tolerance: volume error bound, m^3.
+        rel_tolerance: or this fraction of the volume.
+        threshold: contact distance, metres.
+        limit: only the first ``limit`` frames (a subset, said so in the result).
+        workers: processes (0 or 1: this one).
+        max_cells: evaluation budget per volume and frame.
 
     Returns:
         {"mean": ..., "frames": [{"id": ..., metrics}], "subset": bool, "settings": {...}}.

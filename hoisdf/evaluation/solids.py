@@ -142,7 +142,8 @@ def region_volume(parts: list[Part], lo, hi, tolerance: float, rel_tolerance: fl
 
     Args:
         parts: the factors (a point is in the region when it is in every part).
-        lo, hi: (3,) corners of a box holding the region (e.g. the overlap of the meshes' bounding boxes).
+        lo: (3,) lowest corner of a box holding the region (e.g. the overlap of the meshes' bounding boxes).
+        hi: (3,) its highest corner.
         tolerance: the largest acceptable error bound, cubic units (> 0).
         rel_tolerance: also acceptable: this fraction of the volume (0: off). It is checked against the
             certain part of the volume (a lower bound), so it holds relative to the true volume.
