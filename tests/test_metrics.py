@@ -220,7 +220,6 @@ def test_penetration_depth_of_sphere_pushed_into_box():
     assert contact(sph_v, box_v, box_f)
 
 
-@pytest.mark.slow
 def test_intersection_volume_of_overlapping_boxes():
     from hoisdf.evaluation.plausibility import intersection_bounds, intersection_volume
 
