@@ -10,9 +10,11 @@ inside the palm: w = 2 there, still inside) or is wound inward (w = -1). Distanc
 Volumes (:func:`region_volume`) come from an adaptive octree with exact bounds: if the distance from a cell's
 centre to a mesh's surface exceeds the cell's half-diagonal, no surface passes through the cell, so w (hence
 inside/outside) is the same at every point of it as at the centre. Cells decided for every mesh are wholly in or
-out of the region; the others are split in 8 until their total volume is at most the tolerance. The true volume
-lies between the decided volume and that plus the undecided volume, so the error bound is rigorous for closed
-meshes (for an open one w also varies continuously across its holes, and no bound is claimed).
+out of the region. Of an undecided cell, the ball around its centre whose radius is that distance is still known
+(in the region when the centre is, out otherwise); the rest of the cell is not. Undecided cells are split in 8
+until what is not known adds up to at most the tolerance. The true volume lies between the known-in volume and
+the volume not known to be out, so the error bound is rigorous for closed meshes (for an open one w also varies
+continuously across its holes, and no bound is claimed).
 
 All positions share one frame and unit (metres here); volumes are in cubic units of it.
 """
