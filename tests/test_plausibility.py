@@ -186,3 +186,18 @@ def test_contact_area_ivu_and_summary(bench):
     assert mean["contact_ratio"] == 0.5 and mean["ivu_frames"] == 1 and mean["ivu_cm"] == deep["ivu_cm"]
     assert mean["penetration_depth_mm"] == pytest.approx(2.55, abs=1e-6)
     assert np.isnan(summarize([])["contact_ratio"])
+
+
+def test_depth_and_contact_on_posed_hand_match_brute_force(mano_right):
+    """Penetration depth and contact area of a posed toy hand against a sphere sunk into its palm side, from the
+    brute-force signed distance (every hand vertex against every object face)."""
+    vertices, faces, _ = posed_hand(mano_right, 1.0, 4)
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=0.015)
+    bv, bf = np.asarray(ball.vertices) + vertices[:778].mean(0), np.asarray(ball.faces)
+    got = frame_metrics(vertices, faces, bv, bf, tolerance=1e-6, rel_tolerance=0.05, n_points=778)
+    ref, _ = brute_force_signed_distance(vertices[:778], bv, bf)
+    assert (ref < 0).any() and got["penetration_depth_mm"] == pytest.approx(-ref.min() * 1e3, abs=1e-9)
+    area = vertex_areas(vertices, faces)[:778][ref <= 0.005].sum()
+    assert got["contact_area_cm2"] == pytest.approx(area * 1e4, rel=1e-12)
+    assert got["vertex_contact_ratio"] == pytest.approx((ref <= 0.005).mean())
+    assert got["ivu_cm"] == pytest.approx(got["intersection_volume_cm3"] / got["contact_area_cm2"])
