@@ -81,9 +81,9 @@ class MeshSolid:
 class VolumeEstimate:
     """A volume with rigorous bounds (closed meshes): ``lower <= true volume <= upper``.
 
-    ``volume`` adds to ``lower`` the undecided cells whose centre is in the region (the midpoint rule), so
-    ``|volume - true| <= upper - lower <= tolerance``. ``cells``: cell centres evaluated; ``guaranteed``: every
-    mesh was closed, so the bounds hold."""
+    ``volume``: the cells wholly in the region plus the undecided cells whose centre is in it (the midpoint
+    rule); it lies between the bounds, so ``|volume - true| <= upper - lower`` (the error bound). ``cells``: cell
+    centres evaluated; ``guaranteed``: every mesh was closed, so the bounds hold (volumes in m^3 here)."""
 
     volume: float
     lower: float
@@ -100,8 +100,8 @@ class VolumeEstimate:
 class Part:
     """One factor of a region: points where ``|w| > level`` for this solid (0.5: inside; 1.5: covered twice).
 
-    For a level above 1, ``tangled`` is the solid's :func:`tangled_surface` (None: it has none): a
-    cell that none of them passes through is decided by its centre, even near the rest of the surface."""
+    For a level above 1, ``tangled`` is the solid's :func:`tangled_surface` (None: it has none): a ball that
+    it does not enter is all as its centre, even where the rest of the surface passes through it."""
 
     solid: MeshSolid
     level: float = WINDING_INSIDE
