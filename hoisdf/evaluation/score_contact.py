@@ -13,7 +13,9 @@ Inputs (docs/plausibility.md):
 - ``--mano``: folder with MANO_RIGHT.pkl, for the faces and the wrist cap that closes each hand.
 
 Per frame it computes :func:`hoisdf.evaluation.plausibility.frame_metrics`, prints the means and writes
-every frame's numbers with ``--out FILE.json``. Run it as ``python -m hoisdf.evaluation.score_contact``.
+every frame's numbers with ``--out FILE.json``. It follows ``hoisdf score``'s subcommand interface (``HELP``,
+``add_arguments``, ``score``, ``format_result``); until it is listed there, run it as
+``python -m hoisdf.evaluation.score_contact``.
 """
 
 from __future__ import annotations
@@ -201,7 +203,11 @@ def score_contact(pred, store, mano_dir, order=None, tolerance: float = TOLERANC
                          "rel_tolerance": rel_tolerance, "contact_threshold_m": threshold, "max_cells": max_cells}}
 
 
-def format_table(result: dict) -> str:
+HELP = "penetration depth, intersection volume, contact ratio, IVU and self-penetration of predicted hand meshes"
+
+
+def format_result(result: dict) -> str:
+    """The printed table of :func:`score`'s result."""
     m = result["mean"]
     rows = [("frames", f"{m['num_samples']}" + (f" of {result['frames_total']} (a subset)" if result["subset"] else "")),
             ("penetration depth (mm)", f"{m['penetration_depth_mm']:.3f}"),
@@ -217,16 +223,8 @@ def format_table(result: dict) -> str:
     return "\n".join(f"{k:28s} {v}" for k, v in rows)
 
 
-def add_parser(subparsers) -> argparse.ArgumentParser:
-    """Register ``contact`` on an argparse subparsers object; returns its parser (``run`` is its action)."""
-    p = subparsers.add_parser("contact", help="penetration, intersection volume, contact, IVU of predicted hands",
-                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    _arguments(p)
-    p.set_defaults(func=run)
-    return p
-
-
-def _arguments(p: argparse.ArgumentParser) -> None:
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """This subcommand's options (``hoisdf score`` adds ``--out`` and ``--debug``)."""
     p.add_argument("--pred", required=True, type=Path, help="pred.json / pred.zip (HO-3D layout) or hands .npz")
     p.add_argument("--store", required=True, help="hoidata store of the split (object poses and meshes)")
     p.add_argument("--mano", required=True, type=Path, help="folder with MANO_RIGHT.pkl")
@@ -242,16 +240,21 @@ def _arguments(p: argparse.ArgumentParser) -> None:
                         "wider, still rigorous bound")
     p.add_argument("--limit", type=positive_int, default=None, metavar="N", help="only the first N frames")
     p.add_argument("--workers", type=non_negative_int, default=1, help="processes (default 1)")
-    p.add_argument("--out", type=Path, default=None, metavar="FILE.json", help="write the means and every frame")
-    p.add_argument("--debug", action="store_true", help="on an error, show the traceback instead of one line")
 
 
-def run(args) -> int:
+def score(args) -> dict:
+    """The subcommand's numbers from parsed options (:func:`score_contact`, options in cm^3 and mm)."""
     if not args.tolerance > 0 or args.rel_tolerance < 0 or not args.threshold >= 0:
         raise DataError(None, None, "--tolerance must be positive, --rel-tolerance and --threshold non-negative")
     result = score_contact(args.pred, args.store, args.mano, args.order, args.tolerance * 1e-6, args.rel_tolerance,
                            args.threshold * 1e-3, args.limit, args.workers, args.max_cells)
-    print(format_table(result))
+    note = f"a subset: {len(result['frames'])} of {result['frames_total']} frames" if result["subset"] else ""
+    return {**result, "samples": len(result["frames"]), **({"note": note} if note else {})}
+
+
+def _run(args) -> int:
+    result = score(args)
+    print(format_result(result))
     if args.out is not None:
         write_atomic(args.out, json.dumps(json_safe(result), indent=1).encode())  # NaN (no contact: IVU) -> null
         print("wrote", args.out)
@@ -261,9 +264,11 @@ def run(args) -> int:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m hoisdf.evaluation.score_contact", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    _arguments(p)
+    add_arguments(p)
+    p.add_argument("--out", type=Path, default=None, metavar="FILE.json", help="write the means and every frame")
+    p.add_argument("--debug", action="store_true", help="on an error, show the traceback instead of one line")
     args = p.parse_args(argv)
-    return run_cli("", lambda: run(args), args.debug)
+    return run_cli("", lambda: _run(args), args.debug)
 
 
 if __name__ == "__main__":
