@@ -219,7 +219,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = add("make-toy", "write toy DexYCB / HO-3D datasets with procedural MANO files and objects")
     p.add_argument("--out", required=True, help="output folder; with --layout all it gets dexycb/ and ho3d/")
-    p.add_argument("--layout", choices=("dexycb", "ho3d", "all"), default="all", help="dataset layout (default: all)")
+    p.add_argument("--layout", choices=("dexycb", "ho3d", "ho3d_v3", "all"), default="all",
+                   help="dataset layout (default: all = dexycb and ho3d; ho3d_v3: HO-3D v3's JPEG layout)")
     p.add_argument("--sequences", type=positive_int, default=None, help="sequences per subject (DexYCB) / training sequences (HO-3D)")
     p.add_argument("--frames", type=positive_int, default=None, help="frames per sequence and camera")
     p.add_argument("--seed", type=non_negative_int, default=0, help="random seed; the same seed gives the same files")
@@ -227,7 +228,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_make_toy)
 
     p = add("build-sdf", "build a verified training store (SDF samples, masks, crops, labels)")
-    p.add_argument("--dataset", required=True, help="pipeline name (pipelines/<name>.toml: dexycb, dexycb_full, ho3d, ho3d_eval, toy) or a .toml")
+    p.add_argument("--dataset", required=True, help="pipeline name (pipelines/<name>.toml: dexycb, dexycb_full, ho3d, ho3d_eval, ho3d_v3, ho3d_v3_eval, toy) or a .toml")
     p.add_argument("--root", required=True, help="dataset folder (DexYCB or HO-3D layout)")
     p.add_argument("--mano", default=None, help="folder with MANO_RIGHT.pkl / MANO_LEFT.pkl (default ROOT/mano)")
     p.add_argument("--models", default=None, help="YCB models folder (default ROOT/models)")

@@ -19,7 +19,7 @@ from pathlib import Path
 import torch
 
 from hoidata.atomic import write_atomic
-from hoidata.errors import DataError, run_cli
+from hoidata.errors import DataError, redact_urls, run_cli
 from hoidata.pipeline.runner import git_commit
 from hoidata.pipeline.settings import TRAIN_SECTIONS, apply_overrides, refuse_unused
 from hoidata.store import resolve_store
@@ -33,7 +33,8 @@ from hoisdf.training.trainer import CURVE, Trainer
 def parse_store(text: str) -> StoreSpec:
     """'store' or 'store:weight' (a finite weight > 0) -> StoreSpec. A store is a local folder, or an explicit
     http(s)://, s3:// or gs:// URL (hoidata.store.resolve_store; a folder name like 'pipe:...' is just a folder);
-    in a URL a ':' before the path is the port, so a weight follows the path (``http://host:8000/store:0.6``)."""
+    in an http(s) URL a ':' after the host is the port, so a weight follows it (``http://host:8000/store:0.6``,
+    ``http://host:8000:0.6``); a bucket name has no ':' (``s3://bucket:2`` is the bucket's root, weight 2)."""
     head = url_authority(text) or ""
     path, sep, weight = text[len(head):].rpartition(":")
     if sep and (path or head) and not weight.startswith(("/", "\\")):
@@ -97,7 +98,7 @@ def write_run_info(run_dir: Path, config: TrainConfig, stores, val_stores, world
     from hoisdf import __version__
     info = {"config": config.as_dict(), "stores": [[str(s.path), s.weight] for s in stores],
             "val_stores": [str(s.path) for s in val_stores], "git_commit": git_commit(), "version": __version__,
-            "world_size": world, "argv": argv}
+            "world_size": world, "argv": [redact_urls(a) for a in argv]}  # a store URL's password stays out
     write_atomic(run_dir / "config.json", json.dumps(info, indent=2).encode())
 
 

@@ -28,6 +28,8 @@ pytest.importorskip("fsspec")
 
 
 class _Quiet(http.server.SimpleHTTPRequestHandler):
+    disable_nagle_algorithm = True  # headers and body are two writes: Nagle + delayed ACKs would add 40 ms each
+
     def log_message(self, *args):  # no request lines in the test output
         pass
 

@@ -1,7 +1,20 @@
-"""HO-3D v2 (and v3) reader: list files, latin1 meta pickles, OpenGL -> OpenCV on reading.
+"""HO-3D v2 and v3 reader: list files, latin1 meta pickles, OpenGL -> OpenCV on reading.
 
 Layout (``reference/datasets.md`` section 2): ``ROOT/{train,evaluation}/<SEQ>/{rgb,depth,meta,seg}/<id>``
 with the frame lists ``ROOT/train.txt`` and ``ROOT/evaluation.txt`` (lines ``<SEQ>/<id>``).
+
+v3 (checked against shreyashampali/ho3d at 2fd6ee1: README "Update - Juy 1st, 2021", ``utils/vis_utils.py``
+``read_RGB_img`` / ``db_size``, ``vis_pcl_all_cameras.py``, ``compare_manual_anno.py``, and the v3 dataset
+README.txt) keeps v2's folders, list files, meta keys and OpenGL frame; what differs on disk:
+- ``rgb/<id>.jpg`` (JPEG) instead of ``rgb/<id>.png``; depth stays PNG (vis_pcl_all_cameras swaps 'rgb'->'depth'
+  and 'jpg'->'png' to find it);
+- the lists are v3's own: 78,297 training and 20,137 evaluation frames (``db_size``), v2 66,034 / 11,524, so the
+  challenge order is v3's ``evaluation.txt`` and its server (CodaLab 4393) wants 20,137 samples;
+- extra folders this reader does not need: ``calibration/<SEQ>/calibration/`` (cam_orders.txt,
+  trans_<i>.txt, cam_<i>_intrinsics.txt, cam_0_depth_scale.txt) of the multi-camera sequences, and
+  ``manual_annotations/`` (fingertips of 53 frames).
+``version`` picks the image format and is checked against the first listed frame: a v2 folder read as v3 (or the
+reverse) is an error naming the image, since its list order would be the other challenge's.
 
 HO-3D stores everything in the OpenGL camera frame (y up, the scene at negative z). Reading converts
 with C = diag(1, -1, -1): points p' = C p, object rotation R' = C R and translation t' = C t, the MANO
@@ -20,7 +33,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from hoidata.datasets.frame import Frame, Skip, project
-from hoidata.errors import DataError
+from hoidata.errors import DataError, decoding
 from hoidata.hand.model import MANO_TO_DEXYCB
 from hoidata.hand.pose import change_frame
 from hoidata.objects import class_id
@@ -29,6 +42,8 @@ from hoidata.safe_pickle import load_pickle
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0])
 IMAGE_SIZE = (640, 480)
 SPLITS = {"train": "train", "evaluation": "evaluation"}
+VERSIONS = {"v2": ".png", "v3": ".jpg"}  # RGB format of each release (read_RGB_img tries .png, then .jpg)
+LIST_SIZES = {"v2": {"train": 66034, "evaluation": 11524}, "v3": {"train": 78297, "evaluation": 20137}}  # db_size
 TRAIN_KEYS = ("handPose", "handTrans", "handBeta", "handJoints3D", "objRot", "objTrans", "objName", "camMat")
 EVAL_KEYS = ("handJoints3D", "handBoundingBox", "objRot", "objTrans", "objName", "camMat")
 
@@ -40,7 +55,8 @@ def read_list(root: Path, split: str) -> list[str]:
     path = root / f"{split}.txt"
     if not path.is_file():
         raise DataError(path, None, "HO-3D frame list not found")
-    entries = [ln.strip() for ln in path.read_text().splitlines() if ln.strip()]
+    with decoding(path, "frame list"):  # bytes that are not text
+        entries = [ln.strip() for ln in path.read_text().splitlines() if ln.strip()]
     for n, entry in enumerate(entries, 1):
         if entry.count("/") != 1:
             raise DataError(path, f"line {n}", f"expected '<SEQ>/<id>', got {entry!r}")
@@ -83,6 +99,7 @@ class HO3DReader:
         root: the HO-3D folder (``train/``, ``evaluation/``, ``train.txt``, ``evaluation.txt``).
         mano_dir: MANO folder; the right model's rest wrist is needed for the frame change.
         split: 'train' | 'evaluation'.
+        version: 'v2' (PNG frames) | 'v3' (JPEG frames); see the module docstring.
         on_error: 'raise' stops at the first malformed file; 'skip' records it in ``skipped``.
     """
 
@@ -91,11 +108,26 @@ class HO3DReader:
     split: str = "train"
     on_error: str = "raise"
     skipped: list[Skip] = field(default_factory=list)
+    version: str = "v2"
 
     def __post_init__(self):
         self.root, self.mano_dir = Path(self.root), Path(self.mano_dir)
+        if self.version not in VERSIONS:
+            raise ValueError(f"unknown HO-3D version {self.version!r}; expected one of {sorted(VERSIONS)}")
         self.entries = read_list(self.root, self.split)
         self._mano = None
+        if self.entries:
+            self._check_version(*self.entries[0].split("/"))
+
+    def _check_version(self, seq: str, fid: str) -> None:
+        """DataError when the first listed frame's image exists only in the other release's format."""
+        rgb = self.root / self.split / seq / "rgb"
+        own = rgb / f"{fid}{VERSIONS[self.version]}"
+        other = [v for v, ext in VERSIONS.items() if v != self.version and (rgb / f"{fid}{ext}").exists()]
+        if not own.exists() and other:
+            raise DataError(own, None, f"not found, but {fid}{VERSIONS[other[0]]} is: this folder looks like HO-3D "
+                            f"{other[0]}, read as {self.version} (set dataset.version = \"{other[0]}\", e.g. "
+                            f"--dataset {'ho3d_v3' if other[0] == 'v3' else 'ho3d'})")
 
     def __len__(self) -> int:
         return len(self.entries)
@@ -118,9 +150,7 @@ class HO3DReader:
                 self.skipped.append(Skip(frame_id, str(e), str(meta_path)))
 
     def _image_path(self, seq: str, fid: str) -> Path:
-        rgb = self.root / self.split / seq / "rgb"
-        png = rgb / f"{fid}.png"  # v2 is png, v3 jpg
-        return png if png.exists() or not (rgb / f"{fid}.jpg").exists() else rgb / f"{fid}.jpg"
+        return self.root / self.split / seq / "rgb" / f"{fid}{VERSIONS[self.version]}"
 
     def _frame(self, seq: str, fid: str, frame_id: str, meta: dict, path: Path) -> Frame:
         K = _vector(meta, "camMat", 9, path).reshape(3, 3)
@@ -130,7 +160,7 @@ class HO3DReader:
                       image_size=IMAGE_SIZE, K=K, side="right", object_name=name, object_id=class_id(name),
                       object_pose=_object_pose(meta, path), tip_convention="ho3d",
                       segmentation_path=seg if seg.exists() else None,
-                      source={"meta": str(path), "sequence": seq, "id": fid})
+                      source={"meta": str(path), "sequence": seq, "id": fid, "version": self.version})
         if self.split == "evaluation":
             root = OPENGL_TO_OPENCV @ _vector(meta, "handJoints3D", 3, path)
             return Frame(root_3d=root, hand_box=_vector(meta, "handBoundingBox", 4, path), **common)

@@ -74,7 +74,7 @@ def export_frames(cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path
         else:
             from hoidata.datasets.ho3d import HO3DReader
 
-            reader = HO3DReader(root, mano_dir, split, on_error="skip")
+            reader = HO3DReader(root, mano_dir, split, on_error="skip", version=cfg.dataset.version)
             line = {entry: n for n, entry in enumerate(reader.entries)}
             got = list(reader.frames())
             ids += [line[f"{f.source['sequence']}/{f.source['id']}"] for f in got]

@@ -18,22 +18,30 @@ from hoidata.errors import DataError
 from hoidata.geometry.sdf import BACKENDS as SDF_BACKENDS
 from hoidata.pipeline.records import RecordSettings
 
-# A checkout's pipelines/ folder; an installed wheel carries the same files as the package hoidata.presets.
+# A checkout's pipelines/ folder; an installed wheel carries the same files as the regular package hoidata.presets
+# (pipelines/__init__.py makes it one; setup.py maps the folder to that name).
 CHECKOUT_PIPELINES = Path(__file__).resolve().parents[2] / "pipelines"
 
 
-def pipelines_dir() -> Path:
-    """Where the named pipelines live: the checkout's ``pipelines/`` when there is one, else the installed copy."""
+def pipelines_dir():
+    """Where the named pipelines live: the checkout's ``pipelines/`` when there is one, else the installed copy.
+
+    The installed copy is reached through ``importlib.resources`` and returned as its Traversable (a ``Path`` for
+    an ordinary install, something else for a zipped or namespace one): callers only use ``joinpath``,
+    ``is_file``, ``read_text`` and ``str``, which every Traversable has. ``Path(str(...))`` would break on the
+    others (a namespace package's ``MultiplexedPath`` prints as ``MultiplexedPath('...')``).
+    """
     if CHECKOUT_PIPELINES.is_dir():
         return CHECKOUT_PIPELINES
     from importlib.resources import files
 
-    return Path(str(files("hoidata.presets")))
+    return files("hoidata.presets")
 
 
 @dataclass(frozen=True)
 class DatasetConfig:
     name: str = "dexycb"  # reader: 'dexycb' | 'ho3d'
+    version: str = "v2"  # HO-3D release: 'v2' (PNG frames) | 'v3' (JPEG frames, its own lists; --dataset ho3d_v3)
     setting: str = "dexycb"  # a name for the frame selection (recorded)
     setup: str = "s0"  # DexYCB toolkit setup: s0 (seen), s1 (unseen subjects), s2 (unseen views), s3 (unseen objects)
     splits: tuple[str, ...] = ("train", "test")  # splits to build (DexYCB: train/val/test; HO-3D: train/evaluation)
@@ -135,10 +143,11 @@ def section(cls, values: dict, path: Path, name: str):
 
 
 def resolve_pipeline(name_or_path: str) -> Path:
-    """'dexycb' -> pipelines/dexycb.toml; a path is used as it is."""
+    """'dexycb' -> pipelines/dexycb.toml (a Traversable of the installed presets outside a checkout, see
+    :func:`pipelines_dir`); a path is used as it is."""
     path = Path(name_or_path)
     if path.suffix != ".toml":
-        path = pipelines_dir() / f"{name_or_path}.toml"
+        path = pipelines_dir().joinpath(f"{name_or_path}.toml")
     if not path.is_file():
         raise DataError(path, None, "pipeline config not found")
     return path
@@ -195,15 +204,31 @@ def load_build_config(name_or_path: str, overrides: list[str] = ()) -> BuildConf
     dataset = section(DatasetConfig, data.get("dataset", {}), path, "dataset")
     if dataset.name not in ("dexycb", "ho3d"):
         raise DataError(path, "dataset.name", f"unknown dataset {dataset.name!r}; expected 'dexycb' or 'ho3d'")
+    if dataset.version not in ("v2", "v3"):
+        raise DataError(path, "dataset.version", f"unknown HO-3D version {dataset.version!r}; expected 'v2' or 'v3'")
     if dataset.frame_list and (dataset.name != "dexycb" or len(dataset.splits) != 1):
         raise DataError(path, "dataset.frame_list", "a frame list holds the toolkit ids of one DexYCB split: set "
                                                     'dataset.splits to that split, e.g. dataset.splits=["test"]')
     _check_selection(dataset, path)
     if record.sdf_backend not in SDF_BACKENDS:
         raise DataError(path, "record.sdf_backend", f"unknown backend {record.sdf_backend!r}; expected one of {SDF_BACKENDS}")
+    _check_crop(record, dataset, path)
     return BuildConfig(dataset,
                        replace(record, sigmas=tuple(record.sigmas)),
                        section(StoreConfig, data.get("store", {}), path, "store"))
+
+
+def _check_crop(record: RecordSettings, dataset: DatasetConfig, path: Path) -> None:
+    """record.crop names a crop; upstream's HO-3D test crop exists for its evaluation split only (its training
+    split has no upstream test crop to reproduce)."""
+    from hoidata.pipeline.upstream_records import CROPS
+
+    if record.crop not in CROPS:
+        raise DataError(path, "record.crop", f"expected one of {CROPS}, got {record.crop!r}")
+    odd = sorted(set(record.crop_splits) & set(dataset.splits) - {"evaluation"})
+    if record.crop == "upstream" and dataset.name == "ho3d" and odd:
+        raise DataError(path, "record.crop_splits", f"upstream's HO-3D test crop exists for the evaluation split "
+                                                    f"only, not for {odd}")
 
 
 def _check_selection(dataset: DatasetConfig, path: Path) -> None:

@@ -6,6 +6,8 @@
 - :mod:`hoidata.store.index`: the zarr index (``write_index``, ``read_index``)
 - :mod:`hoidata.store.paths`: local or remote (``resolve_store``), leftovers of unfinished writes, the index lock
 - :mod:`hoidata.store.remote`: stores at http(s)://, s3://, gs:// URLs, read through fsspec (``RemoteStore``)
+- :mod:`hoidata.store.httpread`: http(s) files read in range-request blocks, resumed, under idle timeouts
+  (``HttpReader``, ``RemoteOptions``)
 - :mod:`hoidata.store.verify`: integrity (``verify_store``) and the shards a resumed build keeps
 - :mod:`hoidata.store.inspect`: a PNG contact sheet of a store
 
@@ -30,7 +32,7 @@ from hoidata.store.index import (
     write_index,
 )
 from hoidata.store.paths import index_lock, local_store, resolve_store, stale_temps
-from hoidata.store.remote import RemoteFile, RemoteStore
+from hoidata.store.remote import UNKNOWN_SIZE, RemoteFile, RemoteStore
 from hoidata.store.shards import (
     ShardWriter,
     iter_records,
@@ -51,7 +53,7 @@ from hoidata.store.verify import (
 
 __all__ = [
     "INDEX_NAME", "KEY", "MAX_IMAGE_SIDE", "MAX_MEMBER_BYTES", "RemoteFile", "RemoteStore", "ShardInfo",
-    "ShardWriter", "StoreIndex", "VerifyReport", "completed_shards", "decode_record", "encode_record", "file_digest",
+    "ShardWriter", "StoreIndex", "UNKNOWN_SIZE", "VerifyReport", "completed_shards", "decode_record", "encode_record", "file_digest",
     "index_labels", "index_lock", "iter_records", "local_store", "read_checked_shard", "read_index",
     "read_shard_members", "read_sidecar", "resolve_store", "shard_name", "shard_sizes", "shard_source",
     "sidecar_name", "stale_temps", "to_jsonable", "verify_store", "write_index", "write_shard",

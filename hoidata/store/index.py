@@ -29,10 +29,10 @@ from pathlib import Path
 
 import numpy as np
 
-from hoidata.errors import DataError
+from hoidata.errors import DataError, naming_os_errors
 from hoidata.schema import META_FIELDS, META_TYPES, RECORD_KINDS, SCHEMA_VERSION, check_key
 from hoidata.store.paths import INDEX_NAME, replaced_dir, resolve_store
-from hoidata.store.remote import RemoteStore, remote_sizes
+from hoidata.store.remote import RemoteStore, remote_sizes, zarr_source
 
 INDEX_FORMAT = 1  # layout version of index.zarr, recorded as the attribute "hoidata_index"
 LABEL_CHUNK_ROWS = 32768
@@ -290,7 +290,7 @@ def write_index(store_dir, shards_info: Sequence[ShardInfo | dict], labels: dict
              "objects": sorted(object_meshes), "skipped": [_skip_entry(s, where) for s in skipped],
              "config": to_jsonable(config, where, "config"),
              "provenance": to_jsonable({**provenance, "hoidata_version": __version__}, where, "provenance")}
-    with replaced_dir(where) as tmp:
+    with naming_os_errors(where), replaced_dir(where) as tmp:  # zarr's write errors name no file
         group = zarr.open_group(tmp, mode="w", zarr_format=3)
         checksums = {}
         for name, arr in columns.items():
@@ -338,7 +338,8 @@ def _open_index(store_dir):
             else (path / "zarr.json").is_file()):
         raise DataError(path, None, "missing (the build did not finish, or this is not a store folder)")
     try:
-        group = zarr.open_group(path.url if remote else path, mode="r", zarr_format=3)
+        url, options = zarr_source(path) if remote else (path, None)  # a URL's query goes as a request parameter
+        group = zarr.open_group(url, mode="r", zarr_format=3, storage_options=options)
         attrs = group.attrs.asdict()
     except Exception as exc:  # zarr raises many types for a damaged store; all mean the same here
         raise DataError(path, None, f"not a readable zarr v3 group ({type(exc).__name__}: {exc})") from None

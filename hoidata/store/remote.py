@@ -3,15 +3,20 @@
 Only :func:`hoidata.store.resolve_store` makes a :class:`RemoteStore`, and only from a ``str`` that starts with one
 of those schemes; a ``Path`` or any other text is a local folder. A remote store is read, never written: its
 index through zarr's fsspec store, its shard sizes with one request per shard (concurrent), and each shard as
-one sequential stream (:func:`open_stream`; for http(s) a single GET, so any static file server works, without
-range requests). The shard reader (:func:`hoidata.store.read_checked_shard`) applies the same checks to a stream
-as to a local file: size against the index before reading, member sizes before reading a member, keys in
-order, the count and the tar's end.
+one sequential stream (:func:`open_stream`; for http(s) in bounded range-request blocks that resume where a
+connection broke, :mod:`hoidata.store.httpread`; any static file server works, with or without range requests).
+Timeouts and retries: :class:`~hoidata.store.httpread.RemoteOptions` (environment variables). The shard reader
+(:func:`hoidata.store.read_checked_shard`) applies the same checks to a stream as to a local file: size against
+the index before reading, member sizes before reading a member, keys in order, the count and the tar's end.
 
 fsspec needs a package per scheme: aiohttp for http(s) (in the ``cluster`` extra), s3fs for ``s3://``,
 gcsfs for ``gs://`` (install them yourself; credentials come from their usual environment variables and files).
-Every failure -- a missing package, a missing file, a refused connection, an HTTP error -- is a DataError
-naming the URL.
+Every failure -- a missing package, a missing file, a refused connection, an HTTP error, a stalled server -- is a
+DataError naming the URL. A URL prints with its user info and query values masked
+(:func:`hoidata.errors.redact_urls`), so a password never reaches an error line, a run's ``config.json`` or a
+result file. An http(s) store URL may carry a query (a token): file names join its path and every request sends
+the query. A fragment (``#...``) is never sent to a server, so a store URL with one is refused, as is a query on
+``s3://`` / ``gs://``.
 """
 
 from __future__ import annotations
@@ -20,9 +25,13 @@ import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from hoidata.errors import DataError
+from hoidata.errors import DataError, redact_urls
+from hoidata.store.httpread import UNKNOWN_SIZE, HttpReader, RemoteOptions, http_sizes, storage_options
 
-URL_RE = re.compile(r"^(https?|s3|gs)://[^/?#]+", re.IGNORECASE)  # scheme://authority (a ':' there is a port)
+# scheme://authority: for http(s) [user info@]host[:port] (a ':' after the host is a port); for s3/gs a bucket,
+# whose name has no ':' (so in 's3://bucket:2' the ':2' is a store weight, hoisdf.train.parse_store)
+URL_RE = re.compile(r"^(?:(https?)://(?:[^/?#@\s]*@)?(?:\[[^\]/?#]*\]|[^/?#:@\[\]\s]+)(?::\d*)?"
+                    r"|(s3|gs)://[^/?#:@\s]+)", re.IGNORECASE)
 PACKAGES = {"http": "aiohttp", "https": "aiohttp", "s3": "s3fs", "gs": "gcsfs"}
 STREAM_BLOCK = 8 << 20  # read-ahead block of s3:// and gs:// streams, bytes
 
@@ -33,59 +42,99 @@ def url_authority(text: str) -> str | None:
     return match.group(0) if match else None
 
 
+def _scheme(url: str) -> str:
+    return url.partition("://")[0].lower()
+
+
+def _is_http(url: str) -> bool:
+    return _scheme(url) in ("http", "https")
+
+
 @dataclass(frozen=True)
 class RemoteFile:
     """One file of a remote store, named by its URL (what errors print)."""
 
-    url: str
+    url: str  # as requests need it: user info and query included
 
     def __str__(self) -> str:
-        return self.url
+        return redact_urls(self.url)
 
     @property
     def name(self) -> str:
-        return self.url.rstrip("/").rpartition("/")[2]
+        return self.url.partition("?")[0].rstrip("/").rpartition("/")[2]
 
 
 @dataclass(frozen=True)
 class RemoteStore:
     """A store at a URL: ``RemoteStore("https://host/stores/dexycb")``; files are ``store.file("shard-000000.tar")``."""
 
-    url: str
+    url: str  # as requests need it: user info and query included; str() masks them
 
     def __post_init__(self):
-        object.__setattr__(self, "url", self.url.rstrip("/"))
-        if url_authority(self.url) is None:
-            raise DataError(self.url, None, "not a store URL (expected http://, https://, s3:// or gs:// and a host)")
+        base, query = self._split(self.url)
+        object.__setattr__(self, "url", base + (f"?{query}" if query else ""))
+
+    @staticmethod
+    def _split(url: str) -> tuple[str, str]:
+        """(the URL up to its path, without a trailing '/'; its query) of a valid store URL, else a DataError."""
+        authority = url_authority(url)
+        if authority is None or url[len(authority):len(authority) + 1] not in ("", "/", "?", "#"):
+            raise DataError(url, None, "not a store URL (expected http://, https://, s3:// or gs://, a host or "
+                                       "bucket, then the path)")
+        if "#" in url:
+            raise DataError(url, None, "a store URL cannot have a fragment ('#...': it is never sent to the server)")
+        base, _, query = url.partition("?")
+        if query and not _is_http(url):
+            raise DataError(url, None, f"a {_scheme(url)}:// store URL takes no query ('?...')")
+        return base.rstrip("/"), query
 
     def __str__(self) -> str:
-        return self.url
+        return redact_urls(self.url)
+
+    @property
+    def base(self) -> str:
+        """The URL without its query."""
+        return self.url.partition("?")[0]
+
+    @property
+    def query(self) -> str:
+        return self.url.partition("?")[2]
 
     @property
     def name(self) -> str:
         """The last part of the URL's path (the store folder's name)."""
-        return self.url.rpartition("/")[2]
+        return self.base.rpartition("/")[2]
 
     def file(self, name: str) -> RemoteFile:
-        return RemoteFile(f"{self.url}/{name}")
+        """The store's file ``name`` (a path below the store): joined onto the URL's path, the query kept."""
+        return RemoteFile(f"{self.base}/{name}" + (f"?{self.query}" if self.query else ""))
 
     def resolve(self) -> RemoteStore:
         """The same store (a URL is already absolute; Path.resolve's counterpart, so callers can compare)."""
         return self
 
 
-def filesystem(url: str):
-    """(fsspec filesystem, path within it) for a store URL; a missing package is one line saying which."""
-    scheme = url.partition("://")[0].lower()
+def filesystem(url: str, options: RemoteOptions | None = None):
+    """(fsspec filesystem, path within it) for a store URL, with ``options`` (default: from the environment) as its
+    timeouts; a missing package is one line saying which."""
+    scheme = _scheme(url)
     try:
         import fsspec
 
-        return fsspec.core.url_to_fs(url)
+        return fsspec.core.url_to_fs(url, **storage_options(scheme, options or RemoteOptions.from_env()))
     except ImportError as exc:
         raise DataError(url, None, f"reading {scheme}:// stores needs the {PACKAGES.get(scheme, '?')} package "
                                    f"(pip install {PACKAGES.get(scheme, 'fsspec')}; {exc})") from None
     except ValueError as exc:  # fsspec: an unknown or unusable protocol
         raise DataError(url, None, f"cannot read this URL ({exc})") from None
+
+
+def zarr_source(file: RemoteFile) -> tuple[str, dict]:
+    """(URL, storage_options) that open ``file`` (a folder of the store) with zarr: the query travels as a request
+    parameter, the timeouts as for every other read."""
+    base, _, query = file.url.partition("?")
+    filesystem(base)  # a missing package: one line
+    return base, storage_options(_scheme(base), RemoteOptions.from_env(), query)
 
 
 def _missing(exc: BaseException) -> bool:
@@ -106,21 +155,26 @@ def _problem(exc: BaseException) -> str:
 
 
 def remote_sizes(files: Sequence[RemoteFile]) -> list[int | None]:
-    """The size in bytes of each file (None where it is missing), asked concurrently; other errors are DataErrors."""
+    """The size in bytes of each file: None where it is missing, UNKNOWN_SIZE where the server serves it without
+    stating one; asked concurrently. Other errors are DataErrors naming the URL."""
     if not files:
         return []
+    if all(_is_http(f.url) for f in files):
+        filesystem(files[0].url)  # a missing package: one line
+        return http_sizes([f.url for f in files])
     fs, _ = filesystem(files[0].url)
     paths = [filesystem(f.url)[1] for f in files]
     try:
-        return [int(s) if s is not None else None for s in fs.sizes(paths)]
+        return [int(s) if s is not None else UNKNOWN_SIZE for s in fs.sizes(paths)]
     except FileNotFoundError:
         pass  # some are missing: ask one by one to tell which
-    except Exception as exc:  # noqa: BLE001 - aiohttp, botocore, gcsfs errors: all mean "cannot read"
+    except Exception as exc:  # noqa: BLE001 - botocore, gcsfs errors: all mean "cannot read"
         raise DataError(files[0].url, None, _problem(exc)) from None
     sizes = []
     for file, path in zip(files, paths):
         try:
-            sizes.append(int(fs.size(path)))
+            size = fs.size(path)
+            sizes.append(int(size) if size is not None else UNKNOWN_SIZE)
         except Exception as exc:  # noqa: BLE001
             if not _missing(exc):
                 raise DataError(file.url, None, _problem(exc)) from None
@@ -129,15 +183,14 @@ def remote_sizes(files: Sequence[RemoteFile]) -> list[int | None]:
 
 
 class _Stream:
-    """A remote file opened for sequential reading; any read failure is a DataError naming the URL and the byte."""
+    """An s3:// or gs:// file opened for sequential reading (s3fs / gcsfs read ahead in range requests and retry
+    themselves); any read failure is a DataError naming the URL and the byte."""
 
     def __init__(self, file: RemoteFile):
         self.file, self.offset = file, 0
         fs, path = filesystem(file.url)
-        streaming = {"block_size": 0} if file.url.lower().startswith("http") else {"block_size": STREAM_BLOCK,
-                                                                                       "cache_type": "readahead"}
         try:
-            self._raw = fs.open(path, "rb", **streaming)
+            self._raw = fs.open(path, "rb", block_size=STREAM_BLOCK, cache_type="readahead")
         except Exception as exc:  # noqa: BLE001
             raise DataError(file.url, None, _problem(exc)) from None
 
@@ -162,6 +215,10 @@ class _Stream:
         self.close()
 
 
-def open_stream(file: RemoteFile) -> _Stream:
-    """``file`` opened for one sequential pass (a context manager with ``read(n)``)."""
+def open_stream(file: RemoteFile, size: int | None = None):
+    """``file`` opened for one sequential pass (a context manager with ``read(n)``); ``size``: the bytes the caller
+    expects (for messages)."""
+    if _is_http(file.url):
+        filesystem(file.url)  # a missing package: one line
+        return HttpReader(file.url, size=size)
     return _Stream(file)

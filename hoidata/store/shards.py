@@ -27,8 +27,8 @@ from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 
 from hoidata.atomic import write_json_atomic
-from hoidata.errors import DataError
-from hoidata.schema import MEMBERS, kind_of_members
+from hoidata.errors import DataError, naming_os_errors
+from hoidata.schema import MEMBERS, WRITE_ORDER, kind_of_members
 from hoidata.store.codec import (
     KEY,
     MAX_MEMBER_BYTES,
@@ -38,7 +38,7 @@ from hoidata.store.codec import (
 )
 from hoidata.store.index import ShardInfo, _open_index, shard_name
 from hoidata.store.paths import INDEX_NAME, local_store, resolve_store, writer_token
-from hoidata.store.remote import RemoteFile, RemoteStore, open_stream, remote_sizes
+from hoidata.store.remote import UNKNOWN_SIZE, RemoteFile, RemoteStore, open_stream, remote_sizes
 
 # --------------------------------------------------------------------------------------------------
 # shards
@@ -84,7 +84,7 @@ class _OpenShard:
 
     def add(self, key: str, members: dict[str, bytes]) -> None:
         _check_members_to_write(key, members)
-        for member in MEMBERS:  # schema order, whatever order the dict has
+        for member in WRITE_ORDER:  # schema order, whatever order the dict has
             if member not in members:  # a record kind without this member
                 continue
             data = bytes(members[member])
@@ -92,15 +92,17 @@ class _OpenShard:
             info.size, info.mtime, info.mode, info.type = len(data), 0, 0o644, tarfile.REGTYPE
             info.uid = info.gid = 0
             info.uname = info.gname = ""
-            self._tar.addfile(info, io.BytesIO(data))
+            with naming_os_errors(self.path):  # a full disk's write() error names no file
+                self._tar.addfile(info, io.BytesIO(data))
         self.keys.append(key)
 
     def finish(self) -> ShardInfo:
-        self._tar.close()  # end-of-archive blocks and padding to the 10 KiB record size
-        self._file.flush()
-        os.fsync(self._file.fileno())  # the content is on disk before the name says "complete"
-        self._file.close()
-        os.replace(self.tmp, self.path)
+        with naming_os_errors(self.path):
+            self._tar.close()  # end-of-archive blocks and padding to the 10 KiB record size
+            self._file.flush()
+            os.fsync(self._file.fileno())  # the content is on disk before the name says "complete"
+            self._file.close()
+            os.replace(self.tmp, self.path)
         first, last = (self.keys[0], self.keys[-1]) if self.keys else (None, None)
         info = ShardInfo(self.number, self.path.name, len(self.keys), self._hash.sha256.hexdigest(),
                          self._hash.size, first, last)
@@ -108,7 +110,10 @@ class _OpenShard:
         return info
 
     def abort(self) -> None:
-        self._file.close()
+        try:
+            self._file.close()  # flushes: on a full disk it fails again, and the first error is the one to report
+        except OSError:
+            pass
         self.tmp.unlink(missing_ok=True)
 
 
@@ -199,11 +204,11 @@ class _ShardBytes:
     """The bytes of one shard, read once from the start: counts them, remembers where the last non-zero byte was
     and never reads past ``limit`` (the size the file or the index gives), whatever a server sends."""
 
-    def __init__(self, file, limit: int, digest=None):
+    def __init__(self, file, limit: int | None, digest=None):  # limit None: to the end of the stream
         self.file, self.limit, self.offset, self.last_data, self.digest = file, limit, 0, -1, digest
 
     def read(self, n: int = -1) -> bytes:
-        room = self.limit - self.offset
+        room = (1 << 62) if self.limit is None else self.limit - self.offset
         n = room if n is None or n < 0 or n > room else n
         chunk = self.file.read(n) if n > 0 else b""
         data = len(chunk.rstrip(b"\0"))
@@ -222,8 +227,10 @@ def _check_tar_end(data: _ShardBytes, end: int, path) -> None:
         pass
     if data.last_data >= end or data.offset - end < 2 * tarfile.BLOCKSIZE:
         raise DataError(path, None, f"the tar stream breaks off at byte {end} of {data.offset}: truncated or corrupt")
-    if data.offset != data.limit or data.file.read(1):
+    if data.limit is not None and data.offset != data.limit:
         raise DataError(path, None, f"{data.offset} bytes read, expected exactly {data.limit}: truncated or replaced")
+    if data.limit is not None and data.file.read(1):
+        raise DataError(path, None, f"longer than the {data.limit} bytes expected: replaced or damaged")
 
 
 def _members(data: _ShardBytes, path) -> Iterator[dict[str, bytes]]:
@@ -271,7 +278,8 @@ def read_shard_members(path, size: int | None = None, digest=None) -> Iterator[d
             size = remote_sizes([path])[0]
             if size is None:
                 raise DataError(path, None, "missing (no such file at this URL)")
-        with open_stream(path) as file:
+        size = None if size == UNKNOWN_SIZE else size  # not stated by the server: read to the end, counting
+        with open_stream(path, size) as file:
             yield from _members(_ShardBytes(file, size, digest), path)
         return
     with open(path, "rb") as file:
@@ -285,7 +293,8 @@ def shard_source(location, name: str):
 
 
 def shard_sizes(sources: Sequence) -> list[int | None]:
-    """The size in bytes of each shard source (None where there is no such file); remote ones asked concurrently."""
+    """The size in bytes of each shard source (None where there is no such file, UNKNOWN_SIZE where a server
+    serves it without stating one); remote ones asked concurrently."""
     remote = [s for s in sources if isinstance(s, RemoteFile)]
     sizes = dict(zip(remote, remote_sizes(remote)))
     return [sizes[s] if isinstance(s, RemoteFile) else (s.stat().st_size if Path(s).is_file() else None)
@@ -308,7 +317,9 @@ def read_checked_shard(path, expected_keys: Sequence[str], expected_size: int | 
         raise DataError(path, None, f"cannot read the shard ({exc.strerror or exc})") from None
     if size is None:
         raise DataError(path, None, "missing (hoidata verify checks the whole store)")
-    if expected_size is not None and size != expected_size:
+    if size == UNKNOWN_SIZE:  # a server that does not state it: the reader counts the bytes against the index
+        size = expected_size if expected_size is not None else UNKNOWN_SIZE
+    elif expected_size is not None and size != expected_size:
         raise DataError(path, None, f"{size} bytes, the index says {expected_size}: the shard is truncated, "
                                     "damaged or replaced (hoidata verify checks the whole store)")
     count = 0

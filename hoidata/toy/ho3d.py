@@ -7,6 +7,12 @@ against). Annotations
 are in HO-3D's OpenGL camera frame (y up, scene at negative z), the MANO pose is full axis-angle in
 the flat-hand-mean convention, and ``handJoints3D`` uses HO-3D's joint order and fingertip vertices.
 Meta pickles are written with protocol 2 and read back through the restricted unpickler.
+
+``version="v3"`` writes v3's on-disk differences (:mod:`hoidata.datasets.ho3d`): JPEG ``rgb/<id>.jpg`` frames, and
+an ``evaluation.txt`` of its own order (the toy lists v3's evaluation frames last-to-first, so a submission that
+follows the frames' natural order instead of the list is caught), the challenge's ground truth in that order.
+The v3 calibration of multi-camera sequences and its manual fingertip annotations are not written (no reader
+uses them).
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
 from hoidata.datasets.frame import project
+from hoidata.datasets.ho3d import VERSIONS as RGB_FORMAT
 from hoidata.geometry.crop import box_from_points
 from hoidata.hand.model import DEXYCB_TO_MANO
 from hoidata.hand.pose import change_frame
@@ -81,10 +88,10 @@ def _eval_meta(full: dict, view, K) -> dict:
 HAND_LABEL = 255
 
 
-def _write_view(seq_dir: Path, fid: str, view, meta: dict, object_label: int) -> None:
+def _write_view(seq_dir: Path, fid: str, view, meta: dict, object_label: int, version: str = "v2") -> None:
     for sub in ("rgb", "depth", "seg", "meta"):
         (seq_dir / sub).mkdir(parents=True, exist_ok=True)
-    cv2.imwrite(str(seq_dir / "rgb" / f"{fid}.png"), cv2.cvtColor(view.rgb, cv2.COLOR_RGB2BGR))
+    cv2.imwrite(str(seq_dir / "rgb" / f"{fid}{RGB_FORMAT[version]}"), cv2.cvtColor(view.rgb, cv2.COLOR_RGB2BGR))
     cv2.imwrite(str(seq_dir / "depth" / f"{fid}.png"), pack_depth(view.depth))
     # seg: rendered at 1/4 resolution, hand in red, object in blue (as HOISDF reads it after BGR->RGB)
     h, w = view.labels.shape
@@ -97,7 +104,7 @@ def _write_view(seq_dir: Path, fid: str, view, meta: dict, object_label: int) ->
 
 
 def write_ho3d_sequence(root: Path, split: str, name: str, obj, renderer, mano, frames: int,
-                        seed: int) -> tuple[list[str], list[tuple[np.ndarray, np.ndarray]]]:
+                        seed: int, version: str = "v2") -> tuple[list[str], list[tuple[np.ndarray, np.ndarray]]]:
     """Render one sequence from a single camera; returns its ``<SEQ>/<id>`` list entries and, per frame, the
     challenge's ground truth: joints (21, 3) and vertices (778, 3), OpenGL frame, HO-3D joint order, metres."""
     rng = np.random.default_rng([seed, sum(map(ord, name))])
@@ -114,7 +121,7 @@ def write_ho3d_sequence(root: Path, split: str, name: str, obj, renderer, mano, 
         if split == "evaluation":
             meta = _eval_meta(meta, view, K)
         fid = f"{f:04d}"
-        _write_view(root / split / name, fid, view, meta, obj.class_id)
+        _write_view(root / split / name, fid, view, meta, obj.class_id, version)
         entries.append(f"{name}/{fid}")
     return entries, truth
 
@@ -129,11 +136,14 @@ def write_challenge_truth(root: Path, truth: list[tuple[np.ndarray, np.ndarray]]
 
 
 def write_toy_ho3d(root: str | Path, mano_dir: Path, models_dir: Path, size: ToyHO3DSize = ToyHO3DSize(),
-                   seed: int = 0, progress: bool = True) -> dict:
-    """Write the toy HO-3D tree under `root` (MANO files and models must exist). Returns counts."""
+                   seed: int = 0, progress: bool = True, version: str = "v2") -> dict:
+    """Write the toy HO-3D tree under `root` (MANO files and models must exist), in the layout of ``version``
+    ('v2' or 'v3', see the module docstring). Returns counts."""
     from hoidata.hand import load_mano
     from hoidata.render import Renderer
 
+    if version not in RGB_FORMAT:
+        raise ValueError(f"unknown HO-3D version {version!r}; expected one of {sorted(RGB_FORMAT)}")
     root = Path(root)
     mano = load_mano(mano_dir, side="right", tips="ho3d", dtype=torch.float64)
     objects = toy_scenes.load_toy_objects(models_dir)
@@ -142,9 +152,12 @@ def write_toy_ho3d(root: str | Path, mano_dir: Path, models_dir: Path, size: Toy
     lists, truth = {"train": [], "evaluation": []}, []
     with Renderer(640, 480) as renderer:
         for split, name, obj in tqdm(plan, desc="toy ho3d sequences", disable=not progress):
-            entries, gt = write_ho3d_sequence(root, split, name, objects[obj], renderer, mano, size.frames, seed)
+            entries, gt = write_ho3d_sequence(root, split, name, objects[obj], renderer, mano, size.frames, seed,
+                                              version)
             lists[split] += entries
             truth += gt if split == "evaluation" else []
+    if version == "v3":  # the evaluation list in an order of its own
+        lists["evaluation"], truth = lists["evaluation"][::-1], truth[::-1]
     for split, entries in lists.items():
         (root / f"{split}.txt").write_text("".join(e + "\n" for e in entries))
     write_challenge_truth(root, truth)

@@ -6,7 +6,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-LAYOUTS = ("dexycb", "ho3d")
+LAYOUTS = ("dexycb", "ho3d", "ho3d_v3")  # ho3d_v3: HO-3D v3's layout (hoidata/toy/ho3d.py)
 
 
 def write_assets(out: Path) -> tuple[Path, Path]:
@@ -21,7 +21,8 @@ def write_assets(out: Path) -> tuple[Path, Path]:
 
 def make_toy(out: str | Path, layout: str, sequences: int | None = None, frames: int | None = None,
              seed: int = 0, progress: bool = True) -> dict:
-    """Write a toy dataset in `layout` ('dexycb' or 'ho3d') under `out`, with ``out/mano`` and ``out/models``.
+    """Write a toy dataset in `layout` ('dexycb', 'ho3d' or 'ho3d_v3') under `out`, with ``out/mano`` and
+    ``out/models``.
 
     `sequences` (per subject for DexYCB, training sequences for HO-3D) and `frames` (per sequence and
     camera) scale it; None keeps the default size. Returns what was written and how long it took.
@@ -45,7 +46,8 @@ def make_toy(out: str | Path, layout: str, sequences: int | None = None, frames:
     else:
         size = ToyHO3DSize()
         size = replace(size, train_sequences=sequences or size.train_sequences, frames=frames or size.frames)
-        counts = write_toy_ho3d(out, mano_dir, models_dir, size, seed=seed, progress=progress)
+        counts = write_toy_ho3d(out, mano_dir, models_dir, size, seed=seed, progress=progress,
+                                version="v3" if layout == "ho3d_v3" else "v2")
     return {"layout": layout, "root": str(out), **counts, "seconds": round(time.perf_counter() - start, 1)}
 
 
@@ -89,7 +91,7 @@ def split_rows(root: str | Path, layout: str) -> list[dict]:
         from hoidata.datasets.ho3d import HO3DReader
 
         for split in ("train", "evaluation"):
-            reader = HO3DReader(root, root / "mano", split)
-            rows.append({"setting": "ho3d", "split": split, "frames": len(list(reader.frames())),
+            reader = HO3DReader(root, root / "mano", split, version="v3" if layout == "ho3d_v3" else "v2")
+            rows.append({"setting": layout, "split": split, "frames": len(list(reader.frames())),
                          "skipped": len(reader.skipped)})
     return rows

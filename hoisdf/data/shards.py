@@ -17,7 +17,7 @@ import torch
 from webdataset.utils import pytorch_worker_info
 
 from hoidata.errors import DataError
-from hoidata.store import read_checked_shard, read_index, resolve_store, shard_sizes, shard_source
+from hoidata.store import UNKNOWN_SIZE, read_checked_shard, read_index, resolve_store, shard_sizes, shard_source
 
 
 class ShardStream:
@@ -91,7 +91,7 @@ def store_shards(location) -> tuple[object, dict]:
     sources = [shard_source(path, info.name) for info in index.shards]
     expected = {}
     for info, shard, size in zip(index.shards, sources, shard_sizes(sources)):
-        if size != info.size:
+        if size != info.size and size != UNKNOWN_SIZE:  # unknown: a server that does not say; the reader counts
             problem = "missing" if size is None else f"{size} bytes, the index says {info.size}: truncated or replaced"
             raise DataError(shard, None, f"{problem} (hoidata verify checks the whole store)")
         if info.count:

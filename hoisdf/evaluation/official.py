@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hoidata.atomic import write_atomic
 from hoidata.errors import DataError
 from hoisdf.evaluation import metrics as M
 
@@ -31,6 +32,7 @@ HO3D_SCORES = ("xyz_mean3d", "xyz_auc3d", "xyz_procrustes_al_mean3d", "xyz_procr
                "mesh_al_mean3d", "mesh_al_auc3d", "f_score_5", "f_al_score_5", "f_score_15", "f_al_score_15")
 HO3D_UNITS = "cm for *_mean3d (scores.txt's unit); AUCs (0-5 cm) and F-scores are ratios"
 HO3D_V2_EVALUATION = 11524  # eval.py's db_size('evaluation', 'v2'): the server also requires this many samples
+HO3D_EVALUATION_SIZES = {"v2": HO3D_V2_EVALUATION, "v3": 20137}  # db_size('evaluation', version) (utils/fh_utils.py)
 HO3D_MCP = 4  # middle MCP in HO-3D's joint order (align_sc_tr)
 HO3D_F_THRESHOLDS = (0.005, 0.015)  # metres
 NOT_MANO = -1.0  # eval.py's mesh scores when the predicted meshes do not have the GT's vertex count
@@ -58,6 +60,30 @@ def toolkit_gt_mm(joints_m) -> np.ndarray:
     return (np.asarray(joints_m).astype(np.float32) * np.float32(1000.0)).astype(np.float64)
 
 
+def align_by_keypoint_trafo(pred_verts, pred_xyz, gt_xyz) -> np.ndarray:
+    """eval.py's aligned vertices of a prediction whose vertex count is not the GT's: ``align_by_trafo(verts_pred,
+    align_w_scale(xyz, xyz_pred, return_trafo=True))``, reproduced with its quirk.
+
+    The keypoints' similarity fit (rotation R, scale s of the unit-norm sets, GT norm s1) is applied to the
+    vertices centred on their own mean, which is added back together with the keypoints' centroid offset; the
+    prediction's own norm is never divided out, so the result is ``s * s1 * R (v - mean_v) + mean_gt_xyz -
+    mean_pred_xyz + mean_v`` (not the keypoints' map unless the predicted joints have unit norm).
+
+    Args:
+        pred_verts: (N, V, 3) predicted points; pred_xyz, gt_xyz: (N, 21, 3) joints, metres.
+    Returns:
+        (N, V, 3) the points eval.py's aligned F-scores use.
+    """
+    pred_xyz, gt_xyz = M._pair(pred_xyz, gt_xyz)
+    mu_p, mu_g = pred_xyz.mean(1, keepdims=True), gt_xyz.mean(1, keepdims=True)
+    x, y = pred_xyz - mu_p, gt_xyz - mu_g
+    u, sv, vt = np.linalg.svd(np.einsum("nki,nkj->nij", y, x))  # as orthogonal_procrustes(gt_n, pred_n)
+    rot = u @ vt
+    factor = sv.sum(1) / (np.sqrt(np.sum(x * x, axis=(1, 2))) + M.PROCRUSTES_EPS)  # s * s1, the eps as eval.py
+    mu_v = pred_verts.mean(1, keepdims=True)
+    return factor[:, None, None] * np.einsum("nij,nkj->nki", rot, pred_verts - mu_v) + (mu_g - mu_p) + mu_v
+
+
 def _mean_auc(errors: np.ndarray) -> tuple[float, float]:
     """(mean in cm, AUC over 0-5 cm) of per-point errors in metres."""
     return float(errors.mean()) * 100.0, M.auc(errors, 0.0, 0.05, 100)
@@ -69,8 +95,10 @@ def ho3d_challenge_scores(pred_xyz, pred_verts, gt_xyz, gt_verts) -> dict[str, f
     Args:
         pred_xyz: (N, 21, 3) metres, HO-3D joint order (the frame does not matter, both must share it).
         gt_xyz: (N, 21, 3) the ground truth, likewise.
-        pred_verts: (N, V, 3); V = 778 (the GT's count) for the mesh scores, V = 0 when no mesh is predicted
-            (the mesh scores are then eval.py's -100 / -1 and the F-scores 0).
+        pred_verts: (N, V, 3); V = 778 (the GT's count) for the mesh scores. Any other V > 0 (a method with its
+            own topology) gets eval.py's -100 / -1 mesh scores and F-scores of those points, aligned for the
+            ``f_al_*`` scores by :func:`align_by_keypoint_trafo`. V = 0 (no mesh; eval.py cannot score that)
+            gives the same mesh scores and F-scores of 0.
         gt_verts: (N, 778, 3).
     """
     pred_xyz, gt_xyz = M._pair(pred_xyz, gt_xyz)
@@ -86,16 +114,32 @@ def ho3d_challenge_scores(pred_xyz, pred_verts, gt_xyz, gt_verts) -> dict[str, f
         aligned = M.procrustes_align(pred_verts, gt_verts)
         out["mesh_mean3d"], out["mesh_auc3d"] = _mean_auc(M.point_errors(pred_verts, gt_verts))
         out["mesh_al_mean3d"], out["mesh_al_auc3d"] = _mean_auc(M.point_errors(aligned, gt_verts))
-    elif pred_verts.shape[1] == 0:
-        aligned = pred_verts
+    else:  # not MANO's topology: no mesh errors; the F-scores use the keypoints' transform (eval.py)
+        aligned = align_by_keypoint_trafo(pred_verts, pred_xyz, gt_xyz) if pred_verts.shape[1] else pred_verts
         out.update(mesh_mean3d=NOT_MANO * 100, mesh_auc3d=NOT_MANO, mesh_al_mean3d=NOT_MANO * 100, mesh_al_auc3d=NOT_MANO)
-    else:  # eval.py would move them with its align_by_trafo, which is not reproduced here
-        raise ValueError(f"predicted meshes have {pred_verts.shape[1]} vertices; expected {gt_verts.shape[1]} or none")
-    for thr in HO3D_F_THRESHOLDS:
+    plain, al = _f_scores(pred_verts, gt_verts), _f_scores(aligned, gt_verts)
+    for k, thr in enumerate(HO3D_F_THRESHOLDS):
         tag = round(thr * 1000)
-        out[f"f_score_{tag}"] = float(np.mean([M.f_score(p, g, thr)[0] for p, g in zip(pred_verts, gt_verts)]))
-        out[f"f_al_score_{tag}"] = float(np.mean([M.f_score(p, g, thr)[0] for p, g in zip(aligned, gt_verts)]))
+        out[f"f_score_{tag}"], out[f"f_al_score_{tag}"] = float(plain[:, k].mean()), float(al[:, k].mean())
     return {name: out[name] for name in HO3D_SCORES}
+
+
+def _f_scores(pred, gt) -> np.ndarray:
+    """(N, 2) F-scores at :data:`HO3D_F_THRESHOLDS` of (N, V, 3) against (N, 778, 3) point sets: the same numbers
+    as :func:`hoisdf.evaluation.metrics.f_score` per threshold, with each nearest-neighbour search done once."""
+    from scipy.spatial import cKDTree
+
+    out = np.zeros((len(pred), len(HO3D_F_THRESHOLDS)))
+    if pred.shape[1] == 0:
+        return out
+    thr = np.asarray(HO3D_F_THRESHOLDS)
+    for i, (p, g) in enumerate(zip(pred, gt)):
+        d_p, d_g = cKDTree(g).query(p)[0], cKDTree(p).query(g)[0]
+        precision = (d_p[:, None] < thr).mean(0)
+        recall = (d_g[:, None] < thr).mean(0)
+        total = precision + recall
+        out[i] = np.where(total > 0, 2 * precision * recall / np.where(total > 0, total, 1.0), 0.0)
+    return out
 
 
 def read_ho3d_gt(folder) -> tuple[np.ndarray, np.ndarray]:
@@ -136,9 +180,7 @@ def score_ho3d_submission(pred_path, gt_folder) -> dict:
 
 def write_scores_txt(path, scores: dict) -> Path:
     """``scores.txt`` as eval.py writes it: one ``name: %f`` line per score, in its order."""
-    path = Path(path)
-    path.write_text("".join(f"{name}: {scores[name]:f}\n" for name in HO3D_SCORES))
-    return path
+    return write_atomic(path, "".join(f"{name}: {scores[name]:f}\n" for name in HO3D_SCORES).encode())
 
 
 def format_ho3d_scores(scores: dict) -> str:

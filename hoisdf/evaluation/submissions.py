@@ -122,23 +122,63 @@ def write_ho3d_pred(path, ids: Sequence[str], joints, verts, order: Sequence[str
     return path
 
 
+def _bad_entry(items: list, count: int | None) -> tuple[int, str] | None:
+    """(index, problem) of the first item that is not a (count, 3) list of finite numbers (any K when ``count``
+    is None, but the same K as item 0), or None."""
+    want = count
+    for i, item in enumerate(items):
+        try:
+            arr = np.array(item, dtype=np.float64)
+        except (ValueError, TypeError):
+            return i, "not a list of (x, y, z) lists of numbers (ragged, or a non-number)"
+        if want is None and arr.ndim == 2:
+            want = arr.shape[0]
+        if arr.size == 0 and count is None and want in (None, 0):
+            want = 0
+            continue
+        if arr.ndim != 2 or arr.shape != (want, 3):
+            return i, f"expected {want if want is not None else 'K'} (x, y, z) points, got shape {arr.shape}"
+        if not np.isfinite(arr).all():
+            k = int(np.flatnonzero(~np.isfinite(arr).all(1))[0])
+            return i, f"point {k} is not finite: {arr[k].tolist()}"
+    return None
+
+
 def _as_point_list(items, path: Path, field: str, count: int | None) -> np.ndarray:
-    """A JSON list of N (K, 3) nested lists -> (N, K, 3) float64, checked like the evaluator's reshape."""
+    """A JSON list of N (K, 3) nested lists -> (N, K, 3) float64, checked like the evaluator's reshape.
+
+    A malformed item is named with its index, e.g. ``pred.json: 'xyz_list[17]': expected 21 (x, y, z) points,
+    got shape (20, 3)``; with ``count`` None every item must have item 0's K (eval.py decides from item 0)."""
     if not isinstance(items, list):
         raise DataError(path, field, f"expected a list of samples, got {type(items).__name__}")
-    try:
-        arr = np.array(items, dtype=np.float64)
-    except (ValueError, TypeError) as err:
-        raise DataError(path, field, f"samples are not all (K, 3) lists of numbers: {err}") from None
     if len(items) == 0:
         return np.zeros((0, count or 0, 3))
-    if count is None and arr.shape == (len(items), 0):  # no mesh: every sample an empty list
-        arr = arr.reshape(len(items), 0, 3)
-    if arr.ndim != 3 or arr.shape[2] != 3 or (count is not None and arr.shape[1] != count):
-        raise DataError(path, field, f"expected shape (N, {count or 'V'}, 3), got {arr.shape}")
-    if not np.isfinite(arr).all():
-        raise DataError(path, field, "holds non-finite values")
-    return arr
+    try:
+        arr = np.array(items, dtype=np.float64)
+    except (ValueError, TypeError):
+        arr = None
+    ok = arr is not None and arr.ndim == 3 and arr.shape[2] == 3 and (count is None or arr.shape[1] == count)
+    if not (ok and np.isfinite(arr).all()):  # find and name the first bad item (the slow path, errors only)
+        bad = _bad_entry(items, count)
+        if bad is not None:
+            raise DataError(path, f"{field}[{bad[0]}]", bad[1])
+        if arr is None or arr.size:  # no single bad item, yet not an (N, K, 3) array of finite numbers
+            raise DataError(path, field, f"expected (N, {count or 'K'}, 3) finite numbers")
+    return arr.reshape(len(items), -1, 3)
+
+
+def _load_submission(path: Path):
+    """The JSON of a pred.json, or of the file the server takes from a zip: its top-level ``pred.json``, else its
+    only top-level ``.json`` (eval.py's ``_search_pred_file`` on the unpacked folder)."""
+    if not zipfile.is_zipfile(path):
+        return json.loads(path.read_bytes())
+    with zipfile.ZipFile(path) as zf:
+        top = [n for n in zf.namelist() if "/" not in n and n.endswith(".json")]
+        name = "pred.json" if "pred.json" in top else top[0] if len(top) == 1 else None
+        if name is None:
+            raise DataError(path, "pred.json", f"the archive has no top-level pred.json and {len(top)} other "
+                            "top-level .json files (the server takes pred.json, else the only .json)")
+        return json.loads(zf.read(name))
 
 
 def read_ho3d_lists(path) -> tuple[np.ndarray, np.ndarray]:
@@ -151,13 +191,7 @@ def read_ho3d_lists(path) -> tuple[np.ndarray, np.ndarray]:
     """
     path = Path(path)
     try:
-        if zipfile.is_zipfile(path):
-            with zipfile.ZipFile(path) as zf:
-                if "pred.json" not in zf.namelist():
-                    raise DataError(path, "pred.json", "the archive has no top-level member pred.json")
-                data = json.loads(zf.read("pred.json"))
-        else:
-            data = json.loads(path.read_bytes())
+        data = _load_submission(path)
     except json.JSONDecodeError as err:
         raise DataError(path, None, f"not valid JSON: {err}") from None
     except OSError as err:

@@ -39,7 +39,7 @@ def noise_scale(progress: float, ratios: tuple[float, ...] = (0.3, 0.7),
 
 def jitter(points: torch.Tensor, half_width: float, generator: torch.Generator | None = None) -> torch.Tensor:
     """points (B, N, 3) + per-coordinate uniform noise in [-half_width, half_width] (drawn on the CPU)."""
-    noise = (torch.rand(points.shape, generator=generator) * 2 - 1) * half_width
+    noise = (torch.rand(points.shape, generator=generator, device="cpu") * 2 - 1) * half_width  # CPU generator
     return points + noise.to(points)
 
 

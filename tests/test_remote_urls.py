@@ -1,0 +1,125 @@
+"""Store URLs with more than a host and a path (issue 25): a query (a token, a signature) goes with every request and
+file names join the path; a fragment, a query on a bucket URL and a ':' inside a bucket name are refused in one line;
+user info (``http://user:password@host``) is used for the requests but never written to a run's config.json, the
+evaluation's result files or an error line. Served by the loopback server of test_remote_reads (127.0.0.1)."""
+
+from __future__ import annotations
+
+import shutil
+import threading
+from pathlib import Path
+
+import pytest
+from test_remote_reads import TOKEN, _Handler, _Server
+
+from hoidata import store
+from hoidata.errors import DataError, redact_urls
+
+pytest.importorskip("aiohttp")
+pytest.importorskip("fsspec")
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory, tiny_store_two_shards):
+    """(base URL, request log) of a server holding the two-shard store as ``store``; its "token" mode wants
+    ``?tok=...`` on every request, its "auth" mode alice's password."""
+    root = tmp_path_factory.mktemp("urls")
+    shutil.copytree(tiny_store_two_shards, root / "store")
+    handler = type("Handler", (_Handler,), {"root": root, "stop": threading.Event(), "log": []})
+    srv = _Server(("127.0.0.1", 0), handler)
+    thread = threading.Thread(target=srv.serve_forever, daemon=True)
+    thread.start()
+    yield f"http://127.0.0.1:{srv.server_address[1]}", handler.log
+    srv.shutdown()
+    srv.server_close()
+    thread.join(timeout=10)
+
+
+def test_file_names_join_the_path_and_the_query_stays():
+    where = store.resolve_store("https://h:8443/stores/dexycb/?sv=2024&sig=a%2Bb%3D")
+    assert where.name == "dexycb" and where.base == "https://h:8443/stores/dexycb"
+    joined = "https://h:8443/stores/dexycb/index.zarr/zarr.json?sv=2024&sig=a%2Bb%3D"
+    assert where.file("index.zarr/zarr.json").url == joined
+    assert where.file("shard-000000.tar").name == "shard-000000.tar"
+    assert str(where) == "https://h:8443/stores/dexycb?sv=***&sig=***"  # a signature is a secret too
+
+
+def test_a_store_url_with_a_query_reads_as_its_folder(served, tiny_store_two_shards):
+    from hoisdf.data.shards import store_shards
+
+    base, log = served
+    url = f"{base}/token/store?{TOKEN}"
+    index, expected = store_shards(url)  # the index through zarr, the sizes, then every shard
+    assert index.keys == store.read_index(tiny_store_two_shards).keys
+    for source, (keys, size) in expected.items():
+        assert [r["__key__"] for r in store.read_checked_shard(source, keys, size)] == list(keys)
+    assert {method for method, mode, *_ in log if mode == "token"} == {"HEAD", "GET"}
+    with pytest.raises(DataError, match="HTTP 403") as err:  # the same without its token: the server refuses
+        store.read_index(f"{base}/token/store")
+    assert str(err.value).startswith(f"{base}/token/store/index.zarr")
+
+
+@pytest.mark.parametrize("url, problem", [
+    ("http://host/stores/a#part", "cannot have a fragment"),
+    ("https://host/a?x=1#", "cannot have a fragment"),
+    ("s3://bucket/store?versionId=3", "a s3:// store URL takes no query"),
+    ("gs://bucket:2/store", "not a store URL"),
+    ("http://host:80x/store", "not a store URL"),
+])
+def test_a_url_the_reader_cannot_honour_is_refused_in_one_line(url, problem, mano_dir, tmp_path, capsys):
+    from hoisdf.train import main as train
+
+    with pytest.raises(DataError, match=problem):
+        store.resolve_store(url)
+    assert train(["--shards", url, "--mano", str(mano_dir), "--out", str(tmp_path / "run"), "--device", "cpu"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and problem in err[0] and not (tmp_path / "run").exists(), err
+
+
+def test_a_store_weight_after_a_root_url_parses():
+    from hoisdf.train import parse_store
+
+    for text, path, weight in [("s3://bucket:2", "s3://bucket", 2.0), ("gs://bucket:0.5", "gs://bucket", 0.5),
+                               ("s3://bucket", "s3://bucket", 1.0), ("http://host:8000:3", "http://host:8000", 3.0),
+                               ("https://[::1]:8443/s:2", "https://[::1]:8443/s", 2.0),
+                               ("http://host:8000", "http://host:8000", 1.0)]:
+        spec = parse_store(text)
+        assert (spec.path.url, spec.weight) == (path, weight), text
+    with pytest.raises(DataError, match="weight"):
+        parse_store("s3://bucket:0")
+
+
+def test_redaction_masks_user_info_and_query_values_only():
+    line = "error: http://alice:s3cr3t@host:81/s/x.tar?sig=abc&v=1: cannot read (see s3://bucket/a, /tmp/u@x)"
+    masked = "error: http://***@host:81/s/x.tar?sig=***&v=***: cannot read (see s3://bucket/a, /tmp/u@x)"
+    assert redact_urls(line) == masked
+    error = DataError("https://tok@h/s", None, "http://u:pw@h/s: HTTP 401")  # the path and the problem
+    assert str(error) == "https://***@h/s: http://***@h/s: HTTP 401"
+
+
+def _every_file_text(folder: Path) -> str:
+    return "\n".join(p.read_bytes().decode("latin-1") for p in sorted(folder.rglob("*")) if p.is_file())
+
+
+def test_a_url_password_never_reaches_config_results_or_error_lines(served, mano_dir, tmp_path, capsys):
+    from test_faults_train import TINY
+
+    from hoisdf.evaluate import main as evaluate
+    from hoisdf.train import main as train
+
+    base, log = served
+    url = base.replace("://", "://alice:s3cr3t@") + "/auth/store"
+    run = tmp_path / "run"
+    assert train(["--shards", f"{url}:1.0", "--val-shards", url, "--mano", str(mano_dir), "--out", str(run),
+                  "--no-progress", "--device", "cpu", *TINY, "train.max_steps=1"]) == 0
+    assert evaluate(["--ckpt", str(run), "--shards", url, "--mano", str(mano_dir), "--out", str(run / "eval"),
+                     "--workers", "1", "--no-progress", "--plausibility", "0"]) == 0
+    assert any(mode == "auth" for _, mode, *_ in log)  # the password was sent (the server answers 401 without)
+    text = _every_file_text(run)
+    assert "s3cr3t" not in text and "alice" not in text and "http://***@127.0.0.1" in text
+    out = capsys.readouterr()
+    assert "s3cr3t" not in out.out + out.err
+    for bad in (url.replace("s3cr3t", "s3cr3tX"), url + "-gone"):  # a refused password, a missing store
+        assert train(["--shards", bad, "--mano", str(mano_dir), "--out", str(tmp_path / "bad"), "--device", "cpu"]) == 2
+        err = capsys.readouterr().err
+        assert "s3cr3t" not in err and "error: http://***@127.0.0.1" in err, err
