@@ -125,7 +125,7 @@ def test_bad_files_get_one_line(split, tmp_path, capsys):
     nan[1, 5, 0] = np.nan
     cases = [
         (["--pred", _write_pred(tmp_path / "nan.json", xyz, nan).as_posix(), "--order", root / "evaluation.txt"],
-         ["nan.json", "verts_list", "entry 1"]),
+         ["nan.json", "verts_list[1]", "point 5"]),
         (["--pred", _write_pred(tmp_path / "short.json", xyz[:2], verts[:2]), "--order", root / "evaluation.txt"],
          ["short.json", "verts_list", "2 entries"]),
         (["--pred", _write_pred(tmp_path / "few.json", xyz, verts[:, :700]), "--order", root / "evaluation.txt"],

@@ -59,17 +59,6 @@ def _finite_hands(verts, path, field: str) -> np.ndarray:
     return verts.astype(np.float64)
 
 
-def _first_non_finite(pred: Path) -> int:
-    """Index of the first verts_list entry of a pred.json / pred.zip with a non-finite number (-1: none)."""
-    import zipfile
-
-    text = zipfile.ZipFile(pred).read("pred.json") if zipfile.is_zipfile(pred) else pred.read_bytes()
-    for k, entry in enumerate(json.loads(text)[1]):
-        if not np.isfinite(np.asarray(entry, dtype=np.float64)).all():
-            return k
-    return -1
-
-
 def read_order(path) -> list[str]:
     """``evaluation.txt``: one ``SEQ/id`` per line; duplicates are an error naming the line."""
     path = Path(path)
@@ -101,12 +90,7 @@ def read_hands(pred, order=None) -> tuple[np.ndarray, list[str], str]:
         return verts, [str(k) for k in keys], "key"
     if order is None:
         raise DataError(pred, None, "a pred.json has no frame ids: give its evaluation list with --order")
-    try:
-        _, verts = read_ho3d_lists(pred)
-    except DataError as err:
-        if err.field == "verts_list" and "non-finite" in err.problem:  # name the entry, as for every other problem
-            raise DataError(pred, "verts_list", f"entry {_first_non_finite(pred)} holds NaN or inf") from None
-        raise
+    _, verts = read_ho3d_lists(pred)  # names the entry of a malformed or non-finite item itself
     verts = _finite_hands(verts, pred, "verts_list")
     ids = read_order(order)
     if len(ids) != len(verts):
