@@ -10,7 +10,7 @@ import torch.nn.functional as F
 
 from hoisdf.config import ModelSettings, load_train_config
 from hoisdf.model import build_model
-from hoisdf.model.encoding import pixel_aligned_features, pixel_to_grid, project_points
+from hoisdf.model.encoding import pixel_aligned_features, pixel_to_grid
 from hoisdf.model.heads import masks_to_boxes
 from hoisdf.model.sampling import inside_box
 

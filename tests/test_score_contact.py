@@ -10,7 +10,7 @@ import json
 import numpy as np
 import pytest
 
-from hoisdf.evaluation.score_contact import main
+from hoisdf.score import main
 
 SIZE = {"train_sequences": 1, "eval_sequences": 1, "frames": 3}
 
@@ -44,7 +44,7 @@ def _write_pred(path, xyz, verts):
 
 
 def _score(capsys, *argv) -> tuple[int, str, str]:
-    code = main([str(a) for a in argv])
+    code = main(["contact", *[str(a) for a in argv]])
     out, err = capsys.readouterr()
     return code, out, err
 

@@ -14,26 +14,21 @@ Inputs (docs/plausibility.md):
 
 Per frame it computes :func:`hoisdf.evaluation.plausibility.frame_metrics`, prints the means and writes
 every frame's numbers with ``--out FILE.json``. It follows ``hoisdf score``'s subcommand interface (``HELP``,
-``add_arguments``, ``score``, ``format_result``); until it is listed there, run it as
-``python -m hoisdf.evaluation.score_contact``.
+``add_arguments``, ``score``, ``format_result``) and is listed there as ``contact``.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import sys
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
-from hoidata.atomic import write_atomic
 from hoidata.cli import non_negative_int, positive_int
-from hoidata.errors import DataError, run_cli
+from hoidata.errors import DataError
 from hoidata.geometry.mirror import mirror_mesh
 from hoidata.store import read_index
-from hoisdf.evaluation.outputs import json_safe
 from hoisdf.evaluation.plausibility import (
     CONTACT_THRESHOLD,
     REL_TOLERANCE,
@@ -234,26 +229,3 @@ def score(args) -> dict:
                            args.threshold * 1e-3, args.limit, args.workers, args.max_cells)
     note = f"a subset: {len(result['frames'])} of {result['frames_total']} frames" if result["subset"] else ""
     return {**result, "samples": len(result["frames"]), **({"note": note} if note else {})}
-
-
-def _run(args) -> int:
-    result = score(args)
-    print(format_result(result))
-    if args.out is not None:
-        write_atomic(args.out, json.dumps(json_safe(result), indent=1).encode())  # NaN (no contact: IVU) -> null
-        print("wrote", args.out)
-    return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m hoisdf.evaluation.score_contact", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_arguments(p)
-    p.add_argument("--out", type=Path, default=None, metavar="FILE.json", help="write the means and every frame")
-    p.add_argument("--debug", action="store_true", help="on an error, show the traceback instead of one line")
-    args = p.parse_args(argv)
-    return run_cli("", lambda: _run(args), args.debug)
-
-
-if __name__ == "__main__":
-    sys.exit(main())
