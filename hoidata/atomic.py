@@ -15,6 +15,8 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
+from hoidata.errors import naming_os_errors
+
 
 def _umask() -> int:
     """The process umask, read without changing it where Linux says it (else set and restored at once)."""
@@ -33,16 +35,18 @@ def _umask() -> int:
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; when the block ends without error it is renamed to ``path``.
 
-    For writers that want a file name (``torch.save``, ``savefig``); on error the temporary file is removed.
+    For writers that want a file name (``torch.save``, ``savefig``); on error the temporary file is removed, and an
+    OSError without a file name (ENOSPC from a write) gets ``path``'s (:func:`hoidata.errors.naming_os_errors`).
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
-        os.fchmod(fd, 0o666 & ~_umask())
-        os.close(fd)
-        yield Path(tmp)
-        os.replace(tmp, path)
+        with naming_os_errors(path):  # a full disk's errno names no file: name the one being written
+            os.fchmod(fd, 0o666 & ~_umask())
+            os.close(fd)
+            yield Path(tmp)
+            os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise

@@ -8,9 +8,11 @@ traceback instead. Anything else is a bug and keeps its traceback.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import sys
+from collections.abc import Iterator
 
 # a URL's user info (``scheme://user:password@``) and its query's values (presigned signatures, tokens): secrets
 _USERINFO = re.compile(r"(?i)\b([a-z][a-z0-9+.-]*://)[^/?#@\s]+@")
@@ -47,6 +49,43 @@ class DataError(ValueError):
 
     def __reduce__(self):
         return type(self), (self.path, self.field, self.problem)
+
+
+@contextlib.contextmanager
+def naming_os_errors(path: str | os.PathLike) -> Iterator[None]:
+    """Give an OSError raised in the block without a file name the ``path`` being written.
+
+    ``open()`` and ``os.*`` calls name their file, but the errno of ``write()``, ``flush()``, ``fsync()`` and
+    ``close()`` (ENOSPC on a full disk, EIO, EDQUOT) carries none, so the one-line report would be just "No space
+    left on device". Every place that writes a result wraps its writing in this, naming the file the user
+    asked for (not its temporary name). The new error keeps the errno (so its subclass) and chains the original.
+    """
+    try:
+        yield
+    except OSError as err:
+        if err.filename is not None or err.filename2 is not None:
+            raise
+        reason = err.strerror or str(err) or type(err).__name__
+        raise OSError(err.errno, reason, os.fspath(path)) from err
+
+
+@contextlib.contextmanager
+def decoding(path: str | os.PathLike, what: str) -> Iterator[None]:
+    """Turn whatever a decoder raises on one file's bytes into a DataError naming the file: that frame's skip.
+
+    Decoders answer damaged bytes with their own exception types, and those change between versions (OpenCV 5's
+    ``imdecode`` raises ``cv2.error`` on an empty buffer where 4.x returned None; numpy's npz reader gives
+    ``zlib.error``, ``BadZipFile``, ``EOFError`` or ``ValueError``; trimesh many more). Wrapping only the decoding
+    call keeps a bug elsewhere a traceback. DataError passes through unchanged.
+    """
+    try:
+        yield
+    except DataError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - any decoder failure on these bytes is the file's problem
+        lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+        detail = f"{type(exc).__name__}: {lines[-1][:200]}" if lines else type(exc).__name__
+        raise DataError(path, None, f"cannot decode {what} ({detail})") from exc
 
 
 class WorkerError(DataError):

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 import scipy.sparse
 
-from hoidata.errors import DataError
+from hoidata.errors import DataError, decoding
 
 
 class ChumpyNode:
@@ -121,13 +121,10 @@ def load_pickle(path: str | os.PathLike) -> Any:
         raise DataError(path, None, "file not found")
     with open(path, "rb") as f:
         data = f.read()
-    try:
+    if not data:
+        raise DataError(path, None, "empty file (0 bytes), not a pickle")
+    with decoding(path, "pickle (truncated or corrupt?)"):  # whatever the unpickler or a stand-in raises
         return resolve(RestrictedUnpickler(io.BytesIO(data), path).load(), path)
-    except DataError:
-        raise
-    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, IndexError, KeyError,
-            MemoryError, OverflowError, RecursionError) as e:
-        raise DataError(path, None, f"not a readable pickle (truncated or corrupt?): {type(e).__name__}: {e}") from e
 
 
 def resolve(obj: Any, path: str = "<pickle>") -> Any:

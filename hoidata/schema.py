@@ -6,6 +6,7 @@ Members of a record (key ``<dataset>-<split>-<frame id>``, no dots):
 
 ==============  =============================================================================
 ``img.jpg``     RGB crop, square, ``crop_size`` px (default 512), JPEG; pixels outside the image black
+``img.png``     in place of ``img.jpg`` in an upstream-crop record (see below): the RGB crop, lossless PNG
 ``seg.png``     uint8 single channel at ``crop_size // 2``: bit 0 visible hand, bit 1 visible object,
                 bit 2 amodal hand, bit 3 amodal object
 ``hm.png``      uint8 single channel at ``crop_size // 2``: sum of 21 joint Gaussians (sigma 1.25 px),
@@ -28,6 +29,12 @@ Record kinds (``meta.json`` ``kind``; :data:`RECORD_KINDS` lists each kind's mem
            needs the hidden hand pose is there: no joints, no MANO parameters, no masks (the hand's would need
            its mesh), no heatmap, no SDF samples (the hand's distance needs the mesh too), no mask IoU.
            Trainers refuse these records; evaluators take them.
+
+Upstream-crop records (``record.crop = "upstream"``, any kind): the test-time input of upstream HOISDF
+(``data_crop``), exactly: a 256 px crop cut with PIL's nearest-neighbour warp from the original frame and stored
+losslessly as ``img.png``; ``K`` is upstream's crop intrinsics. Their ``meta.json`` also holds the
+:data:`CROP_FIELDS` (all of them; other records hold none): the 2D boxes that filter upstream's inference grid
+and its object anchor, which evaluation uses in place of its own.
 """
 
 from __future__ import annotations
@@ -39,11 +46,13 @@ import numpy as np
 SCHEMA_VERSION = 2  # 2: sample_index, record kinds
 
 IMG = "img.jpg"
+IMG_LOSSLESS = "img.png"  # the image member of an upstream-crop record (CROP_FIELDS), in place of IMG
 SEG = "seg.png"
 HEATMAP = "hm.png"
 SDF = "sdf.npy"
 META = "meta.json"
 MEMBERS = (IMG, SEG, HEATMAP, SDF, META)
+WRITE_ORDER = (IMG, IMG_LOSSLESS, SEG, HEATMAP, SDF, META)  # member order inside a shard
 
 # seg.png bit planes
 SEG_HAND_VISIBLE, SEG_OBJECT_VISIBLE, SEG_HAND_AMODAL, SEG_OBJECT_AMODAL = 1, 2, 4, 8
@@ -90,6 +99,18 @@ META_FIELDS = {
     "source": (None, "provenance dict from the reader"),
 }
 
+# meta.json fields of an upstream-crop record only (all or none): name -> (shape or None, description)
+UPSTREAM_CROP = "upstream"
+CROP_FIELDS = {
+    "crop": (None, "'upstream': img.png, K and the fields below are upstream HOISDF's test-time crop"),
+    "grid_hand_box": ((4,), "x1, y1, x2, y2, crop pixels: upstream's box that filters the hand's inference grid "
+                            "(2D joints' box x1.1, HO-3D: the given hand box x1.2)"),
+    "grid_object_box": ((4,), "x1, y1, x2, y2, crop pixels: upstream's box that filters the object's inference grid "
+                              "(projected 21-point box of points.xyz, x1.0)"),
+    "object_anchor": ((3,), "camera frame, metres: upstream's object anchor (obj_center_cam: the integer centre of "
+                            "grid_object_box back-projected at the hand root's depth; HO-3D: at 0.5244322 m)"),
+}
+
 OBJECT_IDS = range(1, 22)  # meta object_id: the DexYCB class ids
 
 # JSON types of the scalar meta fields; shaped fields are numeric arrays
@@ -108,8 +129,19 @@ RECORD_KINDS = {
 
 
 def kind_of_members(names) -> str | None:
-    """The record kind whose members are exactly ``names`` (None if no kind has that set)."""
-    return next((kind for kind, (members, _) in RECORD_KINDS.items() if set(names) == set(members)), None)
+    """The record kind whose members are exactly ``names`` (None if no kind has that set); ``img.png`` stands in
+    for ``img.jpg`` (an upstream-crop record), never beside it."""
+    names = set(names)
+    if IMG_LOSSLESS in names:
+        if IMG in names:
+            return None
+        names = (names - {IMG_LOSSLESS}) | {IMG}
+    return next((kind for kind, (members, _) in RECORD_KINDS.items() if names == set(members)), None)
+
+
+def image_member(names) -> str:
+    """The image member among a record's member ``names``: ``img.png`` if there, else ``img.jpg``."""
+    return IMG_LOSSLESS if IMG_LOSSLESS in names else IMG
 
 
 _KEY_RE = re.compile(r"[A-Za-z0-9_\-]+")  # used with fullmatch: no dots, slashes or trailing newline

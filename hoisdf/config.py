@@ -66,6 +66,7 @@ class ModelSettings:
     mask_threshold: float = 0.5  # probability above which a predicted mask pixel counts (test_boxes = predicted)
     chunk: int = 32768  # grid points per SDF-decoder call at inference
     cls_dist: float = 0.04  # m: voting classification radius
+    pixel_convention: str = "centers"  # centers (align_corners=False) | upstream (released code: align_corners=True)
     LIMITS: ClassVar[dict] = {
         "image_size": (">= 32",), "sdf_scale": ("> 0",), "sdf_clamp": ("> 0",), "n_freq": (">= 0",),
         **{k: (">= 1",) for k in ("d_model", "heads", "ff", "hand_layers", "decoder_layers", "object_layers",

@@ -35,6 +35,8 @@ from hoisdf.evaluation import metrics as M
 from hoisdf.evaluation.inference import infer, load_for_eval, resolve_device, run_folder
 from hoisdf.evaluation.official import format_ho3d_scores
 from hoisdf.evaluation.outputs import (
+    checked_ho3d_order,
+    clear_results,
     export,
     format_table,
     json_safe,
@@ -58,7 +60,9 @@ def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=No
              baseline_store=None, progress: bool = True, workers: int = 4, ho3d_gt=None,
              precision: str = "fp32") -> dict:
     """Evaluate a checkpoint on stores; write the result files to ``out_dir`` and return metrics.json's content
-    (plus ``table``, the printed table).
+    (plus ``table``, the printed table). The result files an earlier run left in ``out_dir`` are removed first
+    (:func:`~hoisdf.evaluation.outputs.clear_results`), so a failed run never leaves one of them looking current;
+    ``metrics.json`` is written last.
 
     Args:
         run: run folder or checkpoint file. stores: store folders or URLs (hoidata.store.resolve_store). mano_dir:
@@ -67,7 +71,9 @@ def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=No
         vis: pictures of the first ``vis`` samples. limit: evaluate only the first ``limit`` samples.
         boxes: override the model's ``test_boxes`` ("gt" | "predicted").
         plausibility: samples (the first ones) for the plausibility report (0: none).
-        ho3d_order: HO-3D ``evaluation.txt`` -> pred.json / pred.zip. baseline_store: store whose labels
+        ho3d_order: HO-3D ``evaluation.txt`` -> pred.json / pred.zip; checked before any work against every HO-3D
+            store (:mod:`hoisdf.evaluation.ho3d_list`); a store or list that cannot give a complete submission is
+            a DataError, never a missing file. baseline_store: store whose labels
             give the mean pose (default: the first evaluated store). workers: loader processes.
         ho3d_gt: folder with the challenge's ``evaluation_xyz.json`` / ``evaluation_verts.json``: the written
             pred.json is scored against them (``metrics.json["ho3d_challenge"]``, ``scores.txt``).
@@ -76,15 +82,17 @@ def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=No
     from hoidata.hand import load_mano
 
     stores = [resolve_store(s) for s in ([stores] if isinstance(stores, (str, Path, RemoteStore)) else stores)]
+    out_dir = Path(out_dir) if out_dir else run_folder(Path(run)) / f"eval-{'+'.join(s.name for s in stores)}"
+    clear_results(out_dir)  # whatever happens next, no earlier run's result file stays beside this run's
     if boxes not in (None, "gt", "predicted"):
         raise ValueError(f"boxes must be 'gt' or 'predicted', got {boxes!r}")
     if ho3d_gt is not None and ho3d_order is None:
         raise ValueError("--ho3d-gt scores the pred.json that --ho3d-order writes: give both")
+    indexes = {s: read_index(s) for s in stores}
+    order = checked_ho3d_order(ho3d_order, ho3d_gt, indexes, limit) if ho3d_order is not None else None
     device = resolve_device(device)
     mano = load_mano(mano_dir, side="right")
     model, config, info = load_for_eval(run, mano, device, boxes)
-    out_dir = Path(out_dir) if out_dir else run_folder(Path(run)) / f"eval-{'+'.join(s.name for s in stores)}"
-    indexes = {s: read_index(s) for s in stores}
     objects = {name: mesh for index in indexes.values() for name, mesh in index.objects.items()}
     col = infer(model, mano, config, stores, batch_size, device, limit, vis, progress, workers, indexes, precision)
     missing = sorted(set(col.names) - set(objects))
@@ -117,15 +125,34 @@ def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=No
         "units": "mm for lengths, ratios for AUC and F-scores",
     }
     out_dir.mkdir(parents=True, exist_ok=True)
-    result["files"], result["dexycb_hpe"] = export(col, stores, out_dir, ho3d_order, indexes)
+    flags = col.get("upstream_crop")
+    result["upstream_crop_records"] = 0 if flags is None else int((flags > 0.5).sum())
+    note = crop_note(config.model, flags, len(col.keys))
+    result["notes"] = [note] if note else []
+    result["files"], result["dexycb_hpe"] = export(col, stores, out_dir, order, indexes)
     if ho3d_gt is not None:
         result["ho3d_challenge"] = score_ho3d_files(result["files"], ho3d_gt, out_dir)
     write_per_object(out_dir / "per_object.csv", summary, counts)
-    write_atomic(out_dir / "metrics.json", json.dumps(json_safe(result), indent=2).encode())
     if vis:
         write_vis(col, meshes, mano, out_dir / "vis")
+    write_atomic(out_dir / "metrics.json", json.dumps(json_safe(result), indent=2).encode())  # last: the run is done
     rows = {"HOISDF (this run)": summary["all"], **({"mean-pose baseline": base_summary} if base_summary else {})}
     return {**result, "table": format_table(rows, col.get("verts") is not None, bool(col.get("ho3d").any()))}
+
+
+def crop_note(model_settings, flags, n: int) -> str | None:
+    """One line when a model that computes as upstream's does (``model.pixel_convention == "upstream"``, e.g.
+    imported released weights) is evaluated on records that are not upstream's test crops (``flags``: per-sample
+    1 / 0, or None); else None. The setting is read defensively: runs from before it have no such field."""
+    convention = getattr(model_settings, "pixel_convention", None)
+    if convention is None and isinstance(model_settings, dict):
+        convention = model_settings.get("pixel_convention")
+    others = n if flags is None else int(n - (np.asarray(flags) > 0.5).sum())
+    if convention != "upstream" or others == 0:
+        return None
+    return (f"note: the model follows upstream's pixel convention, but {others} of {n} records are not upstream test "
+            "crops: it sees other pixels, boxes and object anchor than upstream's (rebuild the store with "
+            "record.crop=\"upstream\", docs/stores.md)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -174,6 +201,8 @@ def _run(args) -> int:
     print(f"{result['samples']} samples, checkpoint {result['checkpoint']} (epoch {result['epoch']}), "
           f"boxes {result['test_boxes']}; lengths in mm")
     print(result["table"])
+    for note in result["notes"]:
+        print(note)
     if result["counts"]["hand_metrics"] == 0:
         print("no hand ground truth in these records (nan above); an HO-3D evaluation split is scored by --ho3d-gt "
               "or the challenge server")

@@ -3,10 +3,11 @@ with no model and no store.
 
     hoisdf score ho3d   --pred pred.json|pred.zip --gt DIR [--version v2|v3] [--subset PREFIX | --ids FILE]
     hoisdf score dexycb --pred RESULT.txt --root DEXYCB_DIR --split s0_test
+    hoisdf score contact --pred pred.json|pred.zip|hands.npz [--order evaluation.txt] --store STORE --mano DIR
 
 Each subcommand prints a table and, with ``--out FILE.json``, writes the numbers under the same names. A
 malformed file is one ``error:`` line naming the file, the entry and the field (exit 2; ``--debug`` for the
-traceback). docs/scoring.md describes the inputs, score names and units.
+traceback). docs/scoring.md describes the inputs, score names and units; docs/plausibility.md the contact metrics.
 
 A subcommand is a module listed in :data:`SUBCOMMANDS` (name -> module path, imported when the parser is built)
 that defines ``HELP`` (one line), ``add_arguments(parser)`` (its own options; ``--out`` and ``--debug`` are added
@@ -29,6 +30,7 @@ from hoidata.errors import run_cli
 SUBCOMMANDS = {
     "ho3d": "hoisdf.evaluation.score_ho3d",
     "dexycb": "hoisdf.evaluation.score_dexycb",
+    "contact": "hoisdf.evaluation.score_contact",
 }
 
 

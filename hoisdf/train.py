@@ -2,7 +2,8 @@
 
 Trains HOISDF on one or more stores (weights set the mixing ratio, e.g. ``shards/dexycb:1.0
 shards/ho3d_render:0.6``); a store is a folder or an explicit ``http(s)://``, ``s3://`` or ``gs://`` URL. Multi-GPU / multi-process: ``torchrun --nproc_per_node N -m hoisdf.train ...``
-(NCCL on GPUs, gloo on CPUs). ``--resume`` continues ``--out``'s last checkpoint exactly.
+(NCCL on GPUs, gloo on CPUs). ``--resume`` continues ``--out``'s last checkpoint exactly; ``--init RUN`` fine-tunes from
+another run's weights (e.g. an imported released checkpoint) with its model settings.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import os
 import re
 import shutil
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -27,8 +29,8 @@ from hoidata.store import resolve_store
 from hoidata.store.remote import url_authority
 from hoisdf.config import TrainConfig, config_from_dict, load_train_config
 from hoisdf.data import StoreSpec
-from hoisdf.training.checkpoint import CHECKPOINTS, LAST, find_checkpoint, load_checkpoint
-from hoisdf.training.trainer import CURVE, Trainer
+from hoisdf.training.checkpoint import CHECKPOINTS, LAST, find_checkpoint, load_checkpoint, load_weights
+from hoisdf.training.trainer import CURVE, Trainer, unwrap
 
 
 def parse_store(text: str) -> StoreSpec:
@@ -113,6 +115,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", default=None, help="pipelines/<name>.toml or a path (default: upstream's released settings)")
     p.add_argument("--out", type=local_path, default=None, help="run folder (default runs/<config>)")
     p.add_argument("--resume", action="store_true", help="continue the run folder's last checkpoint")
+    p.add_argument("--init", type=Path, default=None, metavar="RUN_OR_CKPT",
+                   help="fine-tune: start from these weights and their [model] settings (e.g. an imported released "
+                        "checkpoint, python -m hoisdf.import_upstream); optimizer and progress start fresh")
     p.add_argument("--device", default=None, help="cpu, cuda, cuda:1 (default: cuda when present)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--debug", action="store_true", help="on an error, show the traceback instead of one line")
@@ -142,6 +147,11 @@ def run(args, argv: list[str]) -> int:
         if (run_dir / CHECKPOINTS / LAST).exists():
             raise DataError(run_dir, None, "the run folder already holds a checkpoint: pass --resume or another --out")
         config = load_train_config(args.config, args.overrides)
+    init = load_checkpoint(args.init) if args.init and not payload else None
+    if init:  # the weights' own model settings (model.* overrides still apply); the rest from --config
+        model_overrides = [o for o in args.overrides if o.startswith("model.")]
+        config = replace(config, model=config_from_dict(apply_overrides(init["config"], model_overrides, args.init),
+                                                        args.init).model)
     rank, world, device = distributed_setup(args.device)
     torch.manual_seed(config.train.seed + rank)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -150,6 +160,8 @@ def run(args, argv: list[str]) -> int:
     mano = load_mano(args.mano, side="right")
     trainer = Trainer(config, stores, mano, run_dir, device, val_stores, rank, world)
     rng = trainer.load(payload, checkpoint) if payload else None
+    if init:
+        load_weights(unwrap(trainer.model), init["model"], args.init)
     if rank == 0 and not payload:
         write_run_info(run_dir, config, stores, val_stores, world, argv)
     if rank == 0:

@@ -8,6 +8,23 @@ import pytest
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
+# the libraries whose behaviour on bad input the tests depend on (decoders, store formats): the suite says which
+# versions it ran on, since a fresh install resolves the newest (e.g. OpenCV 5, whose imdecode raises on an empty
+# buffer where 4.x returned None)
+REPORTED_PACKAGES = ("opencv-python-headless", "numpy", "trimesh", "torch", "zarr", "webdataset", "scipy", "pyyaml")
+
+
+def pytest_report_header(config):
+    from importlib.metadata import PackageNotFoundError, version
+
+    def found(name):
+        try:
+            return version(name)
+        except PackageNotFoundError:
+            return "not installed"
+
+    return "packages: " + ", ".join(f"{name} {found(name)}" for name in REPORTED_PACKAGES)
+
 
 @pytest.fixture(scope="session")
 def mano_dir(tmp_path_factory):

@@ -20,6 +20,7 @@ from hoisdf.data.augment import AugmentSettings, augment_batch, float_image, unp
 from hoisdf.data.loader import _key_seed, sample_sdf
 
 CROP, N_HAND, N_OBJECT, NEAR = 128, 32, 16, 0.05
+UPSTREAM_CROP_ENTRIES = {"upstream_crop", "grid_hand_box", "grid_object_box", "object_anchor"}  # loader.crop_entries
 # one shard per store on purpose: the two-worker test needs fewer shards than workers
 REAL = ["dataset.splits=[\"train\"]", f"record.crop_size={CROP}", "record.n_hand=256", "record.n_object=128",
         "store.records_per_shard=16"]
@@ -78,6 +79,8 @@ def test_batch_shapes_and_dtypes(stores):
         "object_pose": ((b, 4, 4), torch.float32), "object_id": ((b,), torch.int64),
         "hand_box": ((b, 4), torch.float32), "object_box": ((b, 4), torch.float32),
         "is_synthetic": ((b,), torch.bool), "mirrored": ((b,), torch.bool),
+        "upstream_crop": ((b,), torch.bool), "grid_hand_box": ((b, 4), torch.float32),
+        "grid_object_box": ((b, 4), torch.float32), "object_anchor": ((b, 3), torch.float32),
     }
     assert set(batch) == set(expected) | {"key"}
     for name, (shape, dtype) in expected.items():
@@ -216,7 +219,7 @@ def test_batches_equal_the_previous_loader_for_a_fixed_seed(stores, records, wor
     assert len(batches) == 2
     for batch in batches:
         expected = _previous_batch(records, batch["key"], seed=5, epoch=3)
-        assert set(batch) == set(expected) - {"seg", "heatmap"} | {"seg_bits", "key"}
+        assert set(batch) == set(expected) - {"seg", "heatmap"} | {"seg_bits", "key", *UPSTREAM_CROP_ENTRIES}
         for name, value in expected.items():
             if name == "heatmap":
                 continue
@@ -227,6 +230,6 @@ def test_batches_equal_the_previous_loader_for_a_fixed_seed(stores, records, wor
             settings = AugmentSettings(input_size=64, rotation="uniform")
             ours, before = (augment_batch(b, settings, torch.Generator().manual_seed(1), train)
                             for b in (batch, {**expected, "key": batch["key"]}))
-            assert set(ours) == set(before)
+            assert set(ours) == set(before) | UPSTREAM_CROP_ENTRIES
             for name, value in before.items():
                 assert name == "key" or torch.equal(ours[name], value), name

@@ -176,10 +176,13 @@ def test_cli_default_out_limit_and_ho3d_skip(run_dir, tiny_store, mano_dir, tmp_
 
     order = tmp_path / "evaluation.txt"
     order.write_text("SM1/0000\n")
-    rc = main(["--ckpt", str(run_dir / "checkpoints" / "last.pt"), "--shards", str(tiny_store), "--mano",
-               str(mano_dir), "--limit", "3", "--plausibility", "0", "--no-progress", "--ho3d-order", str(order)])
+    args = ["--ckpt", str(run_dir / "checkpoints" / "last.pt"), "--shards", str(tiny_store), "--mano",
+            str(mano_dir), "--limit", "3", "--plausibility", "0", "--no-progress"]
+    assert main([*args, "--ho3d-order", str(order)]) == 2  # a pred.json was asked for that no store can give
+    assert "none of the stores is an HO-3D store" in capsys.readouterr().err
+    rc = main(args)
     printed = capsys.readouterr().out
-    assert rc == 0 and "mean-pose baseline" in printed and "not an HO-3D store" in printed
+    assert rc == 0 and "mean-pose baseline" in printed
     out = run_dir / f"eval-{tiny_store.name}"
     assert json.loads((out / "metrics.json").read_text())["samples"] == 3
     assert len((out / "dexycb_hpe_s0_train_subset.txt").read_text().splitlines()) == 3
@@ -209,9 +212,10 @@ def test_ho3d_export_follows_the_evaluation_list(tiny_store, tmp_path):
     ids, hpe = read_dexycb_hpe(tmp_path / "dexycb_hpe_s0_train_subset.txt")
     assert ids.tolist() == read_index(tiny_store).labels["sample_index"][[4, 5, 7]].tolist()
     assert np.allclose(hpe, joints, atol=1e-8)
-    order.write_text("SM1/0000\nSM1/0009\n")  # a frame without prediction: reported, nothing written
+    order.write_text("SM1/0000\nSM1/0009\n")  # a frame without prediction: an error naming it, nothing written
     (tmp_path / "pred.json").unlink()
-    assert not any(k.startswith("ho3d") for k in export(col, [tiny_store], tmp_path, order)[0])
+    with pytest.raises(DataError, match="pred.json: not written: no prediction for frame 'SM1/0009'"):
+        export(col, [tiny_store], tmp_path, order)
     assert not (tmp_path / "pred.json").exists()
 
 

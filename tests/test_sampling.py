@@ -184,3 +184,39 @@ def test_gradient_variant_steps_along_the_full_field_gradient_at_inference_only(
             expected = start - sdf.detach()[..., None] * unit
     assert torch.allclose(moved, expected, atol=1e-5)
     assert not torch.allclose(grads["full"], grads["code"], atol=1e-6)  # the image features contribute
+
+
+# Golden facts of the reference's lattice: upstream amathislab/HOISDF @666e5b7, main/model.py::Model.sdf_infer,
+# lines 257-273 (voxel_origin ... samples[:, 2] = ...), executed verbatim with cfg.bins_n = 64 under torch 2.14
+# on the CPU: sha256 of the (262144, 3) float32 array's bytes, and a few rows (index: x, y, z).
+UPSTREAM_LATTICE_SHA256 = "b598ca1a8444ed905f6a4ee5e88f7509ef9b76ff4ff53c51587c41b63ba049e8"
+UPSTREAM_LATTICE_ROWS = {
+    0: (-1.0, -1.0, -1.0),
+    1: (-0.9999922513961792, -0.9995039701461792, -0.9682539701461792),
+    63: (-0.99951171875, -0.96875, 1.0),
+    64: (-0.9995039701461792, -0.9682539701461792, -1.0),
+    4095: (-0.96826171875, 1.03125, 1.0),
+    100000: (-0.22495037317276, -0.15873008966445923, 0.015873074531555176),
+    200003: (0.5501224994659424, 0.684027910232544, -0.9047619104385376),
+    262143: (1.03173828125, 1.03125, 1.0),
+}
+
+
+def test_sheared_grid_equals_the_reference_lattice_value_by_value():
+    import hashlib
+
+    grid = grid_points(64, sheared=True)
+    assert grid.dtype == torch.float32 and grid.shape == (64 ** 3, 3)
+    for i, row in UPSTREAM_LATTICE_ROWS.items():
+        assert grid[i].tolist() == list(row), i
+    assert hashlib.sha256(grid.numpy().tobytes()).hexdigest() == UPSTREAM_LATTICE_SHA256
+    # the whole lattice lies within the reference's cube (x, y up to 1.0317), none of it at 40 m
+    assert grid.min().item() == -1.0 and grid.max().item() == 1.03173828125
+
+
+def test_regular_grid_is_the_integer_lattice():
+    grid = grid_points(5)
+    assert torch.equal(grid[:5, 2], torch.tensor([-1.0, -0.5, 0.0, 0.5, 1.0]))
+    assert torch.equal(grid[5], torch.tensor([-1.0, -0.5, -1.0]))
+    assert torch.equal(grid[25], torch.tensor([-0.5, -1.0, -1.0]))
+    assert torch.unique(grid[:, 1]).numel() == 5

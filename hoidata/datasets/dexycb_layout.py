@@ -8,14 +8,13 @@ reads and raises :class:`~hoidata.errors.DataError` naming the file and the key.
 
 from __future__ import annotations
 
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import yaml
 
-from hoidata.errors import DataError
+from hoidata.errors import DataError, decoding
 from hoidata.objects import YCB_CLASSES
 
 SUBJECTS = [
@@ -112,10 +111,8 @@ def toolkit_split(root: Path, setup: str, split: str) -> ToolkitSplit:
 def _read_yaml(path: Path, required: tuple[str, ...]) -> dict:
     if not path.is_file():
         raise DataError(path, None, "file not found")
-    try:
+    with decoding(path, "YAML"):  # yaml.YAMLError, or UnicodeDecodeError for bytes that are not text
         data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as e:
-        raise DataError(path, None, f"not valid YAML: {e}") from e
     if not isinstance(data, dict):
         raise DataError(path, None, "expected a YAML mapping")
     for key in required:
@@ -174,12 +171,10 @@ def read_labels(path: Path, num_objects: int, keys=None) -> dict[str, np.ndarray
     if not path.is_file():
         raise DataError(path, None, "labels file not found")
     expected = dict(LABEL_SHAPES, pose_y=(num_objects, 3, 4))
-    try:
+    with decoding(path, "npz labels (corrupt?)"):  # zlib.error, BadZipFile, EOFError, ValueError, OSError, ...
         with np.load(path, allow_pickle=False) as npz:
             names = set(npz.files)
             labels = {k: npz[k] for k in (npz.files if keys is None else [k for k in keys if k in names])}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
-        raise DataError(path, None, f"cannot read npz (corrupt?): {e}") from e
     missing = [k for k in expected if k not in names]
     if missing:
         raise DataError(path, missing[0], "missing key")

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hoidata.errors import DataError
+from hoidata.errors import DataError, decoding
 
 
 @dataclass
@@ -76,10 +76,13 @@ def read_rgb(path: Path, size: tuple[int, int] | None = None) -> np.ndarray:
         data = Path(path).read_bytes()
     except OSError as exc:
         raise DataError(path, None, f"cannot read image ({exc.strerror or exc})") from None
+    if not data:
+        raise DataError(path, None, "empty image file (0 bytes)")
     problem = incomplete_image(data)
     if problem:
         raise DataError(path, None, f"{problem}: the file is cut short")
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    with decoding(path, "image"):  # OpenCV raises cv2.error on some bad buffers, returns None on others
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
     if img is None:
         raise DataError(path, None, "cannot decode image (corrupt or not an image)")
     if size is not None and (img.shape[1], img.shape[0]) != tuple(size):

@@ -33,7 +33,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from hoidata.datasets.frame import Frame, Skip, project
-from hoidata.errors import DataError
+from hoidata.errors import DataError, decoding
 from hoidata.hand.model import MANO_TO_DEXYCB
 from hoidata.hand.pose import change_frame
 from hoidata.objects import class_id
@@ -55,7 +55,8 @@ def read_list(root: Path, split: str) -> list[str]:
     path = root / f"{split}.txt"
     if not path.is_file():
         raise DataError(path, None, "HO-3D frame list not found")
-    entries = [ln.strip() for ln in path.read_text().splitlines() if ln.strip()]
+    with decoding(path, "frame list"):  # bytes that are not text
+        entries = [ln.strip() for ln in path.read_text().splitlines() if ln.strip()]
     for n, entry in enumerate(entries, 1):
         if entry.count("/") != 1:
             raise DataError(path, f"line {n}", f"expected '<SEQ>/<id>', got {entry!r}")

@@ -1,41 +1,53 @@
 """Writing an export's files: every file goes to ``<name>.tmp`` first and is renamed, so nothing under a final
-name is ever half written (a killed export leaves only ``.tmp`` files, which the next run overwrites)."""
+name is ever half written (a killed export leaves only ``.tmp`` files, which the next run overwrites; a failed write
+removes its own, and an OSError without a file name, ENOSPC from a write, gets the file's)."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
+from hoidata.errors import naming_os_errors
+
+
+@contextlib.contextmanager
+def _via_tmp(path: Path) -> Iterator[Path]:
+    """Yield ``<path>.tmp`` to write; renamed to ``path`` when the block succeeds, removed when it fails."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        with naming_os_errors(path):
+            yield tmp
+            os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
 
 def write_json(path: Path, value, indent=None) -> None:
     """JSON (compact unless ``indent``) written via ``<path>.tmp``."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
     separators = (",", ":") if indent is None else None
-    tmp.write_text(json.dumps(value, indent=indent, separators=separators, allow_nan=False) + "\n")
-    os.replace(tmp, path)
+    with _via_tmp(path) as tmp:
+        tmp.write_text(json.dumps(value, indent=indent, separators=separators, allow_nan=False) + "\n")
 
 
 def write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
     """An uncompressed ``.npz`` (as cnpy writes AlignSDF's) via ``<path>.tmp``."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
+    with _via_tmp(path) as tmp, open(tmp, "wb") as f:
         np.savez(f, **arrays)
-    os.replace(tmp, path)
 
 
 def write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
     """A Wavefront OBJ of a triangle mesh (``v`` lines with exact float reprs, 1-based ``f`` lines) via ``.tmp``."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
     lines = [f"v {x!r} {y!r} {z!r}" for x, y, z in np.asarray(vertices, np.float64).tolist()]
     lines += [f"f {a} {b} {c}" for a, b, c in (np.asarray(faces, np.int64) + 1).tolist()]
-    tmp.write_text("\n".join(lines) + "\n")
-    os.replace(tmp, path)
+    with _via_tmp(path) as tmp:
+        tmp.write_text("\n".join(lines) + "\n")
 
 
 def write_coco(path: Path, entries, split: str) -> int:
@@ -44,9 +56,8 @@ def write_coco(path: Path, entries, split: str) -> int:
     ``entries()`` is called twice (images, then annotations), so only one chunk's manifest is in memory.
     Returns the number of annotations.
     """
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp, count = path.with_name(path.name + ".tmp"), 0
-    with open(tmp, "w") as f:
+    count = 0
+    with _via_tmp(path) as tmp, open(tmp, "w") as f:
         for member in ("images", "annotations"):
             f.write(("{" if member == "images" else ", ") + json.dumps(member) + ": [")
             first = True
@@ -59,7 +70,6 @@ def write_coco(path: Path, entries, split: str) -> int:
                 count += member == "annotations"
             f.write("]")
         f.write("}\n")
-    os.replace(tmp, path)
     return count
 
 

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from hoidata.errors import DataError
+from hoidata.errors import DataError, naming_os_errors
 from hoidata.objects.meshops import (
     MeshReport,
     check_mesh,
@@ -198,9 +198,14 @@ def load_simplified(models_dir: str | os.PathLike, name: str, n_vertices: int = 
         return cached
     mesh = simplify_mesh(load_object_mesh(obj_path), n_vertices)
     cache_dir.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile(dir=cache_dir, suffix=".npz.tmp", delete=False) as tmp:
-        np.savez(tmp, vertices=np.asarray(mesh.vertices, np.float64), faces=np.asarray(mesh.faces, np.int64))
-    os.replace(tmp.name, cache_file)
+    tmp = tempfile.NamedTemporaryFile(dir=cache_dir, suffix=".npz.tmp", delete=False)
+    try:
+        with naming_os_errors(cache_file), tmp:  # a full disk: the error names the cache file, no .tmp stays
+            np.savez(tmp, vertices=np.asarray(mesh.vertices, np.float64), faces=np.asarray(mesh.faces, np.int64))
+        os.replace(tmp.name, cache_file)
+    except BaseException:
+        Path(tmp.name).unlink(missing_ok=True)
+        raise
     return mesh
 
 

@@ -16,7 +16,9 @@ import torch
 
 from hoidata import schema
 from hoidata.datasets.frame import Frame, project
+from hoidata.errors import DataError
 from hoidata.geometry import crop as crop_ops
+from hoidata.geometry.upstream_crop import pixel_affine
 from hoidata.geometry.mirror import (
     mirror_axis_angle,
     mirror_intrinsics,
@@ -25,6 +27,8 @@ from hoidata.geometry.mirror import (
     mirror_points,
     mirror_transform,
 )
+from hoidata.pipeline.upstream_records import crop_meta, upstream_view, uses_upstream_crop
+from hoidata.pipeline.upstream_records import crop_box as upstream_crop_box
 
 
 @dataclass(frozen=True)
@@ -41,6 +45,11 @@ class RecordSettings:
     part_radius: float = 0.05  # metres: samples farther than this from the hand get no part label (-1)
     heatmap_sigma: float = schema.HEATMAP_SIGMA  # px (at the heatmap's resolution): Gaussian of each joint in hm.png
     sdf_backend: str = "bvh"  # hoidata.geometry.sdf.signed_distance backend: "bvh", or "igl" (the previous path)
+    # "project": the crop above (crop_size, context, bilinear, JPEG); "upstream": crop_splits' records are upstream
+    # HOISDF's test crop exactly (256 px, PIL nearest from the original frame, lossless img.png, its K, grid boxes
+    # and object anchor in meta), what the released weights expect
+    crop: str = "project"  # "project" | "upstream" (upstream HOISDF's exact test crop, docs/stores.md)
+    crop_splits: tuple[str, ...] = ("test", "evaluation")  # splits whose records follow `crop` (others: "project")
     LIMITS: ClassVar[dict] = {"crop_size": (">= 32", "<= 4096"), "context": ("> 0",), "n_hand": (">= 1",),
                               "n_object": (">= 1",), "uniform_fraction": (">= 0", "<= 1"), "cube": ("> 0",),
                               "sigmas": ("> 0",), "part_radius": ("> 0",), "heatmap_sigma": ("> 0",)}
@@ -55,6 +64,7 @@ class ObjectAsset:
     faces: np.ndarray
     watertight: bool
     box21: np.ndarray  # (21, 3) model frame
+    upstream_box21: np.ndarray | None = None  # (21, 3) model frame, of points.xyz as upstream builds it (crop upstream)
 
 
 def frame_seed(key: str) -> int:
@@ -128,32 +138,55 @@ def build_record(frame: Frame, mano, obj: ObjectAsset, renderer, key: str, setti
     from hoidata.geometry.sampling import build_sdf_record
     from hoidata.render import RenderMesh
 
-    image = frame.load_image()
+    raw = frame
     hand, faces = posed_hand(frame, mano), mano.closed_faces
     if frame.mirror:
-        frame, image = mirror_frame(frame), cv2.flip(image, 1)  # = image[:, ::-1], without numpy's slow copy
+        frame = mirror_frame(frame)
         hand, faces = mirror_mesh(hand, faces)
     obj_verts, obj_faces, obj_box21 = posed_object(frame, obj)
-    box = crop_ops.square_crop_box(frame.joints_2d, project(obj_box21, frame.K), settings.context)
-    size, half = settings.crop_size, settings.crop_size // 2
-    to_crop = crop_ops.crop_affine(box, size)
-    K_crop = to_crop @ frame.K
-    K_mask = crop_ops.resize_affine(size, half) @ K_crop
+    view = crop_view(raw, frame, obj, project(obj_box21, frame.K), frame.joints_2d, settings)
+    K_crop, size = view["K"], view["img"].shape[0]
+    half = size // 2
+    to_mask = crop_ops.resize_affine(size, half) @ view["to_pixels"]  # masks sit on the stored pixels
+    K_mask = crop_ops.resize_affine(size, half) @ (view["to_pixels"] @ frame.K)
     meshes = [RenderMesh(vertices=hand, faces=faces, label=1), RenderMesh(vertices=obj_verts, faces=obj_faces, label=2)]
     labels, amodal = renderer.masks(K_mask, meshes)
     sdf, counts = build_sdf_record(hand, faces, mano.closed_face_parts, obj_verts, obj_faces, obj.watertight,
                                    frame.root_3d, np.random.default_rng(frame_seed(key)), settings.n_hand,
                                    settings.n_object, settings.uniform_fraction, settings.cube, settings.sigmas,
                                    settings.part_radius, backend=settings.sdf_backend)
-    meta = record_meta(frame, key, box, K_crop, hand, obj_verts, counts)
-    meta["seg_iou"] = dataset_mask_iou(frame, labels, crop_ops.resize_affine(size, half) @ to_crop)
+    meta = {**record_meta(frame, key, view["box"], K_crop, hand, obj_verts, counts), **view["meta"]}
+    meta["seg_iou"] = dataset_mask_iou(frame, labels, to_mask)
     return {
-        "img": crop_ops.warp_image(image, to_crop, size),
+        "img": view["img"],
         "seg": pack_masks(labels, amodal),
         "heatmap": summed_heatmap(project(frame.joints_3d, K_mask), half, settings.heatmap_sigma),
         "sdf": sdf,
         "meta": meta,
     }
+
+
+def crop_view(raw: Frame, frame: Frame, obj: ObjectAsset, object_uv: np.ndarray, hand_uv: np.ndarray,
+              settings: RecordSettings) -> dict:
+    """The stored crop of a frame: ``img`` (S, S, 3) uint8, ``K`` (3, 3) its intrinsics, ``box`` (x1, y1, side) in
+    source pixels, ``to_pixels`` (3, 3) the source -> crop pixel map (centres at integers), ``to_K`` (3, 3) the
+    map K follows (``K = to_K @ frame.K``; upstream's sits 0.5 (1 - a) px off ``to_pixels``, see
+    hoidata.geometry.upstream_crop) and ``meta``: the schema.CROP_FIELDS of an upstream crop, else nothing.
+
+    ``raw``: the frame as read; ``frame``: the same, mirrored when it is a left hand; ``object_uv`` (21, 2) and
+    ``hand_uv`` (N, 2): the project crop's object and hand points in ``frame``'s pixels."""
+    if uses_upstream_crop(raw, settings):
+        if obj.upstream_box21 is None:
+            raise DataError(raw.image_path, "record.crop", f"no points.xyz box for {obj.name} (the upstream crop's)")
+        view = upstream_view(raw, obj.upstream_box21)
+        return {"img": view.image, "K": np.asarray(view.K, np.float64), "box": upstream_crop_box(view),
+                "to_pixels": pixel_affine(view.affine), "to_K": np.asarray(view.affine, np.float64),
+                "meta": crop_meta(view)}
+    box = crop_ops.square_crop_box(hand_uv, object_uv, settings.context)
+    to_crop = crop_ops.crop_affine(box, settings.crop_size)
+    image = frame.load_image() if frame is raw else cv2.flip(raw.load_image(), 1)  # flip: image[:, ::-1], faster
+    return {"img": crop_ops.warp_image(image, to_crop, settings.crop_size), "K": to_crop @ frame.K, "box": box,
+            "to_pixels": to_crop, "to_K": to_crop, "meta": {}}
 
 
 HAND_BIT, OBJECT_BIT = 1, 2  # dataset_masks' bit code
@@ -237,11 +270,10 @@ def build_eval_record(frame: Frame, obj: ObjectAsset, key: str, settings: Record
 
     The crop is squared around the dataset's given hand box and the posed object's 21-point box, each
     expanded by ``crop.BOX_EXPAND``, times ``settings.context``: the training crop's rule with the given box in
-    place of the joints. ``hand_root`` is the given root joint, ``hand_box`` the given box in crop pixels.
-    Returns the dict :func:`build_record` returns, with ``seg``, ``heatmap`` and ``sdf`` None.
+    place of the joints (with ``settings.crop = "upstream"``: upstream's crop, see :func:`crop_view`).
+    ``hand_root`` is the given root joint, ``hand_box`` the given box in crop pixels. Returns the dict
+    :func:`build_record` returns, with ``seg``, ``heatmap`` and ``sdf`` None.
     """
-    from hoidata.errors import DataError
-
     if frame.hand_box is None:
         raise DataError(frame.source.get("meta", frame.image_path), "hand_box",
                         "a frame without hand labels needs the dataset's hand box for its crop")
@@ -249,10 +281,7 @@ def build_eval_record(frame: Frame, obj: ObjectAsset, key: str, settings: Record
         raise DataError(frame.image_path, "side", "a left-hand frame without hand labels cannot be mirrored")
     obj_verts, _, obj_box21 = posed_object(frame, obj)
     corners = np.asarray(frame.hand_box, np.float64).reshape(2, 2)
-    box = crop_ops.square_crop_box(corners, project(obj_box21, frame.K), settings.context)
-    to_crop = crop_ops.crop_affine(box, settings.crop_size)
-    K_crop = to_crop @ frame.K
-    meta = _common_meta(frame, key, schema.EVAL, box, K_crop, obj_verts)
-    meta["hand_box"] = crop_ops.apply_affine(to_crop, corners).reshape(4)
-    img = crop_ops.warp_image(frame.load_image(), to_crop, settings.crop_size)
-    return {"img": img, "seg": None, "heatmap": None, "sdf": None, "meta": meta}
+    view = crop_view(frame, frame, obj, project(obj_box21, frame.K), corners, settings)
+    meta = {**_common_meta(frame, key, schema.EVAL, view["box"], view["K"], obj_verts), **view["meta"]}
+    meta["hand_box"] = crop_ops.apply_affine(view["to_K"], corners).reshape(4)
+    return {"img": view["img"], "seg": None, "heatmap": None, "sdf": None, "meta": meta}

@@ -110,29 +110,54 @@ def hand_model(side: str, fix_left_shapedirs: bool):
     return _WORKER["manos"][key]
 
 
-def object_asset(models_dir: Path, name: str):
-    """Repaired full-resolution object geometry and its 21-point box, for SDF and masks."""
+def object_asset(models_dir: Path, name: str, upstream: bool = False):
+    """Repaired full-resolution object geometry and its 21-point box, for SDF and masks; ``upstream``: also the
+    21-point box of its ``points.xyz`` as upstream's loaders build it (``record.crop = "upstream"``)."""
     import numpy as np
 
-    from hoidata.objects import box21, load_object_mesh, object_mesh_path, repair_mesh
+    from hoidata.geometry.upstream_crop import box21_upstream
+    from hoidata.objects import box21, load_object_mesh, load_points, object_mesh_path, object_points_path, repair_mesh
     from hoidata.pipeline.records import ObjectAsset
 
     geo, report = repair_mesh(load_object_mesh(object_mesh_path(models_dir, name)))
+    points = box21_upstream(load_points(object_points_path(models_dir, name))) if upstream else None
     return ObjectAsset(name, np.asarray(geo.vertices), np.asarray(geo.faces), bool(report.watertight),
-                       box21(np.asarray(geo.vertices)))
+                       box21(np.asarray(geo.vertices)), points)
+
+
+def _renderer(size: int):
+    """The worker's mask renderer for records of ``size`` px (masks at half of it); other sizes than the store's
+    crop_size (upstream crops: 256 px) get their own, made on first use."""
+    from hoidata.render.masks import MaskRenderer
+
+    if _WORKER["renderer"].width == size // 2:
+        return _WORKER["renderer"]
+    more = _WORKER.setdefault("more_renderers", {})
+    if size not in more:
+        more[size] = MaskRenderer(size // 2, size // 2)
+    return more[size]
+
+
+def _close_renderers() -> None:
+    """Close this process's renderers (the serial run's own)."""
+    for renderer in [_WORKER.pop("renderer", None), *_WORKER.pop("more_renderers", {}).values()]:
+        if renderer is not None:
+            renderer.close()
 
 
 def _build_one(frame, key: str, settings):
     from hoidata.pipeline.records import build_eval_record, build_record
+    from hoidata.pipeline.upstream_records import record_size
 
     objects = _WORKER["objects"]
     if frame.object_name not in objects:
-        objects[frame.object_name] = object_asset(_WORKER["models_dir"], frame.object_name)
+        objects[frame.object_name] = object_asset(_WORKER["models_dir"], frame.object_name, settings.crop == "upstream")
     if not frame.has_hand_pose:  # e.g. HO-3D's evaluation split: no hand mesh, so no masks or SDF
         rec = build_eval_record(frame, objects[frame.object_name], key, settings)
     else:
         mano = hand_model(frame.side, frame.fix_left_shapedirs)  # the model the frame's labels were made with
-        rec = build_record(frame, mano, objects[frame.object_name], _WORKER["renderer"], key, settings)
+        renderer = _renderer(record_size(frame, settings))
+        rec = build_record(frame, mano, objects[frame.object_name], renderer, key, settings)
     return store.encode_record(key, rec["img"], rec["seg"], rec["heatmap"], rec["sdf"], rec["meta"])
 
 
@@ -206,10 +231,11 @@ def _check_build_file(out: Path, config: dict, keys: list[str], inputs: dict) ->
         write_json_atomic(path, spec)
 
 
-def build_inputs(frames, root: Path, mano_dir: Path, models_dir: Path) -> dict:
-    """What build.json pins besides settings and keys (see hoidata.pipeline.fingerprint)."""
+def build_inputs(frames, root: Path, mano_dir: Path, models_dir: Path, upstream: bool = False) -> dict:
+    """What build.json pins besides settings and keys (see hoidata.pipeline.fingerprint); ``upstream``: the
+    models' whole folders (upstream's crop reads points.xyz too)."""
     return {"mano": fingerprint.files(mano_dir, fingerprint.MANO_FILES),
-            "models": fingerprint.models(models_dir, {f.object_name for f in frames}),
+            "models": fingerprint.models(models_dir, {f.object_name for f in frames}, whole_folder=upstream),
             "annotations": fingerprint.annotations(frames, root)}
 
 
@@ -225,7 +251,8 @@ def build_store(cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path, 
     for line in stated_count_warnings(cfg.dataset, [f.split for f in frames]):
         print(line, file=sys.stderr)
     keys = [schema.record_key(f.dataset, f.split, f.frame_id) for f in frames]
-    _check_build_file(out, cfg.as_dict(), keys, build_inputs(frames, root, Path(mano_dir), models_dir))
+    _check_build_file(out, cfg.as_dict(), keys, build_inputs(frames, root, Path(mano_dir), models_dir,
+                                                                      cfg.record.crop == "upstream"))
     per = cfg.store.records_per_shard
 
     def make_job(n):
@@ -297,9 +324,7 @@ def run_shards(out: Path, n_items: int, per: int, make_job, shard_fn, init, init
         _run((engine or run_pool)(shard_fn, jobs, workers, init, initargs) if jobs else iter(()), summary, bar, start)
     finally:
         bar.close()
-        renderer = _WORKER.pop("renderer", None)  # the serial run's own renderer
-        if renderer is not None:
-            renderer.close()
+        _close_renderers()
     summary.seconds = time.perf_counter() - start
     if done is None:
         finished = store.completed_shards(out, plan, clean=False, check_bytes=False)  # others may still be writing
@@ -332,7 +357,7 @@ def estimate_build(cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Pat
         members = _build_one(f, schema.record_key(f.dataset, f.split, f.frame_id), cfg.record)
         size += sum(len(v) for v in members.values())
     per_frame = (time.perf_counter() - start) / len(picks)
-    _WORKER.pop("renderer").close()
+    _close_renderers()
     return {"frames": len(frames), "skipped_by_reader": len(skips), "seconds_per_frame": round(per_frame, 3),
             "frames_per_second_per_worker": round(1 / per_frame, 2),
             "estimated_minutes": round(len(frames) * per_frame / max(workers, 1) / 60, 1),

@@ -18,17 +18,24 @@ from hoidata.errors import DataError
 from hoidata.geometry.sdf import BACKENDS as SDF_BACKENDS
 from hoidata.pipeline.records import RecordSettings
 
-# A checkout's pipelines/ folder; an installed wheel carries the same files as the package hoidata.presets.
+# A checkout's pipelines/ folder; an installed wheel carries the same files as the regular package hoidata.presets
+# (pipelines/__init__.py makes it one; setup.py maps the folder to that name).
 CHECKOUT_PIPELINES = Path(__file__).resolve().parents[2] / "pipelines"
 
 
-def pipelines_dir() -> Path:
-    """Where the named pipelines live: the checkout's ``pipelines/`` when there is one, else the installed copy."""
+def pipelines_dir():
+    """Where the named pipelines live: the checkout's ``pipelines/`` when there is one, else the installed copy.
+
+    The installed copy is reached through ``importlib.resources`` and returned as its Traversable (a ``Path`` for
+    an ordinary install, something else for a zipped or namespace one): callers only use ``joinpath``,
+    ``is_file``, ``read_text`` and ``str``, which every Traversable has. ``Path(str(...))`` would break on the
+    others (a namespace package's ``MultiplexedPath`` prints as ``MultiplexedPath('...')``).
+    """
     if CHECKOUT_PIPELINES.is_dir():
         return CHECKOUT_PIPELINES
     from importlib.resources import files
 
-    return Path(str(files("hoidata.presets")))
+    return files("hoidata.presets")
 
 
 @dataclass(frozen=True)
@@ -136,10 +143,11 @@ def section(cls, values: dict, path: Path, name: str):
 
 
 def resolve_pipeline(name_or_path: str) -> Path:
-    """'dexycb' -> pipelines/dexycb.toml; a path is used as it is."""
+    """'dexycb' -> pipelines/dexycb.toml (a Traversable of the installed presets outside a checkout, see
+    :func:`pipelines_dir`); a path is used as it is."""
     path = Path(name_or_path)
     if path.suffix != ".toml":
-        path = pipelines_dir() / f"{name_or_path}.toml"
+        path = pipelines_dir().joinpath(f"{name_or_path}.toml")
     if not path.is_file():
         raise DataError(path, None, "pipeline config not found")
     return path
@@ -214,9 +222,23 @@ def load_build_config(name_or_path: str, overrides: list[str] = ()) -> BuildConf
     _check_selection(dataset, path)
     if record.sdf_backend not in SDF_BACKENDS:
         raise DataError(path, "record.sdf_backend", f"unknown backend {record.sdf_backend!r}; expected one of {SDF_BACKENDS}")
+    _check_crop(record, dataset, path)
     return BuildConfig(dataset,
                        replace(record, sigmas=tuple(record.sigmas)),
                        section(StoreConfig, data.get("store", {}), path, "store"))
+
+
+def _check_crop(record: RecordSettings, dataset: DatasetConfig, path: Path) -> None:
+    """record.crop names a crop; upstream's HO-3D test crop exists for its evaluation split only (its training
+    split has no upstream test crop to reproduce)."""
+    from hoidata.pipeline.upstream_records import CROPS
+
+    if record.crop not in CROPS:
+        raise DataError(path, "record.crop", f"expected one of {CROPS}, got {record.crop!r}")
+    odd = sorted(set(record.crop_splits) & set(dataset.splits) - {"evaluation"})
+    if record.crop == "upstream" and dataset.name == "ho3d" and odd:
+        raise DataError(path, "record.crop_splits", f"upstream's HO-3D test crop exists for the evaluation split "
+                                                    f"only, not for {odd}")
 
 
 def _check_selection(dataset: DatasetConfig, path: Path) -> None:

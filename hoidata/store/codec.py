@@ -16,9 +16,11 @@ import numpy as np
 
 from hoidata.errors import DataError
 from hoidata.schema import (
+    CROP_FIELDS,
     FULL,
     HEATMAP,
     IMG,
+    IMG_LOSSLESS,
     META,
     META_FIELDS,
     META_TYPES,
@@ -30,7 +32,9 @@ from hoidata.schema import (
     SDF_COLUMNS,
     SDF_DTYPE,
     SEG,
+    UPSTREAM_CROP,
     check_key,
+    image_member,
     kind_of_members,
 )
 from hoidata.store.index import to_jsonable
@@ -67,18 +71,18 @@ def _is_key(key) -> bool:
     return True
 
 
-def _check_images(where, key, img, seg, hm) -> None:
+def _check_images(where, key, img, seg, hm, image: str = IMG) -> None:
     """img (S, S, 3) uint8; seg and hm (S // 2, S // 2) uint8 (None: not there or not decoded; the members a record
     has are checked against its kind before)."""
     if not (isinstance(img, np.ndarray) and img.dtype == np.uint8 and img.ndim == 3
             and img.shape[2] == 3 and img.shape[0] == img.shape[1] >= 2):
-        raise DataError(where, _field(key, IMG), f"expected square (S, S, 3) uint8, got {_describe(img)}")
+        raise DataError(where, _field(key, image), f"expected square (S, S, 3) uint8, got {_describe(img)}")
     half = img.shape[0] // 2
     masks = [(member, arr) for member, arr in ((SEG, seg), (HEATMAP, hm)) if isinstance(arr, np.ndarray)]
     if len(masks) == 2 and seg.shape == hm.shape != (half, half) and seg.ndim == 2 and seg.shape[0] == seg.shape[1]:
         # both masks agree with each other: the image is the odd one out
         side = 2 * seg.shape[0]
-        raise DataError(where, _field(key, IMG), f"{img.shape[1]}x{img.shape[0]} px, but {SEG} and {HEATMAP} are "
+        raise DataError(where, _field(key, image), f"{img.shape[1]}x{img.shape[0]} px, but {SEG} and {HEATMAP} are "
                                                  f"{seg.shape[1]}x{seg.shape[0]}: expected a {side}x{side} image")
     for member, arr in ((SEG, seg), (HEATMAP, hm)):
         if arr is not None and not (isinstance(arr, np.ndarray) and arr.dtype == np.uint8 and arr.shape == (half, half)):
@@ -105,9 +109,10 @@ def _describe(arr) -> str:
     return f"{arr.dtype} {arr.shape}" if isinstance(arr, np.ndarray) else type(arr).__name__
 
 
-def _check_meta(meta, where, key, n_sdf: int | None, kind: str | None = None) -> dict:
+def _check_meta(meta, where, key, n_sdf: int | None, kind: str | None = None, image: str | None = None) -> dict:
     """Check a JSON-level meta dict against META_FIELDS and its kind's fields (``kind``: the kind its members
-    say, checked against the meta's own); return it with shaped fields as numpy arrays."""
+    say, checked against the meta's own), and the CROP_FIELDS group (all or none; present exactly when the image
+    member ``image`` is img.png, when given); return it with shaped fields as numpy arrays."""
     name = _field(key, META)
     if not isinstance(meta, dict):
         raise DataError(where, name, f"expected a JSON object, got {type(meta).__name__}")
@@ -120,12 +125,26 @@ def _check_meta(meta, where, key, n_sdf: int | None, kind: str | None = None) ->
         raise DataError(where, name, f"'kind': {given!r}, expected {kind!r}" if kind and given in RECORD_KINDS
                         else f"'kind': {given!r}, expected one of {sorted(RECORD_KINDS)}")
     fields = RECORD_KINDS[given][1]
+    crop = [f for f in CROP_FIELDS if f in meta]
+    if crop:
+        if len(crop) != len(CROP_FIELDS):
+            raise DataError(where, name, f"upstream-crop fields {sorted(CROP_FIELDS)} come together; missing "
+                                         f"{sorted(set(CROP_FIELDS) - set(crop))}")
+        if meta["crop"] != UPSTREAM_CROP:
+            raise DataError(where, name, f"'crop': {meta['crop']!r}, expected {UPSTREAM_CROP!r}")
+        fields = (*fields, *CROP_FIELDS)
+    if image is not None and bool(crop) != (image == IMG_LOSSLESS):
+        raise DataError(where, _field(key, image), f"an upstream-crop record ('crop' in {META}) stores its image "
+                                                   f"as {IMG_LOSSLESS}, any other record as {IMG}")
     missing, extra = sorted(set(fields) - set(meta)), sorted(set(meta) - set(fields))
     if missing or extra:
         raise DataError(where, name, f"missing fields {missing}, unexpected fields {extra} (kind {given!r})")
     out = {}
     for field_name in fields:
-        shape, value = META_FIELDS[field_name][0], meta[field_name]
+        shape, value = {**META_FIELDS, **CROP_FIELDS}[field_name][0], meta[field_name]
+        if field_name == "crop":
+            out[field_name] = value
+            continue
         if shape is None:
             want = META_TYPES.get(field_name)
             # bool is an int in Python; a flag where a number belongs (or back) is still wrong
@@ -160,7 +179,8 @@ def encode_record(key: str, img: np.ndarray, seg: np.ndarray | None, heatmap: np
                   sdf: np.ndarray | None, meta: dict) -> dict[str, bytes]:
     """Arrays and labels -> {member name: bytes} of the record's kind; the same inputs always give the same bytes.
 
-    img is RGB. meta must hold exactly its kind's fields (``meta["kind"]``, schema.RECORD_KINDS; numpy values
+    img is RGB, stored as JPEG, or as lossless PNG (``img.png``) when meta holds the upstream-crop fields
+    (schema.CROP_FIELDS). meta must hold exactly its kind's fields (``meta["kind"]``, schema.RECORD_KINDS; numpy values
     allowed); seg, heatmap and sdf are None exactly for a kind without those members. It is checked as a reader
     would check it, so a record that encodes also decodes.
     """
@@ -171,12 +191,15 @@ def encode_record(key: str, img: np.ndarray, seg: np.ndarray | None, heatmap: np
     given = {IMG, META} | {m for m, arr in arrays.items() if arr is not None}
     if kind in RECORD_KINDS and given != set(members_of_kind):
         raise DataError(None, key, f"a {kind!r} record has members {list(members_of_kind)}, got {sorted(given)}")
-    _check_images(None, key, img, seg, heatmap)
+    image = IMG_LOSSLESS if isinstance(meta, dict) and "crop" in meta else IMG
+    _check_images(None, key, img, seg, heatmap, image)
     if sdf is not None:
         _check_sdf(None, key, sdf)
     plain = to_jsonable(meta, None, _field(key, META))
-    _check_meta(plain, None, key, None if sdf is None else len(sdf))
-    members = {IMG: _imencode(".jpg", np.ascontiguousarray(img[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])}
+    _check_meta(plain, None, key, None if sdf is None else len(sdf), image=image)
+    bgr = np.ascontiguousarray(img[..., ::-1])
+    members = {image: _imencode(".png", bgr, [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION]) if image == IMG_LOSSLESS
+               else _imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])}
     for member, arr in ((SEG, seg), (HEATMAP, heatmap)) if seg is not None else ():
         members[member] = _imencode(".png", np.ascontiguousarray(arr), [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION])
     if sdf is not None:
@@ -186,7 +209,7 @@ def encode_record(key: str, img: np.ndarray, seg: np.ndarray | None, heatmap: np
     # sorted keys and fixed separators: byte-identical JSON for equal labels
     text = json.dumps(plain, sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False)
     members[META] = text.encode()
-    return {member: members[member] for member in members_of_kind}
+    return {member: members[member] for member in (image if m == IMG else m for m in members_of_kind)}
 
 
 def _imencode(ext: str, arr: np.ndarray, params: list[int]) -> bytes:
@@ -213,6 +236,8 @@ def incomplete_image(data: bytes) -> str | None:
 
 def _image_size(data: bytes, member: str) -> tuple[int, int] | None:
     """(width, height) from a PNG's IHDR or a JPEG's SOF header without decoding; None if not found."""
+    if member == IMG_LOSSLESS and data[24:26] != b"\x08\x02":  # the crop: 8-bit RGB PNG, nothing else
+        return None
     if member != IMG:
         if data[:8] == _PNG_MAGIC and data[12:16] == b"IHDR" and len(data) >= 24:
             return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
@@ -227,16 +252,17 @@ def _image_size(data: bytes, member: str) -> tuple[int, int] | None:
 
 
 def _decode_image(data: bytes, where, key, member: str) -> np.ndarray:
-    """JPEG -> RGB (H, W, 3) uint8, PNG -> (H, W) uint8; the header is checked before decoding."""
+    """JPEG or the crop's PNG -> RGB (H, W, 3) uint8, mask PNG -> (H, W) uint8; the header is checked before
+    decoding."""
     size = _image_size(data, member)
-    kind = "JPEG" if member == IMG else "8-bit grey PNG"
+    kind = {IMG: "JPEG", IMG_LOSSLESS: "8-bit RGB PNG"}.get(member, "8-bit grey PNG")
     if size is None or not 0 < max(size) <= MAX_IMAGE_SIDE:
         raise DataError(where, _field(key, member), f"not a {kind} of at most {MAX_IMAGE_SIDE} px (header: {size})")
     problem = incomplete_image(data)
     if problem:
         raise DataError(where, _field(key, member), problem)
     # RGB straight from the decoder: the values of BGR then cvtColor (or [..., ::-1]), without the extra pass
-    flag = cv2.IMREAD_COLOR_RGB if member == IMG else cv2.IMREAD_UNCHANGED
+    flag = cv2.IMREAD_COLOR_RGB if member in (IMG, IMG_LOSSLESS) else cv2.IMREAD_UNCHANGED
     arr = cv2.imdecode(np.frombuffer(data, np.uint8), flag)
     if arr is None:
         raise DataError(where, _field(key, member), f"OpenCV cannot decode this {kind}")
@@ -270,7 +296,8 @@ def decode_record(members: dict[str, bytes], where: str, undecoded: tuple[str, .
 
     Returns {"__key__": key, IMG: RGB uint8, SEG: uint8, HEATMAP: uint8, SDF: int16 (N, 6), META: dict}
     with META's shaped fields as numpy arrays; a record of a kind without some members (schema.RECORD_KINDS)
-    has only its own (an ``eval`` record: IMG and META). Other ``__*__`` entries (``__url__``...) are ignored.
+    has only its own (an ``eval`` record: IMG and META). An upstream-crop record's ``img.png`` is returned under
+    IMG too, pixel for pixel as stored. Other ``__*__`` entries (``__url__``...) are ignored.
     ``undecoded``: PNG members (SEG, HEATMAP) to check without decoding (present, within the size limit, a PNG
     header of the right size, not cut short) and leave out of the result, for readers that do not use them.
     Any deviation from the schema raises DataError naming ``where`` (the shard) and the key/member.
@@ -286,12 +313,13 @@ def decode_record(members: dict[str, bytes], where: str, undecoded: tuple[str, .
     for name in given:
         if not isinstance(members[name], (bytes, bytearray, memoryview)) or len(members[name]) > MAX_MEMBER_BYTES:
             raise DataError(where, _field(key, name), f"expected at most {MAX_MEMBER_BYTES} bytes")
-    out = {IMG: _decode_image(members[IMG], where, key, IMG)}
+    image = image_member(given)  # decoded under IMG whatever its member name, so readers need not care
+    out = {IMG: _decode_image(members[image], where, key, image)}
     if kind == FULL:
         for member in (SEG, HEATMAP):
             read = _png_unread if member in undecoded else _decode_image
             out[member] = read(members[member], where, key, member)
-    _check_images(where, key, out[IMG], out.get(SEG), out.get(HEATMAP))
+    _check_images(where, key, out[IMG], out.get(SEG), out.get(HEATMAP), image)
     for member in undecoded:
         out.pop(member, None)
     if SDF in given:
@@ -301,5 +329,5 @@ def decode_record(members: dict[str, bytes], where: str, undecoded: tuple[str, .
         plain = json.loads(bytes(members[META]).decode("utf-8"))
     except (UnicodeDecodeError, ValueError, RecursionError) as exc:  # RecursionError: absurdly nested JSON
         raise DataError(where, _field(key, META), f"not UTF-8 JSON ({type(exc).__name__})") from None
-    out[META] = _check_meta(plain, where, key, len(out[SDF]) if SDF in out else None, kind)
+    out[META] = _check_meta(plain, where, key, len(out[SDF]) if SDF in out else None, kind, image)
     return {KEY: out[META]["key"], **out}

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hoidata.errors import DataError
+from hoidata.errors import DataError, naming_os_errors
 from hoidata.schema import META_FIELDS, META_TYPES, RECORD_KINDS, SCHEMA_VERSION, check_key
 from hoidata.store.paths import INDEX_NAME, replaced_dir, resolve_store
 from hoidata.store.remote import RemoteStore, remote_sizes, zarr_source
@@ -290,7 +290,7 @@ def write_index(store_dir, shards_info: Sequence[ShardInfo | dict], labels: dict
              "objects": sorted(object_meshes), "skipped": [_skip_entry(s, where) for s in skipped],
              "config": to_jsonable(config, where, "config"),
              "provenance": to_jsonable({**provenance, "hoidata_version": __version__}, where, "provenance")}
-    with replaced_dir(where) as tmp:
+    with naming_os_errors(where), replaced_dir(where) as tmp:  # zarr's write errors name no file
         group = zarr.open_group(tmp, mode="w", zarr_format=3)
         checksums = {}
         for name, arr in columns.items():

@@ -27,8 +27,8 @@ from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 
 from hoidata.atomic import write_json_atomic
-from hoidata.errors import DataError
-from hoidata.schema import MEMBERS, kind_of_members
+from hoidata.errors import DataError, naming_os_errors
+from hoidata.schema import MEMBERS, WRITE_ORDER, kind_of_members
 from hoidata.store.codec import (
     KEY,
     MAX_MEMBER_BYTES,
@@ -84,7 +84,7 @@ class _OpenShard:
 
     def add(self, key: str, members: dict[str, bytes]) -> None:
         _check_members_to_write(key, members)
-        for member in MEMBERS:  # schema order, whatever order the dict has
+        for member in WRITE_ORDER:  # schema order, whatever order the dict has
             if member not in members:  # a record kind without this member
                 continue
             data = bytes(members[member])
@@ -92,15 +92,17 @@ class _OpenShard:
             info.size, info.mtime, info.mode, info.type = len(data), 0, 0o644, tarfile.REGTYPE
             info.uid = info.gid = 0
             info.uname = info.gname = ""
-            self._tar.addfile(info, io.BytesIO(data))
+            with naming_os_errors(self.path):  # a full disk's write() error names no file
+                self._tar.addfile(info, io.BytesIO(data))
         self.keys.append(key)
 
     def finish(self) -> ShardInfo:
-        self._tar.close()  # end-of-archive blocks and padding to the 10 KiB record size
-        self._file.flush()
-        os.fsync(self._file.fileno())  # the content is on disk before the name says "complete"
-        self._file.close()
-        os.replace(self.tmp, self.path)
+        with naming_os_errors(self.path):
+            self._tar.close()  # end-of-archive blocks and padding to the 10 KiB record size
+            self._file.flush()
+            os.fsync(self._file.fileno())  # the content is on disk before the name says "complete"
+            self._file.close()
+            os.replace(self.tmp, self.path)
         first, last = (self.keys[0], self.keys[-1]) if self.keys else (None, None)
         info = ShardInfo(self.number, self.path.name, len(self.keys), self._hash.sha256.hexdigest(),
                          self._hash.size, first, last)
@@ -108,7 +110,10 @@ class _OpenShard:
         return info
 
     def abort(self) -> None:
-        self._file.close()
+        try:
+            self._file.close()  # flushes: on a full disk it fails again, and the first error is the one to report
+        except OSError:
+            pass
         self.tmp.unlink(missing_ok=True)
 
 

@@ -65,26 +65,27 @@ def draw_params(batch_size: int, settings: AugmentSettings, generator: torch.Gen
     color (B, 4) brightness, contrast, saturation factors and hue shift (turns), order (4,) colour-op order,
     blur (B,) sigma in output pixels. ``train=False``: the identity (central crop, nothing else).
     """
-    b = batch_size
+    b, cpu = batch_size, {"device": "cpu"}  # explicit: a default device set by the user must not move these
     if not train:
-        return {"shift": torch.zeros(b, 2), "scale": torch.ones(b), "angle": torch.zeros(b),
-                "color": torch.tensor([1.0, 1.0, 1.0, 0.0]).repeat(b, 1), "order": torch.arange(4),
-                "blur": torch.zeros(b)}
-    shift = settings.center_jitter * (2 * torch.rand(b, 2, generator=generator) - 1)
-    scale = (1 + settings.scale_sigma * torch.randn(b, generator=generator)).clamp(settings.scale_min,
-                                                                                   settings.scale_max)
+        return {"shift": torch.zeros(b, 2, **cpu), "scale": torch.ones(b, **cpu), "angle": torch.zeros(b, **cpu),
+                "color": torch.tensor([1.0, 1.0, 1.0, 0.0], **cpu).repeat(b, 1), "order": torch.arange(4, **cpu),
+                "blur": torch.zeros(b, **cpu)}
+    shift = settings.center_jitter * (2 * torch.rand(b, 2, generator=generator, **cpu) - 1)
+    scale = (1 + settings.scale_sigma * torch.randn(b, generator=generator, **cpu)).clamp(settings.scale_min,
+                                                                                         settings.scale_max)
     if settings.rotation == "dexycb":
-        angle = torch.randn(b, generator=generator).clamp(-2, 2) * (math.pi / 6)
-        angle = angle * (torch.rand(b, generator=generator) < settings.rot_prob)
+        angle = torch.randn(b, generator=generator, **cpu).clamp(-2, 2) * (math.pi / 6)
+        angle = angle * (torch.rand(b, generator=generator, **cpu) < settings.rot_prob)
     elif settings.rotation == "uniform":
-        angle = (2 * torch.rand(b, generator=generator) - 1) * math.pi
+        angle = (2 * torch.rand(b, generator=generator, **cpu) - 1) * math.pi
     else:
-        angle = torch.zeros(b)
-    factors = 0.5 + torch.rand(b, 3, generator=generator)
-    hue = 0.15 * (2 * torch.rand(b, 1, generator=generator) - 1)
-    color = torch.cat([factors, hue], 1) if settings.color else torch.tensor([1.0, 1.0, 1.0, 0.0]).repeat(b, 1)
-    order = torch.randperm(4, generator=generator)
-    blur = settings.blur_max * torch.rand(b, generator=generator)
+        angle = torch.zeros(b, **cpu)
+    factors = 0.5 + torch.rand(b, 3, generator=generator, **cpu)
+    hue = 0.15 * (2 * torch.rand(b, 1, generator=generator, **cpu) - 1)
+    identity = torch.tensor([1.0, 1.0, 1.0, 0.0], **cpu).repeat(b, 1)
+    color = torch.cat([factors, hue], 1) if settings.color else identity
+    order = torch.randperm(4, generator=generator, **cpu)
+    blur = settings.blur_max * torch.rand(b, generator=generator, **cpu)
     return {"shift": shift, "scale": scale, "angle": angle, "color": color, "order": order, "blur": blur}
 
 
@@ -233,7 +234,9 @@ def float_image(img: torch.Tensor) -> torch.Tensor:
 def augment_batch(batch: dict, settings: AugmentSettings, generator: torch.Generator | None, train: bool) -> dict:
     """A loader batch (see ``hoisdf.data.build_dataset``) -> the network input batch, on the batch's device.
 
-    ``train=False``: the central S / context crop resized to R (test-time input). ``train=True``: random
+    ``train=False``: the central S / context crop resized to R (test-time input); an upstream-crop record
+    (``upstream_crop``, hoidata's ``record.crop = "upstream"``) is used whole, as stored when S = R (no resampling),
+    with its own grid boxes and object anchor (``grid_hand_box``, ``grid_object_box``, ``object_anchor``). ``train=True``: random
     centre, scale, rotation, colour and blur per sample, drawn on the CPU from ``generator``.
     Replaces img (B, 3, R, R), seg (B, 4, R/2, R/2) float {0, 1} (from ``seg_bits``, which is dropped, or a
     4-plane ``seg``), heatmap (B, 1, R/2, R/2) (rendered from the joints, whether the batch has one or not),
@@ -245,8 +248,10 @@ def augment_batch(batch: dict, settings: AugmentSettings, generator: torch.Gener
     device, b, size = img.device, img.shape[0], settings.input_size
     half, store_size = size // 2, img.shape[-1]
     params = {k: v.to(device) for k, v in draw_params(b, settings, generator, train).items()}
-    side0 = store_size / settings.context
-    centre = (store_size - 1) / 2 + side0 * params["shift"]
+    upstream = _upstream_crops(batch, b, device)
+    # an upstream crop is the network input itself: its whole square, not the central 1 / context of a wider one
+    side0 = torch.where(upstream, float(store_size), store_size / settings.context)
+    centre = (store_size - 1) / 2 + side0[:, None] * params["shift"]
     side = side0 * params["scale"]
     rot = rotation_z(params["angle"].float())
     K_new, M = pixel_affine(batch["K"].float(), rot, centre.float(), side.float(), size)
@@ -269,7 +274,7 @@ def augment_batch(batch: dict, settings: AugmentSettings, generator: torch.Gener
     for key in POINT_KEYS:
         if key in batch:
             out[key] = batch[key].float() @ rot.transpose(1, 2)
-    rot4 = torch.eye(4, device=device).repeat(b, 1, 1)
+    rot4 = torch.eye(4, device=device, dtype=rot.dtype).repeat(b, 1, 1)
     rot4[:, :3, :3] = rot
     out["object_pose"] = rot4 @ batch["object_pose"].float()
     out["mano_pose"] = rotate_mano_global(batch["mano_pose"].float(), rot)
@@ -279,4 +284,31 @@ def augment_batch(batch: dict, settings: AugmentSettings, generator: torch.Gener
     out["obj_center"] = back_project(0.5 * (box[:, :2] + box[:, 2:]), K_new, out["hand_root"][:, 2])
     out["rotation"] = rot
     out["crop_scale"] = size / side.float()
+    if upstream.any():
+        as_is = upstream if not train and store_size == size else torch.zeros_like(upstream)
+        _use_upstream_crop(out, batch, M, rot, as_is)
     return out
+
+
+def _upstream_crops(batch: dict, b: int, device) -> torch.Tensor:
+    """(B,) bool: which samples are upstream crops (the loader's ``upstream_crop``; none when the batch lacks it)."""
+    flags = batch.get("upstream_crop")
+    return flags.to(device).bool() if flags is not None else torch.zeros(b, dtype=torch.bool, device=device)
+
+
+def _use_upstream_crop(out: dict, batch: dict, M: torch.Tensor, rot: torch.Tensor, as_is: torch.Tensor) -> None:
+    """Upstream-crop samples take the record's grid boxes and object anchor instead of the ones made from the mesh
+    boxes (moved by ``M`` / ``rot`` like every label); ``as_is`` (B,) samples (test time, stored size = input size)
+    take the stored image, K, boxes and anchor exactly, with no resampling (``grid_sample`` at the identity would
+    still round)."""
+    up = batch["upstream_crop"].to(M.device).bool()
+    for name, grid in (("hand_box", "grid_hand_box"), ("object_box", "grid_object_box")):
+        stored = batch[grid].float()
+        moved = torch.where(as_is[:, None], stored, transform_boxes(M, stored))
+        out[name] = torch.where(up[:, None], moved, out[name])
+    anchor = batch["object_anchor"].float()
+    anchor = torch.where(as_is[:, None], anchor, (rot @ anchor[..., None])[..., 0])
+    out["obj_center"] = torch.where(up[:, None], anchor, out["obj_center"])
+    if as_is.any():
+        out["K"] = torch.where(as_is[:, None, None], batch["K"].float(), out["K"])
+        out["img"] = torch.where(as_is[:, None, None, None], float_image(batch["img"]), out["img"])

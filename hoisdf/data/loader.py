@@ -183,6 +183,9 @@ class _ToArrays:
 
     def convert(self, rec: dict) -> dict:
         meta, key = rec[schema.META], rec[KEY]
+        if self.near is not None and "crop" in meta:
+            raise DataError(None, key, "an upstream-crop record (record.crop = \"upstream\") is a 256 px test input "
+                                       "without the context augmentation needs: train on project-crop records")
         if meta["kind"] != schema.FULL:  # an 'eval' record: only evaluation takes it, its hand labels as NaN
             if self.near is not None:
                 raise DataError(None, key, f"a {meta['kind']!r} record lacks {', '.join(schema.EVAL_ABSENT)}")
@@ -199,11 +202,22 @@ class _ToArrays:
             "object_pose": _f32(meta["object_pose"]),
             "hand_box": _f32(meta["hand_box"]), "object_box": _f32(meta["object_box"]),
             "object_id": np.int64(meta["object_id"]),
+            **crop_entries(meta),
             "mirrored": np.bool_(meta["mirrored"]),
             "is_synthetic": np.bool_(meta["dataset"] == "synthetic"),
             "key": key,
         })
         return out
+
+
+def crop_entries(meta: dict) -> dict:
+    """A record's upstream-crop fields (schema.CROP_FIELDS) as batch entries: upstream_crop bool, grid_hand_box and
+    grid_object_box (4,) f32 crop px, object_anchor (3,) f32 m; NaN (and False) for a project-crop record, so that
+    every sample has the same entries and records of both crops batch together."""
+    up = "crop" in meta
+    return {"upstream_crop": np.bool_(up),
+            **{name: _f32(meta[name] if up else np.full(schema.CROP_FIELDS[name][0], np.nan))
+               for name in ("grid_hand_box", "grid_object_box", "object_anchor")}}
 
 
 class _Mix:
@@ -350,6 +364,10 @@ def build_dataset(stores: list[StoreSpec], batch_size: int, epoch_samples: int |
     hand_box            (B, 4) f32           x1, y1, x2, y2 of the projected hand mesh, img pixels
     object_box          (B, 4) f32           same for the object mesh
     object_id           (B,) int64           DexYCB class id 1..21
+    upstream_crop       (B,) bool            record.crop = "upstream": img, K and the three below are upstream's
+    grid_hand_box       (B, 4) f32           upstream's hand grid-filter box, img pixels (NaN: project crop)
+    grid_object_box     (B, 4) f32           upstream's object grid-filter box, img pixels (NaN: project crop)
+    object_anchor       (B, 3) f32           upstream's object anchor, camera frame, metres (NaN: project crop)
     mirrored            (B,) bool            a left hand mirrored to a right hand
     is_synthetic        (B,) bool            record from a synthetic store (meta dataset)
     key                 list of B str        record keys

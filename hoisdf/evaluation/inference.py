@@ -102,6 +102,7 @@ def predict_batch(model, mano, mirrored, batch: dict, config,
                   precision: str = "fp32") -> tuple[dict, dict[str, np.ndarray]]:
     """One loader batch (on the model's device) -> (network input batch and raw outputs, per-sample arrays:
     joints, verts (when predicted), gt_joints, gt_verts, root, obj_pose, gt_obj_pose, obj_center; metres,
+    upstream_crop 1 / 0 when the loader says which records are upstream crops;
     camera frame, the predicted hand placed at the ground-truth wrist). ``precision``: "fp32" or "bf16"
     (autocast on the batch's device; geometry stays fp32, see :mod:`hoisdf.model.precision`)."""
     device = batch["img"].device
@@ -117,6 +118,8 @@ def predict_batch(model, mano, mirrored, batch: dict, config,
               "obj_center": batch["obj_center"]}
     if "verts" in out:
         arrays["verts"] = out["verts"].float() + root
+    if "upstream_crop" in batch:  # the record is upstream's test crop (hoidata record.crop = "upstream")
+        arrays["upstream_crop"] = batch["upstream_crop"]
     return (batch, out), {k: _np(v) for k, v in arrays.items()}
 
 

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hoidata.atomic import write_atomic
 from hoidata.errors import DataError
 from hoisdf.evaluation import metrics as M
 
@@ -179,9 +180,7 @@ def score_ho3d_submission(pred_path, gt_folder) -> dict:
 
 def write_scores_txt(path, scores: dict) -> Path:
     """``scores.txt`` as eval.py writes it: one ``name: %f`` line per score, in its order."""
-    path = Path(path)
-    path.write_text("".join(f"{name}: {scores[name]:f}\n" for name in HO3D_SCORES))
-    return path
+    return write_atomic(path, "".join(f"{name}: {scores[name]:f}\n" for name in HO3D_SCORES).encode())
 
 
 def format_ho3d_scores(scores: dict) -> str:

@@ -4,13 +4,21 @@ the official export files and the result pictures."""
 from __future__ import annotations
 
 import csv
+import io
 from pathlib import Path
 
 import numpy as np
 
+from hoidata.atomic import write_atomic
 from hoidata.errors import DataError
 from hoidata.geometry.mirror import mirror_points
 from hoidata.store import read_index
+from hoisdf.evaluation.ho3d_list import (
+    check_against_ground_truth,
+    check_against_store,
+    ho3d_entry,
+    read_evaluation_list,
+)
 from hoisdf.evaluation.inference import Collected
 from hoisdf.evaluation.official import HO3D_EVALUATION_SIZES, dexycb_hpe_scores, toolkit_gt_mm
 from hoisdf.evaluation.submissions import hpe_missing_ids, read_dexycb_hpe, write_dexycb_hpe, write_ho3d_pred
@@ -18,6 +26,9 @@ from hoisdf.evaluation.submissions import hpe_missing_ids, read_dexycb_hpe, writ
 TABLE = (("MJE", "rr_mje"), ("PA-MJE", "pa_mje"), ("OCE", "oce"), ("MCE", "mce"), ("ADD-S", "add_s"))
 MESH_TABLE = (("MME", "mme"), ("PA-MME", "pa_mme"), ("F@5", "f5"), ("F@15", "f15"))
 HO3D_TABLE = (("ST-MJE", "st_mje"), ("OME", "ome"))  # HO-3D tables: hand metrics from the server, object OME
+# every file an evaluation writes into its output folder (glob patterns; clear_results removes them before a run)
+RESULT_FILES = ("metrics.json", "per_object.csv", "scores.txt", "pred.json", "pred.zip", "pred_*.json", "pred_*.zip",
+                "dexycb_hpe_*.txt", "vis/*.png")
 
 
 def format_table(rows: dict[str, dict[str, float]], mesh: bool, ho3d: bool = False) -> str:
@@ -44,20 +55,23 @@ def json_safe(x):
 
 
 def write_per_object(path: Path, summary: dict, counts: dict[str, int]) -> None:
+    """per_object.csv: one row per object and one for all, the sample count then every metric (written atomically)."""
     names = sorted(k for k in summary if k != "all")
     metric_names = list(summary["all"])
-    with open(path, "w", newline="") as f:
+    with io.StringIO(newline="") as f:
         writer = csv.writer(f)
         writer.writerow(["object", "samples", *metric_names])
         for name in [*names, "all"]:
             writer.writerow([name, counts.get(name, sum(counts.values())),
                              *(f"{summary[name][m]:.6g}" for m in metric_names)])
+        write_atomic(path, f.getvalue().encode())
 
 
 def export(col: Collected, stores: list, out_dir: Path, ho3d_order=None,
            indexes: dict | None = None) -> tuple[dict[str, str], dict]:
-    """The official result files: per DexYCB split of each store an HPE file, and with ``ho3d_order`` the
-    pred.json/pred.zip of HO-3D stores. Returns (files written, ``dexycb_hpe`` scores per HPE file).
+    """The official result files: per DexYCB split of each store an HPE file, and with ``ho3d_order`` (the list's
+    entries, or its path) the pred.json/pred.zip of HO-3D stores. Returns (files written, ``dexycb_hpe`` scores per
+    HPE file). A requested pred.json that cannot be written is a DataError.
 
     Mirrored records (DexYCB left hands seen as right ones) are mirrored back, so the files hold the datasets'
     own camera frames.
@@ -68,7 +82,7 @@ def export(col: Collected, stores: list, out_dir: Path, ho3d_order=None,
         flip = mirrored.astype(bool)[:, None, None]
         joints, gt = np.where(flip, mirror_points(joints), joints), np.where(flip, mirror_points(gt), gt)
     written, scores = {}, {}
-    order = _read_order(ho3d_order) if ho3d_order else None
+    order = read_evaluation_list(ho3d_order) if isinstance(ho3d_order, (str, Path)) else ho3d_order
     for s, path in enumerate(stores):
         sel = np.flatnonzero(np.asarray(col.store) == s)
         index = (indexes or {}).get(path) or read_index(path)
@@ -77,6 +91,9 @@ def export(col: Collected, stores: list, out_dir: Path, ho3d_order=None,
             written[f"hpe:{path}:{name}"], scores[Path(file).name] = file, score
         if order is not None:
             written.update(_export_ho3d(col, sel, joints, path, out_dir, order, suffix))
+    if order is not None and not any(key.startswith("ho3d") for key in written):
+        raise DataError(ho3d_order if isinstance(ho3d_order, (str, Path)) else None, None,
+                        "--ho3d-order: no HO-3D store among the evaluated ones; no pred.json written")
     return written, scores
 
 
@@ -111,34 +128,63 @@ def _export_hpe(index, rows: np.ndarray, joints: np.ndarray, gt: np.ndarray, out
         yield name, str(file), score
 
 
-def _read_order(path) -> list[str]:
-    if not Path(path).is_file():
-        raise DataError(path, None, "HO-3D evaluation list not found")
-    return [ln.strip() for ln in Path(path).read_text().splitlines() if ln.strip()]
-
-
 def _export_ho3d(col: Collected, sel: np.ndarray, joints: np.ndarray, path, out_dir: Path, order: list[str],
                  suffix: str) -> dict[str, str]:
-    """pred.json and pred.zip of one HO-3D store in ``order`` (``evaluation.txt``); a problem is printed, not raised."""
+    """pred.json and pred.zip of one HO-3D store in ``order`` (``evaluation.txt``'s entries); a store that is not
+    an HO-3D one is noted and skipped, a list its predictions cannot fill is a DataError."""
     if not col.get("ho3d").astype(bool)[sel].all():
         print(f"--ho3d-order: {path} is not an HO-3D store; no pred.json written for it")
         return {}
     verts = col.get("verts")
-    ids = ["/".join(col.frame_ids[i].rsplit("_", 1)) for i in sel]  # SEQ_id -> SEQ/id
+    ids = [ho3d_entry(col.frame_ids[i]) for i in sel]
     v = verts[sel] if verts is not None else np.zeros((len(sel), 0, 3))
     written = {}
-    try:
-        for ext in (".json", ".zip"):
-            written[f"ho3d{ext}:{path}"] = str(write_ho3d_pred(out_dir / f"pred{suffix}{ext}", ids, joints[sel], v,
-                                                               order=order))
-    except ValueError as err:
-        print(f"--ho3d-order: {path}: not written: {err}")
-        return written
+    for ext in (".json", ".zip"):
+        file = out_dir / f"pred{suffix}{ext}"
+        try:
+            written[f"ho3d{ext}:{path}"] = str(write_ho3d_pred(file, ids, joints[sel], v, order=order))
+        except ValueError as err:
+            raise DataError(file, None, f"not written: {err}") from None
     fits = [v for v, n in HO3D_EVALUATION_SIZES.items() if n == len(order)]
     print(f"pred.json: {len(order)} samples in the order of --ho3d-order: " + (
         f"the size of the HO-3D {fits[0]} challenge's evaluation split" if fits else
         "not the size of a challenge split (v2 11,524, v3 20,137), so the server would refuse it"))
     return written
+
+
+def checked_ho3d_order(path, gt_folder, indexes: dict, limit: int | None = None) -> list[str]:
+    """``--ho3d-order``'s list, checked before any work (:mod:`hoisdf.evaluation.ho3d_list`): well-formed, exactly
+    the frames of every HO-3D store among ``indexes`` (store -> StoreIndex, in evaluation order), not cut by
+    ``limit``, and with ``gt_folder`` the ground truth's own list in its order. Returns its entries."""
+    order = read_evaluation_list(path)
+    done, ho3d = 0, []
+    for store, index in indexes.items():
+        done += len(index.keys)
+        if len(index.keys) and (np.asarray(index.labels["dataset"]) == "ho3d").all():
+            ho3d.append(store)
+            if limit is not None and limit < done:
+                raise DataError(path, None, f"--limit {limit} leaves out frames of {store}; a submission needs a "
+                                            "prediction for every line: leave --limit out")
+            check_against_store(order, path, store, index.labels["frame_id"], index.skipped)
+    if not ho3d:
+        raise DataError(path, None, f"--ho3d-order: none of the stores is an HO-3D store "
+                                    f"({', '.join(str(s) for s in indexes)}); no pred.json can be written")
+    if gt_folder is not None:
+        check_against_ground_truth(order, path, gt_folder)
+    return order
+
+
+def clear_results(out_dir: Path) -> None:
+    """Remove the result files an earlier evaluation left in ``out_dir`` (:data:`RESULT_FILES`, and the temporary
+    files of their atomic writes), so that none of them can pass for a result of the run that follows."""
+    out_dir = Path(out_dir)
+    if not out_dir.is_dir():
+        return
+    for pattern in RESULT_FILES:
+        folder, _, name = pattern.rpartition("/")
+        for found in [*(out_dir / folder).glob(name), *(out_dir / folder).glob(f".{name}.*.tmp")]:
+            if found.is_file() or found.is_symlink():
+                found.unlink()
 
 
 def score_ho3d_files(files: dict[str, str], gt_folder, out_dir: Path) -> dict:

@@ -8,6 +8,11 @@ Conventions
   image spans ``[-0.5, S - 0.5]``. Normalised grid coordinates are for ``grid_sample(align_corners=False)``,
   under which ``-1`` / ``+1`` are the outer edges of the image; a feature map of any stride covering the same
   image therefore uses the same normalised coordinates.
+* ``convention="upstream"`` (``model.pixel_convention``) is the released code's instead: the normalised coordinate
+  is ``(uv - (S-1)/2) / ((S-1)/2)`` with ``grid_sample(align_corners=True)`` (amathislab/HOISDF
+  ``main/model.py``), i.e. input pixel ``u`` lands at ``u (W-1)/(S-1)`` on a level of width ``W``. Both agree at
+  the crop centre and differ by ``0.5 - W/(2S)`` level pixels at the border (up to 15.5 input pixels at
+  stride 32); released checkpoints were trained with it.
 """
 
 from __future__ import annotations
@@ -20,6 +25,8 @@ from torch import nn
 
 from hoisdf.model.precision import full, no_autocast
 
+PIXEL_CONVENTIONS = ("centers", "upstream")
+"""``centers``: the stores' pixel-centre convention (align_corners=False); ``upstream``: the released code's."""
 MIN_DEPTH = 1e-6
 """Depths (z, metres) are clamped to at least this before the perspective division."""
 
@@ -60,29 +67,38 @@ def project_points(points: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
     return homo[..., :2] / depth
 
 
-def pixel_to_grid(uv: torch.Tensor, image_size: int) -> torch.Tensor:
-    """Pixel coordinates -> normalised ``grid_sample`` coordinates (``align_corners=False``).
+def pixel_to_grid(uv: torch.Tensor, image_size: int, convention: str = "centers") -> torch.Tensor:
+    """Pixel coordinates -> normalised ``grid_sample`` coordinates.
 
     Args:
         uv: ``(B, N, 2)`` pixel coordinates (OpenCV convention, pixel centres at integers).
         image_size: side length ``S`` of the square input image in pixels.
+        convention: ``"centers"``: ``g = (uv + 0.5) / S * 2 - 1`` for ``align_corners=False`` (``-1`` = left/top
+            image edge, ``+1`` = right/bottom); ``"upstream"``: ``g = (uv - c) / c`` with ``c = (S - 1) / 2``,
+            computed as the released code does, for ``align_corners=True``.
 
     Returns:
-        ``(B, N, 2)`` with ``g = (uv + 0.5) / S * 2 - 1`` (``-1`` = left/top image edge, ``+1`` = right/bottom).
+        ``(B, N, 2)`` normalised coordinates.
     """
+    if convention == "upstream":
+        c = (image_size - 1) / 2.0
+        return (uv - c) / c
+    if convention != "centers":
+        raise ValueError(f"pixel convention must be one of {PIXEL_CONVENTIONS}, got {convention!r}")
     return (uv + 0.5) / float(image_size) * 2.0 - 1.0
 
 
-def _sample(fmap: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
+def _sample(fmap: torch.Tensor, grid: torch.Tensor, convention: str = "centers") -> torch.Tensor:
     """(B, C, H, W) map at (B, 1, N, 2) full-precision coordinates -> (B, N, C) in the grid's dtype (a bf16 map
     is sampled as fp32: bilinear weights from bf16 coordinates would be off by up to a pixel)."""
     with no_autocast(grid):
         sampled = F.grid_sample(fmap.to(grid.dtype), grid, mode="bilinear", padding_mode="border",
-                                align_corners=False)  # (B, C, 1, N)
+                                align_corners=convention == "upstream")  # (B, C, 1, N)
     return sampled.squeeze(2).transpose(1, 2)
 
 
-def sample_pyramid(features: Sequence[torch.Tensor], grid: torch.Tensor, detach: bool = True) -> torch.Tensor:
+def sample_pyramid(features: Sequence[torch.Tensor], grid: torch.Tensor, detach: bool = True,
+                   convention: str = "centers") -> torch.Tensor:
     """Bilinearly sample every pyramid level at the same normalised locations and concatenate.
 
     Args:
@@ -90,17 +106,18 @@ def sample_pyramid(features: Sequence[torch.Tensor], grid: torch.Tensor, detach:
         grid: ``(B, N, 2)`` normalised coordinates (see :func:`pixel_to_grid`). Detached by default: no gradient
             flows back to the points, only to the features; ``detach=False`` keeps d(feature)/d(grid) (the
             full field gradient of the "gradient" sampling step).
+        convention: the pixel convention ``grid`` was made with (:func:`pixel_to_grid`).
 
     Returns:
         ``(B, N, sum_l C_l)`` in full precision, levels concatenated in list order. Outside the image the border
         value is used (``padding_mode="border"``).
     """
     grid = full(grid.detach() if detach else grid).unsqueeze(1)  # (B, 1, N, 2)
-    return torch.cat([_sample(fmap, grid) for fmap in features], dim=-1)
+    return torch.cat([_sample(fmap, grid, convention) for fmap in features], dim=-1)
 
 
 def pixel_aligned_features(features: Sequence[torch.Tensor], points_cam: torch.Tensor, K: torch.Tensor,
-                           image_size: int, detach: bool = True) -> torch.Tensor:
+                           image_size: int, detach: bool = True, convention: str = "centers") -> torch.Tensor:
     """Project camera-frame points into the image and sample the feature pyramid there.
 
     Args:
@@ -109,12 +126,13 @@ def pixel_aligned_features(features: Sequence[torch.Tensor], points_cam: torch.T
         K: ``(B, 3, 3)`` crop intrinsics.
         image_size: input crop side length in pixels.
         detach: no gradient to ``points_cam`` (the default); ``False`` for the full field gradient.
+        convention: pixel convention, ``"centers"`` or ``"upstream"`` (:func:`pixel_to_grid`).
 
     Returns:
         ``(B, N, sum_l C_l)`` features.
     """
     uv = project_points(points_cam.detach() if detach else points_cam, K)
-    return sample_pyramid(features, pixel_to_grid(uv, image_size), detach)
+    return sample_pyramid(features, pixel_to_grid(uv, image_size, convention), detach, convention)
 
 
 def project_pyramid(features: Sequence[torch.Tensor], linear: nn.Linear) -> list[torch.Tensor]:
@@ -137,10 +155,12 @@ def project_pyramid(features: Sequence[torch.Tensor], linear: nn.Linear) -> list
     return out
 
 
-def sample_projected(projected: Sequence[torch.Tensor], grid: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
-    """(B, N, out): the sum over levels of the sampled projected maps, plus ``bias`` (see :func:`project_pyramid`)."""
+def sample_projected(projected: Sequence[torch.Tensor], grid: torch.Tensor, bias: torch.Tensor,
+                     convention: str = "centers") -> torch.Tensor:
+    """(B, N, out): the sum over levels of the sampled projected maps, plus ``bias`` (see :func:`project_pyramid`);
+    ``grid`` made with ``convention`` (:func:`pixel_to_grid`)."""
     grid = full(grid.detach()).unsqueeze(1)
     total = bias.to(grid.dtype)
     for fmap in projected:
-        total = total + _sample(fmap, grid)
+        total = total + _sample(fmap, grid, convention)
     return total

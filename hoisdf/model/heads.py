@@ -130,11 +130,13 @@ def density(sdf: torch.Tensor, beta: torch.Tensor, sign: float, beta_min: float)
     return torch.sigmoid(sign * sdf / b) / b
 
 
-def masks_to_boxes(prob: torch.Tensor, threshold: float, image_size: int) -> torch.Tensor:
+def masks_to_boxes(prob: torch.Tensor, threshold: float, image_size: int, convention: str = "centers") -> torch.Tensor:
     """Predicted masks (B, h, w) in [0, 1] -> boxes (B, 4) x1, y1, x2, y2 in input-image pixels.
 
-    A mask pixel (j, i) at resolution h covers input pixels around (i + 0.5) * s - 0.5 with s = image_size / w;
-    the box spans the covered area. An empty mask gives the whole image.
+    A mask pixel (j, i) at resolution h covers input pixels around (i + 0.5) * s - 0.5 with s = image_size / w
+    (``convention="centers"``), or around i * s' with s' = (image_size - 1) / (w - 1) (``"upstream"``: the
+    released code's align_corners=True pixels, see :func:`hoisdf.model.encoding.pixel_to_grid`); the box spans
+    the covered area (half a mask pixel beyond the outer on-pixels). An empty mask gives the whole image.
     """
     B, h, w = prob.shape
     on = prob > threshold
@@ -147,7 +149,8 @@ def masks_to_boxes(prob: torch.Tensor, threshold: float, image_size: int) -> tor
     x2 = torch.where(cols, idx_c, -1).amax(1)
     y1 = torch.where(rows, idx_r, big).amin(1)
     y2 = torch.where(rows, idx_r, -1).amax(1)
-    box = torch.stack([x1, y1, x2 + 1, y2 + 1], dim=1).float() * s - 0.5
+    box = torch.stack([x1, y1, x2 + 1, y2 + 1], dim=1).float()
+    box = (box - 0.5) * ((image_size - 1) / max(w - 1, 1)) if convention == "upstream" else box * s - 0.5
     whole = torch.tensor([-0.5, -0.5, image_size - 0.5, image_size - 0.5], device=prob.device)
     return torch.where(on.flatten(1).any(1)[:, None], box, whole)
 

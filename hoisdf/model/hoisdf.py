@@ -24,6 +24,7 @@ from torch import nn
 from hoisdf.model import heads as H
 from hoisdf.model.backbone import ResNetUNet
 from hoisdf.model.encoding import (
+    PIXEL_CONVENTIONS,
     fourier_encode,
     pixel_aligned_features,
     pixel_to_grid,
@@ -58,6 +59,7 @@ CHOICES = {
     "density_sign": ("paper", "code"),
     "object_rotation": ("chordal", "axis_angle"),
     "test_boxes": ("gt", "predicted"),
+    "pixel_convention": PIXEL_CONVENTIONS,
 }
 POINT_DIM = 33  # xyz (3) + Fourier code (30) of every token
 
@@ -76,12 +78,13 @@ class HOISDF(nn.Module):
                  grid_resolution=64, sheared_grid=False, fixed_shape=False, sampling="absolute",
                  feature_augmentation="density", cross_field="sdf", pose_regressor="mano", density_sign="paper",
                  beta_init=0.1, beta_min=2e-3,
-                 object_rotation="chordal", test_boxes="gt", mask_threshold=0.5, chunk=32768, cls_dist=0.04):
+                 object_rotation="chordal", test_boxes="gt", mask_threshold=0.5, chunk=32768, cls_dist=0.04,
+                 pixel_convention="centers"):
         super().__init__()
         for name, value in (("sampling", sampling), ("feature_augmentation", feature_augmentation),
                             ("cross_field", cross_field), ("pose_regressor", pose_regressor),
                             ("density_sign", density_sign), ("object_rotation", object_rotation),
-                            ("test_boxes", test_boxes)):
+                            ("test_boxes", test_boxes), ("pixel_convention", pixel_convention)):
             if value not in CHOICES[name]:
                 raise ValueError(f"model.{name} must be one of {CHOICES[name]}, got {value!r}")
         if not all(int(w) > 0 for w in token_hidden):
@@ -101,7 +104,7 @@ class HOISDF(nn.Module):
         self.regressor, self.sign = pose_regressor, (-1.0 if density_sign == "paper" else 1.0)
         self.beta_min, self.object_rotation, self.test_boxes = beta_min, object_rotation, test_boxes
         self.mask_threshold, self.chunk, self.cls_dist = mask_threshold, chunk, cls_dist
-        self.fixed_shape = bool(fixed_shape)
+        self.fixed_shape, self.pixels = bool(fixed_shape), pixel_convention
         self.project_grid = False  # set below: grid SDFs through project_pyramid (exact) when it samples fewer channels
         self.register_buffer("grid", grid_points(grid_resolution, sheared_grid), persistent=False)
 
@@ -144,31 +147,35 @@ class HOISDF(nn.Module):
                  detach: bool = True) -> torch.Tensor:
         """Pixel-aligned multi-level features (B, N, C) of camera points (B, N, 3) (``detach=False``: with
         the gradient through the projection)."""
-        return pixel_aligned_features(pyramid, points_cam, K, self.image_size, detach)
+        return pixel_aligned_features(pyramid, points_cam, K, self.image_size, detach, self.pixels)
 
-    def field(self, decoder: SDFDecoder, sdf_in: torch.Tensor, scaled: torch.Tensor) -> torch.Tensor:
-        """Clamped scaled SDF (B, N) of a decoder at scaled points (B, N, 3) with their ``sdf_in`` features."""
-        out = decoder(sdf_in, fourier_encode(scaled, self.n_freq), scaled)
-        return full(out).clamp(-self.clamp, self.clamp)
+    def field(self, decoder: SDFDecoder, sdf_in: torch.Tensor, scaled: torch.Tensor,
+              clamp: bool = True) -> torch.Tensor:
+        """Scaled SDF (B, N) of a decoder at scaled points (B, N, 3) with their ``sdf_in`` features, clamped to
+        +-``sdf_clamp`` (``clamp=False``: the raw value, which the grid ranking uses, as the reference)."""
+        out = full(decoder(sdf_in, fourier_encode(scaled, self.n_freq), scaled))
+        return out.clamp(-self.clamp, self.clamp) if clamp else out
 
-    def _sdf_fn(self, decoder, pyramid, K, center, detach=True):
-        """camera points (B, M, 3) -> clamped scaled SDF (B, M) of ``decoder``, for a few hundred points.
+    def _sdf_fn(self, decoder, pyramid, K, center, detach=True, clamp=True):
+        """camera points (B, M, 3) -> scaled SDF (B, M) of ``decoder`` (clamped unless ``clamp=False``), for a few
+        hundred points.
 
         ``detach=False``: a function of the points through both the point code and the image features (the
         full field gradient)."""
         def fn(points_cam):
             return self.field(decoder, self.sdf_in(self.features(pyramid, points_cam, K, detach)),
-                              (points_cam - center[:, None]) * self.scale)
+                              (points_cam - center[:, None]) * self.scale, clamp)
         return fn
 
     def _grid_sdf_fn(self, decoder, projected, K, center):
-        """As :meth:`_sdf_fn` for many points: ``sdf_in``'s first layer was applied to the pyramid (exact)."""
+        """As :meth:`_sdf_fn` (unclamped) for many points: ``sdf_in``'s first layer was applied to the pyramid
+        (exact)."""
         first, rest = self.sdf_in.layers[0], self.sdf_in.layers[1:]
 
         def fn(points_cam):
-            grid = pixel_to_grid(project_points(points_cam.detach(), K), self.image_size)
-            return self.field(decoder, rest(sample_projected(projected, grid, first.bias)),
-                              (points_cam - center[:, None]) * self.scale)
+            grid = pixel_to_grid(project_points(points_cam.detach(), K), self.image_size, self.pixels)
+            return self.field(decoder, rest(sample_projected(projected, grid, first.bias, self.pixels)),
+                              (points_cam - center[:, None]) * self.scale, clamp=False)
         return fn
 
     def _density(self, sdf: torch.Tensor, which: str) -> torch.Tensor:
@@ -224,8 +231,9 @@ class HOISDF(nn.Module):
             projected = project_pyramid(pyramid, self.sdf_in.layers[0])
             hand_fn = self._grid_sdf_fn(self.hand_sdf, projected, K, root)
             obj_fn = self._grid_sdf_fn(self.obj_sdf, projected, K, center)
-        else:
-            hand_fn, obj_fn = self._sdf_fn(self.hand_sdf, pyramid, K, root), self._sdf_fn(self.obj_sdf, pyramid, K, center)
+        else:  # ranked by the unclamped SDF (as the reference: clamping would tie every point beyond the clamp)
+            hand_fn = self._sdf_fn(self.hand_sdf, pyramid, K, root, clamp=False)
+            obj_fn = self._sdf_fn(self.obj_sdf, pyramid, K, center, clamp=False)
         hand, _ = field_guided_points(self.grid, root, self.scale, K, boxes[0], hand_fn, self.n_hand, strategy,
                                       self.chunk, generator, self.fixed_shape, newton.get("hand"))
         obj, _ = field_guided_points(self.grid, center, self.scale, K, boxes[1], obj_fn, self.n_object, strategy,
@@ -237,8 +245,8 @@ class HOISDF(nn.Module):
         if self.test_boxes == "gt":
             return batch["hand_box"], batch["object_box"]
         prob = torch.sigmoid(maps[:, 1:3].float())
-        return (H.masks_to_boxes(prob[:, 0], self.mask_threshold, self.image_size),
-                H.masks_to_boxes(prob[:, 1], self.mask_threshold, self.image_size))
+        return (H.masks_to_boxes(prob[:, 0], self.mask_threshold, self.image_size, self.pixels),
+                H.masks_to_boxes(prob[:, 1], self.mask_threshold, self.image_size, self.pixels))
 
     # --- forward ------------------------------------------------------------------------------------------
     def forward(self, batch: dict, points: str = "field", noise: float = 0.0,

@@ -6,8 +6,12 @@ Method (batched, after gSDF / upstream ``ik_solver_mano``):
 2. Global rotation: Kabsch/SVD aligning the template's five wrist->MCP vectors to the target's (no centring:
    the wrist is the pivot), with the reflection fix (det = +1). Upstream skips reflected samples instead.
 3. Along each finger chain (all five fingers at once, one level at a time), the local rotation of a joint is the
-   minimal rotation (axis = cross product, angle = atan2(|cross|, dot)) taking the template bone to the target
-   bone expressed in the parent's accumulated frame; the accumulated frame is updated with it.
+   minimal rotation (axis = cross product, angle = atan2(|cross|, dot)) taking the template bone to the vector
+   from the joint's *reconstructed* position (the template bones posed so far) to the target child joint,
+   expressed in the parent's accumulated frame, as upstream's ``ik_solver_mano`` aims it; the accumulated frame
+   and the reconstructed position are updated with it. Aiming along the target bone instead ignores the
+   position error accumulated up the chain: with the toy MANO, 256 random poses, 3 mm joint noise and betas off
+   by N(0, 0.5) it left 7.02 mm mean joint error against 6.29 mm (N(0, 1): 8.64 vs 7.64 mm).
 
 The twist of each bone about its own axis is not observable from joints, so the minimal-rotation solution
 reproduces the joint positions (exactly for the 16 MANO joints when the palm is rigid), not the pose itself.
@@ -89,13 +93,15 @@ def solve_ik(joints: torch.Tensor, betas: torch.Tensor, mano) -> torch.Tensor:
     pose[:, 0] = matrix_to_axis_angle(rot_global)
 
     frame = rot_global[:, None].expand(batch, 5, 3, 3)  # accumulated rotation of each finger's parent joint
+    position = (rot_global[:, None] @ template[:, MCP_DEXYCB, :, None])[..., 0]  # reconstructed MCPs (B, 5, 3)
     for level in range(3):  # MCP, PIP, DIP of all five fingers at once
         joint_ids = [m + level for m in MCP_DEXYCB]
         child_ids = [j + 1 for j in joint_ids]
         bone_template = template[:, child_ids] - template[:, joint_ids]  # (B, 5, 3) rest frame
-        bone_target = target[:, child_ids] - target[:, joint_ids]  # (B, 5, 3) world frame
-        local_target = (frame.transpose(-1, -2) @ bone_target[..., None])[..., 0]
+        aim = target[:, child_ids] - position  # (B, 5, 3) world frame: reconstructed joint -> target child
+        local_target = (frame.transpose(-1, -2) @ aim[..., None])[..., 0]
         aa = minimal_rotation(bone_template, local_target)
         pose[:, [MANO_TO_DEXYCB[j] for j in joint_ids]] = aa
         frame = frame @ batch_rodrigues(aa)
+        position = position + (frame @ bone_template[..., None])[..., 0]
     return pose.reshape(batch, 48)

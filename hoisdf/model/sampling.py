@@ -39,23 +39,28 @@ def noise_scale(progress: float, ratios: tuple[float, ...] = (0.3, 0.7),
 
 def jitter(points: torch.Tensor, half_width: float, generator: torch.Generator | None = None) -> torch.Tensor:
     """points (B, N, 3) + per-coordinate uniform noise in [-half_width, half_width] (drawn on the CPU)."""
-    noise = (torch.rand(points.shape, generator=generator) * 2 - 1) * half_width
+    noise = (torch.rand(points.shape, generator=generator, device="cpu") * 2 - 1) * half_width  # CPU generator
     return points + noise.to(points)
 
 
 def grid_points(resolution: int, sheared: bool = False, device=None) -> torch.Tensor:
     """(resolution^3, 3) lattice over [-1, 1]^3 in scaled units, x slowest.
 
-    ``sheared=True`` reproduces the reference code's lattice, whose index arithmetic used true division,
-    so x and y pick up fractions of the faster indices (x, y reach ~1.03) - only for matching released numbers.
+    ``sheared=True`` reproduces the reference code's lattice value for value (amathislab/HOISDF
+    ``main/model.py::Model.sdf_infer``): its index arithmetic used true division on int64 indices, so with
+    ``i = n^2 a + n b + c`` it computes, in float32, x = (i / n / n) % n, y = (i / n) % n, z = i % n, then
+    ``* 2 / (n - 1) - 1``: x and y pick up fractions of the faster indices (both reach ~1.03). The same
+    operations in the same dtype (on the CPU) give bit-identical values (tests/test_sampling.py).
     """
     n = resolution
+    if sheared:
+        i = torch.arange(n ** 3)  # int64, as the reference; float32 true division below
+        idx = torch.stack([(i / n / n) % n, (i / n) % n, (i % n).float()], dim=1)
+        return (idx * (2.0 / (n - 1)) + -1.0).to(device)
     idx = torch.arange(n ** 3, device=device, dtype=torch.float64)
     c = torch.remainder(idx, n)
-    if sheared:
-        b, a = idx / n, idx / n ** 2
-    else:
-        b, a = torch.remainder(torch.div(idx, n, rounding_mode="floor"), n), torch.div(idx, n * n, rounding_mode="floor")
+    b = torch.remainder(torch.div(idx, n, rounding_mode="floor"), n)
+    a = torch.div(idx, n * n, rounding_mode="floor")
     step = 2.0 / (n - 1)
     return (torch.stack([a, b, c], dim=1) * step - 1.0).float()
 

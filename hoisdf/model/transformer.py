@@ -144,7 +144,7 @@ class QueryDecoder(nn.Module):
 def group_attention_mask(groups: tuple[tuple[int, ...], ...], device: torch.device | str | None = None) -> torch.Tensor:
     """``(Q, Q)`` bool mask (``True`` = blocked) letting each query attend only the queries of its own group."""
     n = sum(len(g) for g in groups)
-    group_id = torch.empty(n, dtype=torch.long)
+    group_id = torch.empty(n, dtype=torch.long, device="cpu")  # filled from Python here, then moved
     for gi, members in enumerate(groups):
         group_id[list(members)] = gi
     group_id = group_id.to(device)

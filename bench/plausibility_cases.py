@@ -1,0 +1,101 @@
+"""Intersection volume on analytic cases: exact value, :func:`hoisdf.evaluation.plausibility.intersection_bounds`,
+and what the surface-voxel script of the hand-object literature reports on the same meshes.
+
+The surface-voxel script (obman_train ``mano_train/netscripts/intersect.py`` ``intersect_vox``, copied by GanHand
+``utils/obman_utils.py`` and GraspTTA ``metric/intersect.py``; read, not run): trimesh voxelizes the *object's
+surface* at a pitch (``mesh.voxelized(pitch)``, the cells its subdivided surface passes through), takes the cell
+centres, counts those the hand mesh ``contains`` (trimesh's ray test) and multiplies the count by pitch^3.
+Only a layer about one cell thick along the object's surface inside the hand is counted, not the solid overlap,
+so the number is roughly (object surface inside the hand) x pitch; :func:`surface_voxel_volume` restates that
+method with the same two trimesh calls.
+
+Cases (metres; the "hand" is the mesh whose inside is tested, the "object" the one voxelized):
+
+- two spheres of radius 1 cm, centres 1.25 cm apart: a lens, pi (4 r + d) (2 r - d)^2 / 12;
+- a 4 cm cube and a sphere of radius 1 cm centred 5 mm outside one face: a cap, pi h^2 (3 r - h) / 3, h = 5 mm;
+- a cylinder of radius 5 mm through a 2 cm thick box, its axis 30 degrees off the box's normal:
+  pi r^2 t / cos(30 deg).
+
+The meshes are fine (icospheres of 5120 faces, 128-sided cylinders); the polyhedral value (manifold3d's exact
+boolean) differs from the analytic one by the faceting. Run: ``python bench/plausibility_cases.py`` (about a
+minute on one core at the default; ``--tolerance`` in m^3, ``cells``: cell-centre evaluations).
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+import trimesh
+
+LENS_R, LENS_D = 0.01, 0.0125
+CAP_R, CAP_H = 0.01, 0.005
+CYL_R, SLAB_T, TILT = 0.005, 0.02, np.radians(30.0)
+
+
+def _mesh(m: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:
+    return np.asarray(m.vertices, dtype=np.float64), np.asarray(m.faces, dtype=np.int64)
+
+
+def cases() -> dict[str, dict]:
+    """{name: {"hand": (V, F), "object": (V, F), "analytic": m^3}} for the three analytic cases."""
+    out = {}
+    a = trimesh.creation.icosphere(subdivisions=4, radius=LENS_R)
+    b = trimesh.creation.icosphere(subdivisions=4, radius=LENS_R)
+    b.apply_translation([LENS_D, 0.0, 0.0])
+    out["two spheres (lens)"] = {"hand": _mesh(a), "object": _mesh(b),
+                                 "analytic": np.pi * (4 * LENS_R + LENS_D) * (2 * LENS_R - LENS_D) ** 2 / 12}
+    box = trimesh.creation.box(extents=(0.04, 0.04, 0.04))
+    ball = trimesh.creation.icosphere(subdivisions=4, radius=CAP_R)
+    ball.apply_translation([0.0, 0.0, 0.02 + CAP_R - CAP_H])
+    out["box and sphere (cap)"] = {"hand": _mesh(ball), "object": _mesh(box),
+                                   "analytic": np.pi * CAP_H ** 2 * (3 * CAP_R - CAP_H) / 3}
+    slab = trimesh.creation.box(extents=(0.06, 0.06, SLAB_T))
+    cyl = trimesh.creation.cylinder(radius=CYL_R, height=0.08, sections=128)
+    cyl.apply_transform(trimesh.transformations.rotation_matrix(TILT, [1.0, 0.0, 0.0]))
+    out["cylinder through box"] = {"hand": _mesh(cyl), "object": _mesh(slab),
+                                   "analytic": np.pi * CYL_R ** 2 * SLAB_T / np.cos(TILT)}
+    return out
+
+
+def polyhedral_volume(hand, obj) -> float:
+    """Exact volume of the intersection of the two (watertight) polyhedra: manifold3d's boolean, m^3."""
+    return float(trimesh.Trimesh(*hand, process=False).intersection(trimesh.Trimesh(*obj, process=False)).volume)
+
+
+def surface_voxel_volume(hand, obj, pitch: float) -> float:
+    """The literature's surface-voxel estimate (see the module docstring), m^3, for a voxel pitch in metres."""
+    points = trimesh.Trimesh(*obj, process=False).voxelized(pitch=pitch).points
+    return float(trimesh.Trimesh(*hand, process=False).contains(points).sum()) * pitch ** 3
+
+
+def table(tolerance: float, pitches=(0.005, 0.001)) -> list[dict]:
+    """One row per case: volumes in cm^3 (analytic, polyhedral, ours with its bound, surface-voxel per pitch)."""
+    from hoisdf.evaluation.plausibility import intersection_bounds
+
+    rows = []
+    for name, case in cases().items():
+        est = intersection_bounds(*case["hand"], *case["object"], tolerance=tolerance)
+        row = {"case": name, "analytic": case["analytic"] * 1e6,
+               "polyhedral": polyhedral_volume(case["hand"], case["object"]) * 1e6,
+               "ours": est.volume * 1e6, "bound": est.error_bound * 1e6, "cells": est.cells}
+        for p in pitches:
+            row[f"surface voxel {p * 1e3:g} mm"] = surface_voxel_volume(case["hand"], case["object"], p) * 1e6
+        rows.append(row)
+    return rows
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--tolerance", type=float, default=1e-7, help="m^3 (default 1e-7 = 0.1 cm^3)")
+    args = p.parse_args()
+    rows = table(args.tolerance)
+    keys = [k for k in rows[0] if k != "case"]
+    print(f"intersection volume, cm^3 (ours: tolerance {args.tolerance * 1e6:g} cm^3)")
+    print(f"{'case':24s}" + "".join(f"{k:>22s}" for k in keys))
+    for r in rows:
+        print(f"{r['case']:24s}" + "".join(f"{r[k]:22d}" if k == "cells" else f"{r[k]:22.4f}" for k in keys))
+
+
+if __name__ == "__main__":
+    main()

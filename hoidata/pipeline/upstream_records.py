@@ -1,0 +1,135 @@
+"""``record.crop = "upstream"``: a frame's crop, K, grid boxes and anchor as upstream HOISDF's test loader makes them.
+
+The geometry is :mod:`hoidata.geometry.upstream_crop`; this module feeds it each dataset's values in the dtypes
+upstream's loaders read them in (``data/dexycb.py`` / ``data/ho3d.py`` ``__getitem__``):
+
+* DexYCB: the frame decoded with PIL; K float64 from the intrinsics; 2D joints float32; the grasped object's
+  pose float32 (3, 4); hand grid box x1.1; anchor at the hand root's depth (float32). A left hand is flipped
+  as upstream flips it: the image's columns reversed, ``u' = W - u - 1`` in float32, ``cx' = W - cx - 1``, and
+  the object's axis-angle ``[1:]`` and translation ``x`` negated, through OpenCV's Rodrigues both ways.
+* HO-3D (evaluation split): K float32 (``camMat``); the given hand box float32 (its two corners stand in for
+  the joints) with grid box x1.2; the object pose from ``objRot`` / ``objTrans`` re-read from the frame's meta
+  file (OpenCV's Rodrigues, OpenGL rows 1 and 2 negated); anchor at upstream's fixed depth.
+
+The object's 21 box points come from the model folder's ``points.xyz`` (upstream's loaders), not from the
+mesh the project's crop uses.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from hoidata import schema
+from hoidata.datasets.frame import Frame
+from hoidata.errors import DataError
+from hoidata.geometry import upstream_crop as up
+
+CROPS = ("project", "upstream")
+IMAGE_SIZE = (640, 480)  # both datasets' frames; upstream clips its crop to them
+HAND_GRID_FACTOR = {"dexycb": 1.1, "ho3d": 1.2}
+
+
+def uses_upstream_crop(frame: Frame, settings) -> bool:
+    """Whether ``frame`` gets upstream's crop under the record settings (``crop``, ``crop_splits``)."""
+    return settings.crop == "upstream" and frame.split in settings.crop_splits
+
+
+def record_size(frame: Frame, settings) -> int:
+    """Side (px) of the frame's stored crop: upstream's 256 px input, or ``settings.crop_size``."""
+    return up.INPUT_SIZE if uses_upstream_crop(frame, settings) else settings.crop_size
+
+
+def decode_as_upstream(frame: Frame):
+    """The frame's image as upstream decodes it: ``PIL.Image.open(path).convert("RGB")``, size checked."""
+    from PIL import Image, UnidentifiedImageError
+
+    from hoidata.datasets.frame import read_rgb
+
+    if frame.image is not None:
+        raise DataError(frame.image_path, "record.crop", "upstream's crop needs the original image file")
+    read_rgb(frame.image_path, frame.image_size)  # the project's checks: present, complete, decodable, the size
+    try:
+        with Image.open(frame.image_path) as img:
+            return img.convert("RGB")
+    except (OSError, UnidentifiedImageError) as exc:
+        raise DataError(frame.image_path, None, f"PIL cannot decode this image ({exc})") from None
+
+
+def flip_image(image):
+    """A PIL RGB image mirrored left to right as upstream does it (numpy column reversal)."""
+    from PIL import Image
+
+    return Image.fromarray(np.uint8(np.array(image, np.uint8, copy=True)[:, ::-1, :]))
+
+
+def _dexycb_inputs(frame: Frame, box3d: np.ndarray, width: int) -> dict:
+    """DexYCB: (K, hand points, object points, anchor depth) in upstream's dtypes; a left hand flipped."""
+    import cv2
+
+    K = np.asarray(frame.K, np.float64).copy()
+    joints_uv = np.asarray(frame.joints_2d, np.float32).copy()
+    pose = np.asarray(frame.object_pose[:3], np.float32)
+    p2d = up.project_posed(box3d, K, pose)
+    if frame.mirror:
+        joints_uv[:, 0] = np.array(width, dtype=np.float32) - joints_uv[:, 0] - 1
+        K[0, 2] = width - K[0, 2] - 1
+        rot, trans = cv2.Rodrigues(pose[:, :3])[0].squeeze(), pose[:, 3].copy()
+        trans[0] *= -1
+        rot[1:] *= -1
+        p2d = up.project_posed(box3d, K, np.concatenate([cv2.Rodrigues(rot)[0], trans[:, None]], axis=1))
+    depth = np.float32(frame.joints_3d[0, 2])
+    return {"K": K, "hand_uv": joints_uv, "object_uv": p2d, "anchor_depth": depth, "k_about_pp": True}
+
+
+def _ho3d_inputs(frame: Frame, box3d: np.ndarray) -> dict:
+    """HO-3D's evaluation split: (K, hand box corners, object points, fixed anchor depth) in upstream's dtypes."""
+    import cv2
+
+    from hoidata.datasets.ho3d import read_meta
+
+    meta = read_meta(Path(frame.source["meta"]), frame.split)
+    K = np.asarray(frame.K, np.float32)
+    pose = np.zeros((4, 4))
+    pose[:3, 3], pose[3, 3] = meta["objTrans"], 1
+    pose[:3, :3] = cv2.Rodrigues(np.asarray(meta["objRot"]).reshape((3,)))[0]
+    pose[1:3] = -pose[1:3]  # OpenGL -> OpenCV
+    hand = np.asarray(frame.hand_box, np.float32).reshape(2, 2)
+    return {"K": K, "hand_uv": hand, "object_uv": up.project_posed(box3d, K, pose),
+            "anchor_depth": up.HO3D_ANCHOR_DEPTH, "k_about_pp": False}
+
+
+def upstream_view(frame: Frame, box3d: np.ndarray) -> up.UpstreamCrop:
+    """Upstream's test crop of ``frame`` (as read, before the project mirrors it; ``frame.mirror`` asks for the
+    flip). ``box3d`` (21, 3): :func:`~hoidata.geometry.upstream_crop.box21_upstream` of the object's points.xyz.
+    K, boxes and anchor come out in the dtypes upstream's loader hands the network (K float32 ...)."""
+    if frame.dataset == "dexycb" and frame.joints_2d is not None:
+        image = decode_as_upstream(frame)
+        inputs, factor = _dexycb_inputs(frame, box3d, image.size[0]), HAND_GRID_FACTOR["dexycb"]
+        image = flip_image(image) if frame.mirror else image
+    elif frame.dataset == "ho3d" and frame.joints_2d is None and frame.hand_box is not None:
+        image, inputs, factor = decode_as_upstream(frame), _ho3d_inputs(frame, box3d), HAND_GRID_FACTOR["ho3d"]
+    else:
+        raise DataError(frame.image_path, "record.crop", "upstream's test crop exists for DexYCB frames and HO-3D's "
+                                                         f"evaluation split, not a {frame.dataset} {frame.split} frame")
+    if image.size != IMAGE_SIZE:
+        raise DataError(frame.image_path, None, f"upstream's crop expects {IMAGE_SIZE[0]}x{IMAGE_SIZE[1]} frames")
+    view = up.upstream_crop(image, hand_grid_factor=factor, **inputs)
+    view.K = view.K.astype(np.float32)  # meta_info's cam_intr, on both datasets
+    if frame.dataset == "ho3d":  # its loader hands the boxes on as float32 (DexYCB's as float64)
+        view.grid_hand_box, view.grid_object_box = (np.float32(b) for b in (view.grid_hand_box, view.grid_object_box))
+    return view
+
+
+def crop_meta(view: up.UpstreamCrop) -> dict:
+    """The record's schema.CROP_FIELDS of an upstream view."""
+    return {"crop": schema.UPSTREAM_CROP, "grid_hand_box": np.asarray(view.grid_hand_box, np.float64),
+            "grid_object_box": np.asarray(view.grid_object_box, np.float64),
+            "object_anchor": np.asarray(view.anchor, np.float64)}
+
+
+def crop_box(view: up.UpstreamCrop) -> np.ndarray:
+    """(x1, y1, side) of the crop square, source pixels (the record's ``crop_box``: x1, y1, x1 + side, y1 + side)."""
+    half = view.side / 2
+    return np.array([view.centre[0] - half, view.centre[1] - half, view.side], np.float64)
