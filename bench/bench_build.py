@@ -1,6 +1,6 @@
 """Whole build-sdf throughput and bytes per frame, against the AlignSDF/HOISDF sample layout.
 
-Usage: python bench/bench_build.py [--frames 60] [--root DIR] [--rounds 2]
+Usage: python -m bench.bench_build [--frames 60] [--root DIR] [--rounds 2]
 
 Writes a small toy DexYCB (unless --root points at one), then in one run:
 - builds the frames once untimed with 1 worker (this process then has its modules imported, the numba kernels
@@ -26,22 +26,13 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.common import toy_root
 from hoidata import schema, store
 from hoidata.pipeline.runner import build_store
 from hoidata.pipeline.settings import load_build_config
-from hoidata.toy.dexycb import ToyDexYCBSize, write_toy_dexycb
-from hoidata.toy.make import write_assets
 
 BACKENDS = ("bvh", "igl")  # record.sdf_backend: build-sdf's, then the baseline
 ALIGNSDF_BYTES = 2 * 20_000 * 6 * 4  # two files (hand, object) of 20k float32 rows of 6 columns, per frame
-
-
-def toy_root(frames: int, work: Path) -> Path:
-    root = work / "data"
-    mano, models = write_assets(root)
-    size = ToyDexYCBSize(subjects=(0,), sequences=4, serials=(0, 6, 7), frames=max(1, -(-frames // 12)))
-    write_toy_dexycb(root, mano, models, size, workers=2, progress=False)
-    return root
 
 
 def timed_build(root: Path, out: Path, workers: int, backend: str) -> tuple[float, int]:

@@ -1,6 +1,6 @@
 """One-worker build-sdf throughput of two source trees side by side: this checkout against another one.
 
-Usage: python bench/bench_build_ab.py --baseline DIR [--frames 240] [--rounds 3] [--root DATA]
+Usage: python -m bench.bench_build_ab --baseline DIR [--frames 240] [--rounds 3] [--root DATA]
 
 DIR is another checkout of the project (``git worktree add /tmp/base <commit>``). Writes a toy DexYCB once
 (with this checkout's writer, unless --root is given), then alternates the two trees over --rounds rounds:
@@ -23,6 +23,8 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+
+from bench.common import toy_root
 
 HERE = Path(__file__).resolve().parent
 CHILD = """
@@ -63,9 +65,6 @@ def main() -> None:
         if args.root:
             root = Path(args.root)
         else:
-            sys.path.insert(0, str(HERE))
-            from bench_build import toy_root
-
             root = toy_root(args.frames, work)
         runs = {name: [] for name in trees}
         for _ in range(args.rounds):

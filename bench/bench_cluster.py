@@ -1,6 +1,6 @@
 """Cluster engines and remote stores, side by side in one run: what they cost over the local tools.
 
-Usage: python bench/bench_cluster.py [--frames 192] [--records-per-shard 8] [--rounds 3] [--json out.json]
+Usage: python -m bench.bench_cluster [--frames 192] [--records-per-shard 8] [--rounds 3] [--json out.json]
 
 1. build-sdf wall time on the same toy DexYCB frames (default record settings) with
    - the local pool (``--workers 2``),
@@ -30,8 +30,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from bench_build import toy_root
-
+from bench.common import toy_root
 from hoidata.pipeline.ray_tasks import run_ray
 from hoidata.pipeline.runner import build_inputs, build_store, read_frames
 from hoidata.pipeline.settings import load_build_config

@@ -1,6 +1,6 @@
 """Evaluation throughput of ``hoisdf.evaluate`` with a freshly initialised HOISDF (no training: speed only).
 
-Usage: python bench/bench_evaluate.py [--config toy] [--store STORE] [--mano DIR] [--device cuda]
+Usage: python -m bench.bench_evaluate [--config toy] [--store STORE] [--mano DIR] [--device cuda]
            [--frames N] [--batch-size B] [--workers N] [--json OUT]
 
 Model: the paper's full-size HOISDF by default (``--config toy`` for the small one), randomly
@@ -33,8 +33,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from bench_train import resolve_device, store_and_mano, sync
 
+from bench.common import resolve_device, store_and_mano, sync
 from hoisdf.config import load_train_config
 from hoisdf.evaluate import evaluate
 from hoisdf.evaluation import metrics as M

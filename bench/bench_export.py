@@ -1,6 +1,6 @@
 """``hoidata export --format gsdf`` throughput per core against ``hoidata build-sdf`` on the same frames.
 
-Usage: python bench/bench_export.py [--frames 48] [--workers 1] [--root DIR]
+Usage: python -m bench.bench_export [--frames 48] [--workers 1] [--root DIR]
 
 Writes a small toy DexYCB (unless --root points at one) and selects its right-hand training frames (gSDF reads
 right hands only), then in one run, one after the other on those frames with --workers processes:
@@ -23,22 +23,12 @@ import tempfile
 import time
 from pathlib import Path
 
+from bench.common import toy_train_root
 from hoidata.export import export_dataset
 from hoidata.pipeline.runner import build_store
 from hoidata.pipeline.settings import load_build_config
-from hoidata.toy.dexycb import ToyDexYCBSize, write_toy_dexycb
-from hoidata.toy.make import write_assets
 
 OVERRIDES = ['dataset.splits=["train"]', 'dataset.sides=["right"]', "store.records_per_shard=16"]
-
-
-def toy_root(frames: int, work: Path) -> Path:
-    """A toy DexYCB whose s0 train split holds about `frames` right-hand frames (sequences 0 and 2, 3 cameras)."""
-    root = work / "data"
-    mano, models = write_assets(root)
-    size = ToyDexYCBSize(subjects=(0,), sequences=3, serials=(0, 6, 7), frames=max(2, -(-frames // 6)))
-    write_toy_dexycb(root, mano, models, size, workers=2, progress=False)
-    return root
 
 
 def folder_bytes(path: Path, pattern: str) -> int:
@@ -53,7 +43,7 @@ def main() -> None:
     args = parser.parse_args()
     work = Path(tempfile.mkdtemp(prefix="bench_export_"))
     try:
-        root = Path(args.root) if args.root else toy_root(args.frames, work)
+        root = Path(args.root) if args.root else toy_train_root(args.frames, work)
         cfg = load_build_config("toy", OVERRIDES)
         paths = (root, root / "mano", root / "models")
         load_before = os.getloadavg()

@@ -4,7 +4,7 @@ Two steps, because the GPU machine has torch but not the data packages (webdatas
 
 1. here, on any machine with the project installed (about a minute on 2 CPU cores)::
 
-       python bench/bench_gpu.py prepare --out bench/gpu_inputs
+       python -m bench.bench_gpu prepare --out bench/gpu_inputs
 
    builds a toy DexYCB store (512 px crops), draws 3 batches of 22 with the full-size model's settings, applies
    the training augmentation (2 training batches) and the test-time crop (1 batch of test inputs), and saves
@@ -12,7 +12,7 @@ Two steps, because the GPU machine has torch but not the data packages (webdatas
 
 2. on the GPU machine, with only torch, numpy and scipy (``run`` imports no data code)::
 
-       PYTHONPATH=. python bench/bench_gpu.py run --inputs bench/gpu_inputs --json OUT/gpu.json
+       python -m bench.bench_gpu run --inputs bench/gpu_inputs --json OUT/gpu.json
 
    times (same weights everywhere, bf16 autocast, geometry fp32): inference frames/s at batch 1 and 22 for
    the compact sampling path eager, the fixed-shape path eager, and the fixed-shape model compiled with
@@ -51,8 +51,7 @@ def _unpack(batch: dict, device: torch.device) -> dict:
 
 
 def prepare(out: Path, config_name: str | None) -> None:
-    from bench_train import store_and_mano, test_inputs
-
+    from bench.common import store_and_mano, test_inputs
     from hoisdf.config import load_train_config
     from hoisdf.data import StoreSpec, build_dataset
     from hoisdf.data.augment import augment_batch
@@ -80,13 +79,12 @@ def prepare(out: Path, config_name: str | None) -> None:
 
 def run(inputs: Path, json_out: Path | None, frames: int, warmup: int, steps: int, precision: str,
         skip: list[str], backend: str = "inductor") -> None:
-    from compile_bench import (
+    from bench.compile_bench import (
         compile_inference,
         inference_rows,
         print_rows,
         training_rows,
     )
-
     from hoidata.hand import load_mano
     from hoisdf.model.hoisdf import HOISDF
     from hoisdf.training.losses import LossWeights
@@ -141,7 +139,6 @@ def main(argv=None) -> int:
     go.add_argument("--skip", nargs="*", default=[], choices=("infer", "train"))
     go.add_argument("--backend", default="inductor", help="torch.compile backend (eager: a quick check of the script)")
     args = p.parse_args(argv)
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
     if args.cmd == "prepare":
         prepare(args.out, args.config)
     else:

@@ -1,6 +1,6 @@
 """Grid-point features for field-guided sampling: direct sampling vs projecting the first layer first.
 
-Usage: python bench/bench_grid_features.py [--points 60000] [--device cuda]
+Usage: python -m bench.bench_grid_features [--points 60000] [--device cuda]
 
 HOISDF's inference grid sends tens of thousands of points per image through ``sdf_in`` (Linear over the
 concatenated pyramid features). Direct: sample all sum(C) pyramid channels per point, then the matrix

@@ -1,6 +1,6 @@
 """Loader throughput: ``make_loader(build_dataset(...))`` against two per-file loaders, at equal workers.
 
-Usage: python bench/bench_loader.py [--frames 96] [--batch 22] [--batches 12] [--rounds 3] [--workers 0 1 2]
+Usage: python -m bench.bench_loader [--frames 96] [--batch 22] [--batches 12] [--rounds 3] [--workers 0 1 2]
 
 Builds a toy DexYCB (its right-hand training frames: gSDF reads right hands only), a store of them with 512 px
 crops and ``hoidata export --format gsdf`` of the same frames (AlignSDF's SDF files, 20,000 rows per mesh), then
@@ -34,9 +34,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from bench_export import toy_root
-from per_file_loaders import LABEL_FIELDS, SameCropsDataset, UpstreamDataset
 
+from bench.common import toy_train_root
+from bench.per_file_loaders import LABEL_FIELDS, SameCropsDataset, UpstreamDataset
 from hoidata.export import export_dataset
 from hoidata.pipeline.runner import build_store
 from hoidata.pipeline.settings import load_build_config
@@ -51,7 +51,7 @@ LOADERS = ("ours", "upstream-style", "same crops")
 
 def prepare(frames: int, work: Path) -> tuple[Path, dict]:
     """(store, {loader name: (folder, keys)}) of a toy DexYCB's right-hand training frames."""
-    root = toy_root(frames, work)
+    root = toy_train_root(frames, work)
     cfg = load_build_config("toy", SETTINGS)
     paths = (root, root / "mano", root / "models")
     build_store(cfg, *paths, work / "store", workers=2, progress=False)

@@ -18,7 +18,7 @@ here; trimesh is). Checks on every frame: max |bvh - igl| and |bvh - brute force
 sign disagreements between bvh and igl, and against trimesh (decided by the brute-force reference,
 :func:`hoidata.geometry.sdf.brute_force_signed_distance`).
 
-Run: ``python bench/bench_sdf.py`` (about 1-2 minutes on 2 cores).
+Run: ``python -m bench.bench_sdf`` (about 1-2 minutes on 2 cores).
 """
 
 from __future__ import annotations
@@ -36,13 +36,9 @@ from scipy.spatial.transform import Rotation
 from hoidata.geometry.sampling import compute_sdf_samples, sample_query_points
 from hoidata.geometry.sdf import brute_force_signed_distance
 from hoidata.hand import load_mano
-from hoidata.hand.toy import write_toy_mano
-from hoidata.objects import (
-    TOY_OBJECTS,
-    load_object_mesh,
-    repair_mesh,
-    write_toy_objects,
-)
+from hoidata.objects import load_object_mesh, repair_mesh
+from hoidata.toy.hand import write_toy_mano
+from hoidata.toy.objects import TOY_OBJECTS, write_toy_objects
 
 CURLS = (0.0, 0.5, 0.8, 1.0, 1.2)
 CAMERA_T = np.array([0.03, -0.02, 0.55])

@@ -1,6 +1,6 @@
 """render-synthetic throughput: synthetic records per second per core with the default settings.
 
-Usage: python bench/bench_synthetic.py [--count 48]
+Usage: python -m bench.bench_synthetic [--count 48]
 
 Writes a small toy HO-3D as the grasp source, then renders --count samples with 1 worker and the
 same samples with 2 workers, default record settings (512 px crops, 4096 + 2048 SDF samples), and

@@ -1,6 +1,6 @@
 """Training, inference and data-loading throughput of HOISDF, side by side in one run.
 
-Usage: python bench/bench_train.py [--config toy] [--store STORE] [--mano DIR] [--device cuda]
+Usage: python -m bench.bench_train [--config toy] [--store STORE] [--mano DIR] [--device cuda]
            [--batch-size B] [--warmup N] [--steps N] [--frames N] [--infer-batch B]
            [--workers 0 1 2 ...] [--loader-batch B] [--loader-batches N] [--json OUT]
            [--compile [--compile-mode MODE] [--precision fp32|bf16]] [--skip train infer loader]
@@ -49,6 +49,7 @@ from pathlib import Path
 
 import torch
 
+from bench.common import NOISE, resolve_device, store_and_mano, sync, test_inputs
 from hoisdf.config import load_train_config
 from hoisdf.data import StoreSpec, build_dataset, make_loader
 from hoisdf.data.augment import augment_batch
@@ -56,51 +57,11 @@ from hoisdf.model import build_model
 from hoisdf.training.trainer import Trainer, to_device
 
 PAPER_FPS = 30.7  # HOISDF paper, TITAN RTX
-NOISE = 0.03  # half-width of the "gt" query-point jitter (scaled units), the schedule's first value
-
-
-# --- shared with bench_evaluate.py ------------------------------------------------------------------------
-def resolve_device(name: str | None) -> torch.device:
-    return torch.device(name or ("cuda" if torch.cuda.is_available() else "cpu"))
-
-
-def sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
 
 
 def autocast(device: torch.device):
     """bf16 autocast on CUDA (as the trainer and the evaluator), nothing on the CPU."""
     return torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda" else nullcontext()
-
-
-def toy_store(work: Path, records: int = 32, workers: int = 1) -> tuple[Path, Path]:
-    """Build a toy DexYCB train store (512 px crops) of about ``records`` records; returns (store, mano dir)."""
-    from hoidata.pipeline.runner import build_store
-    from hoidata.pipeline.settings import load_build_config
-    from hoidata.toy.dexycb import ToyDexYCBSize, write_toy_dexycb
-    from hoidata.toy.make import write_assets
-
-    root = work / "data"
-    mano, models = write_assets(root)
-    size = ToyDexYCBSize(subjects=(0,), sequences=4, serials=(0,), frames=max(1, math.ceil(records / 4)))
-    write_toy_dexycb(root, mano, models, size, workers=workers, progress=False)
-    cfg = load_build_config("toy", ['dataset.splits=["train"]', "record.crop_size=512", "store.records_per_shard=8"])
-    build_store(cfg, root, mano, models, work / "store", workers=workers, progress=False)
-    return work / "store", mano
-
-
-def store_and_mano(args, work: Path, records: int) -> tuple[Path, Path]:
-    """--store / --mano, or a toy store and the toy MANO written into ``work``."""
-    if args.store is None:
-        store, mano = toy_store(work, records, workers=min(4, os.cpu_count() or 1))
-        return store, Path(args.mano) if args.mano else mano
-    if args.mano:
-        return Path(args.store), Path(args.mano)
-    from hoidata.hand.toy import write_toy_mano
-
-    write_toy_mano(work / "mano")
-    return Path(args.store), work / "mano"
 
 
 # --- batches ------------------------------------------------------------------------------------------------
@@ -111,12 +72,6 @@ def first_samples(batches: list[dict], n: int) -> dict:
         values = [b[k] for b in batches]
         out[k] = torch.cat(values)[:n] if torch.is_tensor(v) else [x for v in values for x in v][:n]
     return out
-
-
-def test_inputs(batch: dict, config, device: torch.device) -> dict:
-    """A loader batch -> the network's test-time input on ``device`` (no SDF rows: nothing but inference)."""
-    keep = {k: v for k, v in batch.items() if not k.endswith(("_points", "_sdf", "_rows"))}
-    return augment_batch(to_device(keep, device), config.augment, None, train=False)
 
 
 # --- 1. training steps --------------------------------------------------------------------------------------
@@ -299,7 +254,7 @@ def build_parser() -> argparse.ArgumentParser:
 def bench_compile(args, config, mano, batches: list[dict], infer_batch: int, frames: int, warmup: int,
                   steps: int, device: torch.device) -> dict:
     """Section 4: eager vs compiled inference and training on the same weights (see compile_bench.py)."""
-    from compile_bench import (
+    from bench.compile_bench import (
         compile_inference,
         inference_rows,
         print_rows,

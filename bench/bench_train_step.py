@@ -1,6 +1,6 @@
 """Training-step time of model variants side by side in one run: conv memory layout and token-MLP width.
 
-Usage: python bench/bench_train_step.py [--config toy] [--store STORE] [--mano DIR] [--device cpu]
+Usage: python -m bench.bench_train_step [--config toy] [--store STORE] [--mano DIR] [--device cpu]
            [--batch-size 8] [--rounds 3] [--steps 4] [--json OUT]
 
 Variants (everything else from ``--config``): ``nchw``: NCHW convolutions (``model.channels_last=false``)
@@ -24,8 +24,8 @@ import time
 from pathlib import Path
 
 import torch
-from bench_train import NOISE, resolve_device, store_and_mano, sync, test_inputs
 
+from bench.common import NOISE, resolve_device, store_and_mano, sync, test_inputs
 from hoidata.hand import load_mano
 from hoisdf.config import load_train_config
 from hoisdf.data import StoreSpec

@@ -2,7 +2,7 @@
 
 Needs only torch and the model code (no stores, no loader), so it also runs where the data packages are not
 installed. Inputs are batches already on the device: training batches after the training augmentation, test
-inputs after the test-time crop (see ``bench_train.test_inputs``).
+inputs after the test-time crop (see ``bench.common.test_inputs``).
 
 * inference: eval, no_grad, field-guided points; ``compact`` (the default sampling path, data-dependent
   shapes) and ``fixed`` (``model.fixed_shape``: the whole grid with the boxes as masks) eager, then ``fixed``
@@ -19,16 +19,11 @@ import time
 
 import torch
 
+from bench.common import NOISE, sync
 from hoisdf.model.precision import autocast
 from hoisdf.training.losses import HOISDFLoss
 
 COMPARED = ("joints", "verts", "obj_translation", "obj_rotation", "hand_query", "obj_query")
-NOISE = 0.03
-
-
-def sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
 
 
 def peak_gib(device: torch.device) -> float | None:

@@ -17,7 +17,7 @@ Cases (metres; the "hand" is the mesh whose inside is tested, the "object" the o
   pi r^2 t / cos(30 deg).
 
 The meshes are fine (icospheres of 5120 faces, 128-sided cylinders); the polyhedral value (manifold3d's exact
-boolean) differs from the analytic one by the faceting. Run: ``python bench/plausibility_cases.py`` (about a
+boolean) differs from the analytic one by the faceting. Run: ``python -m bench.plausibility_cases`` (about a
 minute on one core at the default; ``--tolerance`` in m^3, ``cells``: cell-centre evaluations).
 """
 

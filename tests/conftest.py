@@ -28,7 +28,7 @@ def pytest_report_header(config):
 
 @pytest.fixture(scope="session")
 def mano_dir(tmp_path_factory):
-    from hoidata.hand.toy import write_toy_mano
+    from hoidata.toy.hand import write_toy_mano
 
     out = tmp_path_factory.mktemp("mano")
     write_toy_mano(out)

@@ -1,7 +1,7 @@
 """The fixed-shape inference path compiles as one graph (torch.compile fullgraph=True) and matches eager.
 
 The test compiles with the ``aot_eager`` backend (AOTAutograd tracing and decompositions, no code generation)
-to stay fast on 2 CPU cores; ``bench/bench_train.py --compile`` compiles with inductor and prints the largest
+to stay fast on 2 CPU cores; ``python -m bench.bench_train --compile`` compiles with inductor and prints the largest
 difference to eager beside the timings.
 """
 

@@ -228,7 +228,7 @@ def _scale_models(models: Path, factor: float) -> None:
 def _change_input(root: Path, what: str) -> dict:
     """Change one input of a build after its first part was written; returns build_store's keyword overrides."""
     if what == "mano":
-        from hoidata.hand.toy import build_toy_mano, mirror_to_left, write_mano_pickle
+        from hoidata.toy.hand import build_toy_mano, mirror_to_left, write_mano_pickle
 
         arrays = build_toy_mano()
         arrays["v_template"] = arrays["v_template"] * 1.02

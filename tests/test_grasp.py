@@ -13,12 +13,7 @@ import torch
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from hoidata.objects import (
-    TOY_OBJECTS,
-    load_object_mesh,
-    repair_mesh,
-    write_toy_objects,
-)
+from hoidata.objects import load_object_mesh, repair_mesh
 from hoidata.synth import (
     Grasp,
     HandObjectCollision,
@@ -26,6 +21,7 @@ from hoidata.synth import (
     signed_distance,
     synthesize_grasp,
 )
+from hoidata.toy.objects import TOY_OBJECTS, write_toy_objects
 
 MAX_PENETRATION = 0.002  # metres
 SEED = 7

@@ -12,7 +12,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("hoidata", "hoisdf")
-MAX_LINES = 420  # "files under about 400 lines" (DESIGN.md §2)
+MAX_LINES = 420  # "files under about 400 lines" (docs/development.md, "Style")
 
 
 def _modules() -> dict[str, Path]:
@@ -138,3 +138,43 @@ def test_hoidata_imports_only_its_own_layer_and_below():
           for m, targets in _graph().items() if m.startswith("hoidata.")}
     up = {m: t for m, t in up.items() if t}
     assert not up, f"imports that run up a layer: {up}"
+
+
+def _bench_problems(bench: Path) -> list[str]:
+    """Ways a bench module breaks the bench rules: a bare import of a sibling, an import of another *script*
+    (a module with a ``__main__`` block), or a change to ``sys.path``."""
+    modules = {p.stem: p for p in bench.glob("*.py")}
+    scripts = {name for name, p in modules.items() if 'if __name__ == "__main__"' in p.read_text()}
+    problems = set()
+    for name, path in sorted(modules.items()):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Import):
+                targets = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and not node.level:
+                targets = [node.module or ""] + [f"{node.module}.{alias.name}" for alias in node.names]
+            else:
+                targets = []
+            for target in targets:
+                head, _, rest = target.partition(".")
+                if head in modules:
+                    problems.add(f"{path.name} imports its sibling {head} by bare name")
+                elif head == bench.name and rest.split(".")[0] in scripts:
+                    problems.add(f"{path.name} imports the script {rest.split('.')[0]}")
+            if isinstance(node, ast.Attribute) and node.attr == "path" and getattr(node.value, "id", None) == "sys":
+                problems.add(f"{path.name} touches sys.path")
+    return sorted(problems)
+
+
+def test_bench_scripts_share_only_through_library_modules():
+    assert not _bench_problems(ROOT / "bench"), _bench_problems(ROOT / "bench")
+
+
+def test_the_bench_check_finds_a_sibling_import_and_a_path_edit(tmp_path):
+    bench = tmp_path / "bench"
+    bench.mkdir()
+    (bench / "common.py").write_text("X = 1\n")
+    (bench / "a.py").write_text('import sys\nsys.path.insert(0, ".")\nfrom common import X\n'
+                                'if __name__ == "__main__":\n    pass\n')
+    (bench / "b.py").write_text('from bench.a import X\nfrom bench.common import X\n')
+    assert _bench_problems(bench) == ["a.py imports its sibling common by bare name",
+                                              "a.py touches sys.path", "b.py imports the script a"]

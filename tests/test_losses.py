@@ -1,6 +1,6 @@
 """Every HOISDF loss term against a small example whose value is written out by hand (numpy, not the loss code).
 
-The definitions are upstream's (``reference/upstream_hoisdf.md`` §2, ``common/nets/loss.py`` of amathislab/HOISDF):
+The definitions are upstream's (docs/upstream.md, "Losses"; ``common/nets/loss.py`` of amathislab/HOISDF):
 in particular the joint-vote term sums the masked SmoothL1 over samples, points and joints, divides by the number
 of labelled (sample, point, joint) pairs and only then averages over layers and coordinates.
 """

@@ -12,7 +12,6 @@ import trimesh
 
 from hoidata.errors import DataError
 from hoidata.objects import (
-    TOY_OBJECTS,
     YCB_CLASSES,
     UnknownObjectError,
     box21,
@@ -30,12 +29,13 @@ from hoidata.objects import (
     simplify_cache_key,
     simplify_mesh,
     surface_error,
-    write_toy_objects,
     ycb,
 )
+from hoidata.toy.objects import TOY_OBJECTS, write_toy_objects
 
 # Simplification to 1000 vertices must stay this close to the source surface (metres); measured
-# on the toy set: max 1.04 mm (mug wall faceting), mean <= 0.15 mm. See hoidata/objects/README_section.md.
+# on the toy set: max 1.04 mm (mug wall faceting), mean <= 0.15 mm. See docs/hand-and-objects.md,
+# "Measured simplification error".
 MAX_SURFACE_ERROR = 2e-3
 MEAN_SURFACE_ERROR = 0.3e-3
 

@@ -10,7 +10,7 @@ import trimesh
 from PIL import Image
 
 from hoidata.errors import DataError
-from hoidata.objects import load_object_mesh, write_toy_objects
+from hoidata.objects import load_object_mesh
 from hoidata.render import (
     DirectionalLight,
     Lighting,
@@ -23,6 +23,7 @@ from hoidata.render import (
     random_lighting,
     skin_tone,
 )
+from hoidata.toy.objects import write_toy_objects
 
 W, H = 640, 480
 # Off-centre principal point and fx != fy, so a swapped or mis-shifted term shows up.

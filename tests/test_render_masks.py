@@ -8,9 +8,9 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from hoidata.objects.toy import TOY_OBJECTS, build_toy_object
 from hoidata.render import Renderer, RenderMesh
 from hoidata.render.masks import MAX_MESHES, MaskRenderer
+from hoidata.toy.objects import TOY_OBJECTS, build_toy_object
 
 SIZE = 96
 

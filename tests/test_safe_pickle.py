@@ -12,8 +12,8 @@ import pytest
 import scipy.sparse
 
 from hoidata.errors import DataError
-from hoidata.hand.toy import chumpy_stand_ins, wrap_shapedirs
 from hoidata.safe_pickle import load_pickle
+from hoidata.toy.hand import chumpy_stand_ins, wrap_shapedirs
 
 
 def _write_chumpy_pickle(path, protocol):

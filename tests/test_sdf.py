@@ -21,8 +21,9 @@ from hoidata.geometry.sdf import (
     closest_point_on_triangles,
     signed_distance,
 )
-from hoidata.objects import load_object_mesh, repair_mesh, write_toy_objects
+from hoidata.objects import load_object_mesh, repair_mesh
 from hoidata.schema import NO_PART, SDF_QUANTUM, dequantize_sdf
+from hoidata.toy.objects import write_toy_objects
 
 EXACT = 1e-9  # metres: libigl and the reference are both exact float64 computations
 CAMERA_T = np.array([0.03, -0.02, 0.55])  # a typical hand position in the camera frame, metres

@@ -10,15 +10,15 @@ import trimesh
 
 from hoidata.errors import DataError
 from hoidata.hand import load_mano, read_mano_file
-from hoidata.hand.toy import (
+from hoidata.safe_pickle import load_pickle
+from hoidata.toy.hand import (
     build_toy_mano,
     mirror_to_left,
     write_mano_pickle,
     write_toy_mano,
 )
-from hoidata.safe_pickle import load_pickle
 
-REAL_LAYOUT = {  # key: (shape, dtype kind) of MANO_RIGHT.pkl v1.2 (reference/datasets.md section 5.1)
+REAL_LAYOUT = {  # key: (shape, dtype kind) of MANO_RIGHT.pkl v1.2 (docs/conventions.md, "The MANO file")
     "v_template": ((778, 3), "f"), "shapedirs": ((778, 3, 10), "f"), "posedirs": ((778, 3, 135), "f"),
     "J_regressor": ((16, 778), "f"), "J": ((16, 3), "f"), "weights": ((778, 16), "f"),
     "kintree_table": ((2, 16), "i"), "f": ((1538, 3), "u"), "hands_components": ((45, 45), "f"),

@@ -1,6 +1,6 @@
 """DexYCB reader: the toolkit's layout, setups s0-s3, and the settings the papers train on.
 
-Layout (``reference/datasets.md`` section 1): ``ROOT/<subject>/<sequence>/{meta.yml, <serial>/...}``
+Layout (docs/conventions.md, "The datasets on disk", DexYCB): ``ROOT/<subject>/<sequence>/{meta.yml, <serial>/...}``
 with ``labels_%06d.npz`` and ``color_%06d.jpg`` per camera and frame, ``ROOT/calibration/`` for
 intrinsics and MANO betas, ``ROOT/models/<ycb name>/textured_simple.obj``.
 

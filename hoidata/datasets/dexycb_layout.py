@@ -1,6 +1,6 @@
 """DexYCB's on-disk layout: subjects, serials, the toolkit's setups s0-s3, and readers of its files.
 
-Layout (``reference/datasets.md`` section 1): ``ROOT/<subject>/<sequence>/{meta.yml, <serial>/...}``
+Layout (docs/conventions.md, "The datasets on disk", DexYCB): ``ROOT/<subject>/<sequence>/{meta.yml, <serial>/...}``
 with ``labels_%06d.npz`` and ``color_%06d.jpg`` per camera and frame, ``ROOT/calibration/`` for
 intrinsics and MANO betas, ``ROOT/models/<ycb name>/textured_simple.obj``. Every reader checks what it
 reads and raises :class:`~hoidata.errors.DataError` naming the file and the key.

@@ -1,6 +1,6 @@
 """The Frame: one annotated image, as every dataset reader yields it.
 
-All geometry is in the project's conventions (DESIGN.md section 3): OpenCV camera frame (x right,
+All geometry is in the project's conventions (docs/conventions.md): OpenCV camera frame (x right,
 y down, z forward), metres, pixels, 21 joints in DexYCB/manopth order, MANO pose as 48 axis-angle
 values in the flat-hand-mean convention. Readers convert at the border (HO-3D's OpenGL frame, DexYCB's
 PCA pose) so nothing downstream has to know where a frame came from.

@@ -1,6 +1,6 @@
 """HO-3D v2 and v3 reader: list files, latin1 meta pickles, OpenGL -> OpenCV on reading.
 
-Layout (``reference/datasets.md`` section 2): ``ROOT/{train,evaluation}/<SEQ>/{rgb,depth,meta,seg}/<id>``
+Layout (docs/conventions.md, "The datasets on disk", HO-3D): ``ROOT/{train,evaluation}/<SEQ>/{rgb,depth,meta,seg}/<id>``
 with the frame lists ``ROOT/train.txt`` and ``ROOT/evaluation.txt`` (lines ``<SEQ>/<id>``).
 
 v3 (checked against shreyashampali/ho3d at 2fd6ee1: README "Update - Juy 1st, 2021", ``utils/vis_utils.py``

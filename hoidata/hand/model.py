@@ -1,6 +1,6 @@
 """The MANO hand model: reading MANO_{RIGHT,LEFT}.pkl and a batched, differentiable forward pass.
 
-Conventions (see DESIGN.md section 3):
+Conventions (docs/conventions.md, "The MANO pose" and "Joint orders and fingertip vertices"):
 
 - pose: (B, 48) full axis-angle, joint 0 the global rotation, in the *flat hand mean* convention
   (the 45 finger values are used as they are; MANO's ``hands_mean`` is not added);

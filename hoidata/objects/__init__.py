@@ -1,5 +1,7 @@
-"""Object models: the YCB class table and layout, loading, repair, simplification, box keypoints,
-and procedural stand-ins written in the YCB layout (see :mod:`hoidata.objects.toy`)."""
+"""Object models: the YCB class table and layout, loading, repair, simplification, box keypoints.
+
+The procedural stand-ins written in the YCB layout live with the other toy writers, in
+:mod:`hoidata.toy.objects`."""
 
 from hoidata.objects.meshops import (
     MeshReport,
@@ -9,7 +11,6 @@ from hoidata.objects.meshops import (
     simplify_mesh,
     surface_error,
 )
-from hoidata.objects.toy import TOY_OBJECTS, build_toy_object, write_toy_objects
 from hoidata.objects.ycb import (
     BOX_EDGES,
     MESH_FILE,
@@ -36,5 +37,5 @@ __all__ = [
     "object_mesh_path", "object_points_path", "list_objects", "load_object_mesh", "load_points",
     "MeshReport", "check_mesh", "repair_mesh", "simplify_mesh", "surface_error", "sample_surface",
     "SIMPLIFY_VERSION", "default_cache_dir", "simplify_cache_key", "load_simplified",
-    "box_corners", "box21", "BOX_EDGES", "TOY_OBJECTS", "build_toy_object", "write_toy_objects",
+    "box_corners", "box21", "BOX_EDGES",
 ]

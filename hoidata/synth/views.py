@@ -1,10 +1,10 @@
 """Perturbing a grasp and choosing a new view of it: pure numpy functions for render-synthetic.
 
-Follows the one public description of HO-3D-style synthesis (ArtiBoost, ``reference/datasets.md``
-section 4.2): viewpoints uniform over the sphere (u = cos(polar) uniform in [-1, 1], azimuth uniform),
-an in-plane roll uniform in [0, 2 pi), and the point midway between the object centre and the hand's
-middle knuckle placed on the optical axis at a depth uniform in [0.45, 0.55] m; per-joint noise on
-the rotation angle of each finger joint, and a small translation noise on the hand.
+Follows the one public description of HO-3D-style synthesis (ArtiBoost; docs/upstream.md,
+"HO-3D-style synthesis (ArtiBoost)"): viewpoints uniform over the sphere (u = cos(polar) uniform in
+[-1, 1], azimuth uniform), an in-plane roll uniform in [0, 2 pi), and the point midway between the object
+centre and the hand's middle knuckle placed on the optical axis at a depth uniform in [0.45, 0.55] m;
+per-joint noise on the rotation angle of each finger joint, and a small translation noise on the hand.
 """
 
 from __future__ import annotations

@@ -1,3 +1,4 @@
-"""The procedural toy datasets: DexYCB and HO-3D v2 trees in the real on-disk layouts, written from the toy hand
-and objects (``hoidata make-toy``; :mod:`hoidata.toy.make`). They sit above the readers, the pipeline and the
-grasp synthesis they use; nothing below imports them."""
+"""The procedural toy world: a hand in the exact MANO file format (:mod:`hoidata.toy.hand`, its mesh in
+:mod:`hoidata.toy.hand_mesh`), YCB-layout stand-in objects (:mod:`hoidata.toy.objects`), and DexYCB and HO-3D trees
+in the real on-disk layouts written from them (``hoidata make-toy``; :mod:`hoidata.toy.make`). They sit above the
+readers, the pipeline and the grasp synthesis they use; nothing below imports them."""

@@ -1,4 +1,5 @@
-"""Write a small toy dataset in the exact DexYCB on-disk layout (``reference/datasets.md`` section 1).
+"""Write a small toy dataset in the exact DexYCB on-disk layout (docs/conventions.md,
+"The datasets on disk").
 
 Everything the toolkit reads is there with its real names, keys, dtypes and units: ``meta.yml``,
 ``pose.npz`` (world frame, quaternion x,y,z,w + translation), per camera ``color_%06d.jpg``,

@@ -1,4 +1,5 @@
-"""Write a small toy dataset in the exact HO-3D v2 on-disk layout (``reference/datasets.md`` section 2).
+"""Write a small toy dataset in the exact HO-3D v2 on-disk layout (docs/conventions.md,
+"The datasets on disk").
 
 ``train/<SEQ>/{rgb/<id>.png, depth/<id>.png, seg/<id>.jpg, meta/<id>.pkl}``, the same for
 ``evaluation/`` with the reduced ground truth, and ``train.txt`` / ``evaluation.txt``; plus the challenge's hidden

@@ -11,8 +11,8 @@ LAYOUTS = ("dexycb", "ho3d", "ho3d_v3")  # ho3d_v3: HO-3D v3's layout (hoidata/t
 
 def write_assets(out: Path) -> tuple[Path, Path]:
     """Procedural MANO files in ``out/mano`` and YCB-layout objects in ``out/models``."""
-    from hoidata.hand.toy import write_toy_mano
-    from hoidata.objects import write_toy_objects
+    from hoidata.toy.hand import write_toy_mano
+    from hoidata.toy.objects import write_toy_objects
 
     write_toy_mano(out / "mano")
     write_toy_objects(out / "models")

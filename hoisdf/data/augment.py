@@ -33,7 +33,7 @@ _RGB_TO_YIQ = ((0.299, 0.587, 0.114), (0.595716, -0.274453, -0.321263), (0.21145
 
 @dataclass(frozen=True)
 class AugmentSettings:
-    """Augmentation of HOISDF (``upstream_hoisdf.md`` §3); sizes in pixels, angles in radians unless noted."""
+    """Augmentation of HOISDF (docs/upstream.md, "Augmentation"); sizes in pixels, angles in radians unless noted."""
 
     input_size: int = 256  # output image side R (px); masks and heatmap come out at R // 2
     context: float = 2.0  # the store's crop context: the network crop is the central S_store / context square

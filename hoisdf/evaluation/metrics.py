@@ -4,7 +4,7 @@ Pure numpy, batched over samples, **metres in**; every per-sample function retur
 per-object means and overall means come from the same numbers. Millimetre conversion and metric names
 for printing live only in :func:`report_units` at the end of this file.
 
-Definitions (``reference/upstream_hoisdf.md`` section 5, ``reference/datasets.md`` sections 1.9, 2.5):
+Definitions (docs/upstream.md, "Evaluation as upstream computes it"; docs/conventions.md, "The official evaluators"):
 
 - joints: (N, 21, 3) in DexYCB/manopth order (0 wrist, 1-4 thumb, 5-8 index, 9-12 middle, 13-16 ring,
   17-20 little); hand vertices (N, 778, 3);

@@ -1,12 +1,12 @@
 """Result files for the official evaluators: HO-3D challenge ``pred.json`` and DexYCB HPE ``.txt``.
 
-HO-3D (``reference/datasets.md`` section 2.5; ``shreyashampali/ho3d:pred.py``, ``eval.py``):
+HO-3D (docs/conventions.md, "The official evaluators"; ``shreyashampali/ho3d:pred.py``, ``eval.py``):
     ``pred.json`` is the JSON list ``[xyz_list, verts_list]``: N items of 21 x 3 joints and N items of
     778 x 3 vertices, metres, **OpenGL** camera frame (our OpenCV points times diag(1, -1, -1)), joints in
     HO-3D order (16 MANO joints, then the thumb..pinky tips), samples in ``evaluation.txt`` order
     (N = 11,524 for v2). The server expects it zipped as ``pred.zip``.
 
-DexYCB (``reference/datasets.md`` section 1.9; ``dex_ycb_toolkit/hpe_eval.py``):
+DexYCB (docs/conventions.md, "The official evaluators"; ``dex_ycb_toolkit/hpe_eval.py``):
     one line per sample, 64 comma-separated numbers: the integer sample index, then x1,y1,z1 ... x21,y21,z21
     in **millimetres**, camera frame, DexYCB joint order.
 

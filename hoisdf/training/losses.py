@@ -1,6 +1,6 @@
 """HOISDF training losses: one method per term, each multiplied by its weight; every term is returned for logging.
 
-Terms and weights follow the reference code (``upstream_hoisdf.md`` §2). Deep supervision: MANO terms
+Terms and weights follow the reference code (docs/upstream.md, "Losses"). Deep supervision: MANO terms
 average over all decoder layers, voting terms over all hand-encoder layers, object terms over all
 object-encoder layers (the layer axis L of the model outputs).
 """

@@ -6,7 +6,7 @@ a chumpy ``Select`` over a chumpy ``Ch`` of 20 directions, a scipy ``csc_matrix`
 MANO's kinematic tree and finger order, and its fingertips at MANO's tip vertex indices, so every
 MANO code path runs on it unchanged.
 
-Rig (all derived from the geometry in :mod:`hoidata.hand.toy_mesh`):
+Rig (all derived from the geometry in :mod:`hoidata.toy.hand_mesh`):
 
 - joints: the wrist, then three joints per finger along each finger axis; ``J_regressor`` rows
   average nearby vertices with weights solved so that they reproduce those joints;
@@ -35,7 +35,7 @@ import scipy.sparse
 
 from hoidata.geometry.mirror import mirror_axis_angle
 from hoidata.hand.model import MANO_PARENTS, NUM_JOINTS, TIP_VERTICES
-from hoidata.hand.toy_mesh import (
+from hoidata.toy.hand_mesh import (
     BACK_AXIS,
     LENGTH_AXIS,
     WIDTH_AXIS,
