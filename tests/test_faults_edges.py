@@ -1,7 +1,8 @@
 """Issue 25, items 2 and 4 ("nothing silent at the edges"): launchers forward exactly what was parsed, and every
 folder option is resolved before any work (items 3 and 7: tests/test_faults_edges_files.py).
 
-Each test tries other members of the class than the probe's listed case (docs/reliability.md, "Edges")."""
+Each test tries other members of the class than the probe's listed case (docs/reliability.md,
+"15. Edges: launchers, export inputs, folder options (issue 25)")."""
 
 from __future__ import annotations
 

@@ -2,7 +2,8 @@
 spelled two ways, damaged or absurdly nested JSON, a split listed twice, an unbounded --count, torch's refusal text,
 an error that blamed the pipeline file for a command-line override, a rerun that said it wrote the index).
 
-Each test tries other members of the class than the probe's listed case (docs/reliability.md, "Edges")."""
+Each test tries other members of the class than the probe's listed case (docs/reliability.md,
+"15. Edges: launchers, export inputs, folder options (issue 25)")."""
 
 from __future__ import annotations
 
