@@ -145,7 +145,9 @@ def _close_renderers() -> None:
             renderer.close()
 
 
-def _build_one(frame, key: str, settings):
+def _build_one(frame, key: str, settings, source=None):
+    """One frame's encoded record; ``source`` (when given) replaces ``frame.source`` in the stored meta only: the
+    frame keeps the paths its files are read from."""
     from hoidata.pipeline.records import build_eval_record, build_record
     from hoidata.pipeline.upstream_records import record_size
 
@@ -158,6 +160,8 @@ def _build_one(frame, key: str, settings):
         mano = hand_model(frame.side, frame.fix_left_shapedirs)  # the model the frame's labels were made with
         renderer = _renderer(record_size(frame, settings))
         rec = build_record(frame, mano, objects[frame.object_name], renderer, key, settings)
+    if source is not None:
+        rec["meta"]["source"] = source
     return store.encode_record(key, rec["img"], rec["seg"], rec["heatmap"], rec["sdf"], rec["meta"])
 
 
@@ -180,16 +184,16 @@ def _build_shard(job: ShardJob) -> tuple[int, int, list]:
 
     The shard (tar and sidecar) is written first, then its skips file: a shard counts as done only with both.
     """
-    import dataclasses
-
     records, skips, inputs = [], [], {}
     for frame, key in zip(job.frames, job.keys):
+        source = None
         if job.root is not None:
             inputs.update(fingerprint.frame_inputs(frame, Path(job.root)))
-            # the record's 'source' names files relative to the dataset folder, however --root was spelled
-            frame = dataclasses.replace(frame, source=fingerprint.root_relative(frame.source, Path(job.root)))
+            # the record's 'source' names files relative to the dataset folder, however --root was spelled; the
+            # frame itself keeps its paths (the record recipe may read them: labels, HO-3D's meta for upstream crops)
+            source = fingerprint.root_relative(frame.source, Path(job.root))
         try:
-            records.append((key, _build_one(frame, key, job.settings)))
+            records.append((key, _build_one(frame, key, job.settings, source)))
         except (DataError, ValueError) as e:  # a broken frame is skipped with its reason, the build goes on
             skips.append({"frame_id": frame.frame_id, "reason": str(e), "path": str(frame.image_path)})
     store.write_shard(job.out, job.number, records)
