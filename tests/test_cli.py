@@ -10,6 +10,7 @@ import pytest
 from hoidata.cli import main
 
 
+@pytest.mark.slow
 def test_make_toy_writes_and_checks_everything(tmp_path, capsys):
     argv = ["make-toy", "--out", str(tmp_path / "toy"), "--layout", "ho3d", "--sequences", "1", "--frames", "2",
             "--cache-dir", str(tmp_path / "cache")]

@@ -21,6 +21,8 @@ from hoidata.errors import DataError
 from hoidata.pipeline import finish
 from hoidata.pipeline.slurm import array_part, resolve_part, slurm_minutes
 
+pytestmark = pytest.mark.slow  # Slurm/submitit/Ray builds in subprocesses
+
 
 @pytest.fixture(scope="module")
 def local_build(tiny_dexycb, tmp_path_factory):

@@ -23,6 +23,8 @@ from hoidata.errors import DataError
 from hoisdf.data import StoreSpec, build_dataset, make_loader
 from hoisdf.data.shards import ShardStream, store_shards
 
+pytestmark = pytest.mark.slow  # stores served over loopback HTTP, loaders with workers
+
 pytest.importorskip("aiohttp")
 pytest.importorskip("fsspec")
 

@@ -15,6 +15,8 @@ from hoisdf.data import StoreSpec, build_dataset
 from hoisdf.data.augment import augment_batch
 from hoisdf.model import build_model
 
+pytestmark = pytest.mark.slow  # torch.compile
+
 TINY = ["model.depth=18", "model.image_size=64", "model.d_model=64", "model.ff=128", "model.hand_layers=1",
         "model.decoder_layers=1", "model.object_layers=1", "model.sdf_features=32", "model.sdf_hidden=96",
         "model.token_hidden=[48]", "model.n_hand=32", "model.n_object=16", "model.grid_resolution=12",

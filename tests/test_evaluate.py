@@ -165,6 +165,7 @@ def test_mirrored_records_get_the_mirrored_object_mesh():
     assert trimesh.Trimesh(v1, f1, process=False).volume > 0
 
 
+@pytest.mark.slow
 def test_cli_help_runs():
     proc = subprocess.run([sys.executable, "-m", "hoisdf.evaluate", "--help"], capture_output=True, text=True,
                           timeout=120, check=False)

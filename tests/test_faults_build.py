@@ -274,6 +274,7 @@ def test_the_build_summary_names_the_readers_skips_and_their_reasons(tiny_dexycb
     assert "MANO_RIGHT.pkl" in err and "not found" in err and len(err.strip().splitlines()) == 1
 
 
+@pytest.mark.slow
 def test_make_toy_never_mixes_old_and_new_files(tmp_path, capsys):
     from hoidata.toy.make import split_rows
 
@@ -351,6 +352,7 @@ def test_member_names_and_sizes_are_checked_exactly(store_copy):
 # --- 5. no hangs when a worker cannot start ------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("command", ["make-toy", "build-sdf"])
 def test_a_worker_that_cannot_start_ends_the_command_with_one_error(tiny_dexycb, tmp_path, command):
     fake = tmp_path / "fake"

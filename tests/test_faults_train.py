@@ -89,6 +89,7 @@ def test_validation_stores_are_checked_before_the_first_step(tiny_store, mano_di
     assert not (out / "metrics.csv").exists()  # not a single step was trained before the error
 
 
+@pytest.mark.slow
 def test_an_epoch_is_saved_before_its_validation_runs(tiny_store, mano_dir, tmp_path, capsys):
     val = tmp_path / "val"
     shutil.copytree(tiny_store, val)
@@ -105,6 +106,7 @@ def test_an_epoch_is_saved_before_its_validation_runs(tiny_store, mano_dir, tmp_
 # --- 4. exact resume under DDP, logs that match the checkpoint ------------------------------------------------
 
 
+@pytest.mark.slow
 def test_ddp_resume_is_exact(tiny_store_two_shards, mano_dir, tmp_path):
     """torchrun 2 processes (gloo): 2 steps + --resume 2 steps == 4 steps, bit for bit, weights and optimizer."""
     def torchrun(out, *extra, port, resume=False):
@@ -132,6 +134,7 @@ def _steps(run: Path) -> list[int]:
     return [int(r[2]) for r in rows if r[3] == "total"]
 
 
+@pytest.mark.slow
 def test_logs_drop_rows_logged_after_the_checkpoint_they_resume_from(tiny_store, mano_dir, tmp_path):
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 

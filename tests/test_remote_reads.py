@@ -23,6 +23,8 @@ from hoidata import store
 from hoidata.errors import DataError
 from hoidata.store.httpread import UNKNOWN_SIZE, HttpReader, RemoteOptions, http_sizes, storage_options
 
+pytestmark = pytest.mark.slow  # loopback HTTP servers that stall, drop and trickle
+
 pytest.importorskip("aiohttp")
 pytest.importorskip("fsspec")
 

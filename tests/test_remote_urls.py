@@ -101,6 +101,7 @@ def _every_file_text(folder: Path) -> str:
     return "\n".join(p.read_bytes().decode("latin-1") for p in sorted(folder.rglob("*")) if p.is_file())
 
 
+@pytest.mark.slow
 def test_a_url_password_never_reaches_config_results_or_error_lines(served, mano_dir, tmp_path, capsys):
     from test_faults_train import TINY
 

@@ -15,6 +15,8 @@ from hoidata.synth.render_synthetic import render_synthetic
 from hoidata.toy.ho3d import ToyHO3DSize, write_toy_ho3d
 from hoidata.toy.make import write_assets
 
+pytestmark = pytest.mark.slow  # renders and builds synthetic stores
+
 RECORD = RecordSettings(crop_size=128, n_hand=256, n_object=128)
 
 

@@ -165,6 +165,7 @@ def store_8cam(dexycb_8cam, tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_hpe_file_of_a_whole_split_is_accepted_by_the_toolkit(store_8cam, dexycb_8cam, untrained_run, mano_dir, tmp_path):
     import json
 

@@ -197,6 +197,7 @@ def test_ho3d_segmentation_and_depth_agree_with_the_labels(ho3d_root):
     np.testing.assert_allclose(unpack_depth(pack_depth(ramp)), ramp, atol=DEPTH_SCALE)
 
 
+@pytest.mark.slow
 def test_no_toy_grasp_penetrates_more_than_2mm(dex_root):
     frames, reader = _read(dex_root, "train", "dexycb_full")
     seen = set()

@@ -4,7 +4,11 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from hoisdf.toy import beats_baseline, main
+
+pytestmark = pytest.mark.slow  # the main job, end to end
 
 
 def test_main_job_end_to_end_reduced(tmp_path, capsys):

@@ -83,6 +83,7 @@ def test_forward_backward_shapes_and_gradients(tiny_store, mano, regressor):
     assert widths == [48, 64 - 33]  # model.token_hidden, then d_model minus the point code
 
 
+@pytest.mark.slow
 def test_ablation_switches_run(tiny_store, mano):
     batch = augment_batch(_batch(tiny_store), load_train_config(None, TINY).augment, None, train=False)
     for switch in ['model.sampling="signed"', 'model.sampling="random"', 'model.sampling="gradient"',
@@ -158,6 +159,7 @@ def _trainer(store, run_dir, mano, extra=(), stores=None):
     return Trainer(cfg, stores or [StoreSpec(store)], mano, run_dir, torch.device("cpu"))
 
 
+@pytest.mark.slow
 def test_overfitting_two_samples_lowers_every_loss_term(tiny_store, mano, tmp_path):
     # with the paper's weights the betas term (0.1) is traded for the vertex term (1e4) early in training,
     # so it rises for a while; a larger shape weight makes every term's own gradient path visible. The
@@ -183,6 +185,7 @@ def test_overfitting_two_samples_lowers_every_loss_term(tiny_store, mano, tmp_pa
     assert not worse, worse
 
 
+@pytest.mark.slow
 def test_resume_two_plus_two_steps_equals_four(tiny_store, mano, tmp_path):
     extra = ["train.point_sampling_epoch=0", "train.field_prob=0.5"]  # exercise both sampling paths' RNG
     full = _trainer(tiny_store, tmp_path / "full", mano, extra + ["train.max_steps=4"])
@@ -201,6 +204,7 @@ def test_resume_two_plus_two_steps_equals_four(tiny_store, mano, tmp_path):
     assert curve[0] == "split,epoch,step,name,value" and any(line.startswith("train,0,4,total,") for line in curve)
 
 
+@pytest.mark.slow
 def test_mixed_real_and_synthetic_training_reads_the_requested_ratio(tiny_store, mano, tmp_path):
     from hoidata.pipeline.records import RecordSettings
     from hoidata.synth.render_synthetic import render_synthetic
@@ -221,6 +225,7 @@ def test_mixed_real_and_synthetic_training_reads_the_requested_ratio(tiny_store,
     assert len(keys) == 160 and abs(synthetic - 0.6 / 1.6) < 0.15, synthetic
 
 
+@pytest.mark.slow
 def test_ddp_two_processes_gloo_see_disjoint_samples(tiny_store_two_shards, mano_dir, tmp_path):
     store = tiny_store_two_shards
     run = tmp_path / "run"

@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from hoidata import schema, store
 
@@ -39,6 +40,7 @@ def recipe() -> str:
     return re.search(r"```python\n(.*?)```", section, re.S).group(1)
 
 
+@pytest.mark.slow
 def test_the_documented_recipe_reads_every_member(tiny_store, tmp_path):
     urls = [str(p) for p in sorted(tiny_store.glob("shard-*.tar"))]
     result = tmp_path / "decoded"
