@@ -80,3 +80,19 @@ def test_regressor_heads_are_registered_under_their_state_dict_names():
         heads = set(cls().heads(8, 1, 2, 16, 0.0))
         assert {k.split(".")[0] for k in model.state_dict()} >= heads
         assert not {k for k in model.state_dict() if k.startswith(("sampler.", "camera.", "regressor."))}
+
+
+def test_rotations_are_written_once():
+    """Rodrigues and the other conversions live in hoidata.geometry.rotation only (both packages import it)."""
+    from pathlib import Path
+
+    names = {"axis_angle_to_matrix", "batch_rodrigues", "rodrigues", "skew", "_skew", "rot6d_to_matrix",
+             "matrix_to_axis_angle", "matrix_to_quaternion", "quaternion_to_matrix", "quaternion_to_axis_angle"}
+    root = Path(__file__).resolve().parents[1]
+    found = {}
+    for path in [*root.glob("hoidata/**/*.py"), *root.glob("hoisdf/**/*.py")]:
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.FunctionDef) and node.name in names:
+                found.setdefault(node.name, []).append(str(path.relative_to(root)))
+    assert set(found) >= names - {"batch_rodrigues", "rodrigues", "_skew"}
+    assert all(files == ["hoidata/geometry/rotation.py"] for files in found.values()), found
