@@ -40,17 +40,24 @@ class HOISDF(nn.Module):
         mano: the project's right-hand MANO layer, used by the MANO head and the IK variant; kept out of the state
             dict (its data is licensed and belongs to the user, not to checkpoints).
         backbone: image (B, 3, S, S) -> (feature pyramid, 2D maps (B, 3, S/2, S/2)); ``channels`` per level.
-        sdf_in, token_in: pixel feature (B, N, C) -> SDF-decoder feature / token feature.
-        hand_sdf, obj_sdf: the SDF decoders (:class:`hoisdf.model.sdf_decoder.SDFDecoder`).
-        hand_encoder, obj_encoder: token encoders; obj_head: object pose head.
+        sdf_in: pixel feature (B, N, C) -> SDF-decoder feature (B, N, sdf_features).
+        token_in: pixel feature (B, N, C) -> token feature (B, N, d_model - 33 - token_features.extra).
+        hand_sdf: the hand SDF decoder (:class:`hoisdf.model.sdf_decoder.SDFDecoder`).
+        obj_sdf: the object SDF decoder.
+        hand_encoder: the hand token encoder.
+        obj_encoder: the object token encoder.
         hand_heads: name -> module of the hand regressor (registered under these names: the state-dict keys).
+        obj_head: the object pose head.
         regressor: the hand regressor variant (:mod:`hoisdf.model.regressors`).
         sampler: the query sampler (:class:`hoisdf.model.parts.QuerySampler`).
         camera: pixel-aligned sampling (:class:`hoisdf.model.parts.Camera`).
-        token_features: the feature-augmentation variant; cross: the cross-field variant (None: no cross tokens).
+        token_features: the feature-augmentation variant (:mod:`hoisdf.model.parts`).
+        cross: the cross-field variant (None: no cross tokens).
         boxes: (batch, 2D maps) -> (hand box, object box) (B, 4) that filter the inference grid.
         object_rotation: per-point axis-angles (B, N, 3) -> object rotation (B, 3, 3).
-        scale: metres -> scaled units; clamp: SDF clamp, scaled units; n_freq: Fourier frequencies per axis.
+        scale: metres -> scaled units.
+        clamp: SDF clamp, scaled units.
+        n_freq: Fourier frequencies per axis.
         beta_init: initial learned density width (scaled units; only if ``token_features.learns_beta``).
         project_grid: rank the grid through ``project_pyramid`` (exact; fewer channels to sample with a big decoder).
     """

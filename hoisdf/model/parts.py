@@ -98,14 +98,15 @@ class QuerySampler(nn.Module):
 
     Args:
         grid: (G, 3) scaled inference lattice (a non-persistent buffer: not in the state dict).
-        n_hand, n_object: query points per sample.
+        n_hand: hand query points per sample.
+        n_object: object query points per sample.
         scale: metres -> scaled units (``sdf_scale``).
         chunk: grid points per SDF-decoder call.
         fixed_shape: decode the whole grid with the boxes as masks (static shapes).
         rows: the training-row variant (:func:`near_surface_rows`, :func:`inside_mesh_rows`,
             :func:`random_box_rows`): (sampler, batch, K, root, center, boxes, generator) -> scaled (hand, obj).
-        train_strategy, eval_strategy: the field-guided ranking in training / evaluation mode (a
-            :data:`hoisdf.model.sampling.STRATEGIES` name).
+        train_strategy: the field-guided ranking in training mode (a :data:`hoisdf.model.sampling.STRATEGIES` name).
+        eval_strategy: the field-guided ranking in evaluation mode.
         newton: evaluation steps onto the surface along the full field gradient ("gradient").
     """
 
