@@ -21,6 +21,7 @@ from hoidata.pipeline.settings import (
     section,
 )
 from hoisdf.data.augment import AugmentSettings
+from hoisdf.model.encoding import PIXEL_CONVENTIONS
 from hoisdf.training.losses import LossWeights
 
 
@@ -73,6 +74,44 @@ class ModelSettings:
                                   "sdf_features", "sdf_hidden", "token_hidden", "n_hand", "n_object", "chunk")},
         "dropout": (">= 0", "< 1"), "sdf_dropout": (">= 0", "< 1"), "grid_resolution": (">= 2",),
         "beta_init": ("> 0",), "beta_min": ("> 0",), "mask_threshold": ("> 0", "< 1"), "cls_dist": ("> 0",)}
+    CHOICES: ClassVar[dict] = {
+        "sampling": ("absolute", "signed", "random", "gradient"),
+        "feature_augmentation": ("density", "none", "density_concat", "distance_concat"),
+        "cross_field": ("sdf", "none", "image", "target"),
+        "pose_regressor": ("mano", "mano_only", "voting", "ik"),
+        "density_sign": ("paper", "code"),
+        "object_rotation": ("chordal", "axis_angle"),
+        "test_boxes": ("gt", "predicted"),
+        "pixel_convention": PIXEL_CONVENTIONS}
+    POINT_DIM: ClassVar[int] = 33  # xyz (3) + Fourier code (30) of every transformer token
+
+
+def model_problem(s: ModelSettings) -> tuple[str, str] | None:
+    """(key, what is wrong) for the first model setting outside its choices or not fitting the others, else None."""
+    for name, allowed in s.CHOICES.items():
+        if getattr(s, name) not in allowed:
+            return name, f"must be one of {allowed}, got {getattr(s, name)!r}"
+    dim = s.POINT_DIM
+    if not all(int(w) > 0 for w in s.token_hidden):
+        return "token_hidden", f"must be positive layer widths, got {list(s.token_hidden)}"
+    if 6 * s.n_freq + 3 != dim:
+        return "n_freq", f"must be 5 (tokens carry a {dim}-dim point code), got {s.n_freq}"
+    if s.d_model <= dim + 1 or s.d_model % s.heads:
+        return "d_model", (f"must exceed {dim + 1} (a token holds the {dim}-dim point code) "
+                           f"and be a multiple of model.heads ({s.heads}), got {s.d_model}")
+    if s.sdf_hidden <= s.sdf_features + dim:
+        return "sdf_hidden", (f"must exceed model.sdf_features + {dim} "
+                              f"({s.sdf_features + dim}: the decoder's skip connection), got {s.sdf_hidden}")
+    return None
+
+
+def _model_section(values: dict, path: Path) -> ModelSettings:
+    """``[model]`` values -> ModelSettings; a bad value is a DataError naming the file and ``model.<key>``."""
+    model = section(ModelSettings, values, path, "model")
+    problem = model_problem(model)
+    if problem:
+        raise DataError(path, f"model.{problem[0]}", problem[1])
+    return model
 
 
 RECIPES: dict[str, dict] = {
@@ -152,7 +191,7 @@ def load_train_config(name_or_path: str | None, overrides: list[str] = ()) -> Tr
     else:
         path = where
         data = apply_overrides({}, overrides, path)
-    model = section(ModelSettings, data.get("model", {}), path, "model")
+    model = _model_section(data.get("model", {}), path)
     train = section(TrainSettings, with_recipe(data.get("train", {}), path), path, "train")
     augment_values = dict(data.get("augment", {}))
     augment_values.setdefault("input_size", model.image_size)
@@ -182,7 +221,7 @@ def config_from_dict(data: dict, path: Path | str = "<checkpoint>") -> TrainConf
     path = Path(path)
     if not isinstance(data, dict) or not all(isinstance(data.get(k, {}), dict) for k in ("model", "train", "augment", "loss")):
         raise DataError(path, "config", "expected a dict of settings sections")
-    model = section(ModelSettings, data.get("model", {}), path, "model")
+    model = _model_section(data.get("model", {}), path)
     train = section(TrainSettings, data.get("train", {}), path, "train")
     return TrainConfig(model, train, section(AugmentSettings, data.get("augment", {}), path, "augment"),
                        section(LossWeights, data.get("loss", {}), path, "loss"))

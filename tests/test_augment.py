@@ -10,6 +10,7 @@ import torch
 import trimesh
 
 from hoidata import schema
+from hoidata.geometry.rotation import matrix_to_axis_angle
 from hoidata.store import KEY, iter_records
 from hoisdf.data import StoreSpec, build_dataset
 from hoisdf.data.augment import (
@@ -24,7 +25,6 @@ from hoisdf.data.augment import (
     unpack_masks,
 )
 from hoisdf.model.encoding import project_points
-from hoisdf.model.rotation import matrix_to_axis_angle
 
 # strong geometric augmentation; colour and blur off where pixels are compared
 GEOMETRY = AugmentSettings(input_size=64, rotation="uniform", scale_sigma=0.3, color=False, blur_max=0.0)

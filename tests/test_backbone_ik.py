@@ -9,10 +9,9 @@ import torch
 import torchvision
 from torch import nn
 
-from hoidata.hand.lbs import batch_rodrigues
+from hoidata.geometry.rotation import axis_angle_to_matrix, matrix_to_axis_angle
 from hoisdf.model.backbone import ResNetUNet, frozen_bn_parameters
 from hoisdf.model.ik import kabsch_rotation, minimal_rotation, solve_ik
-from hoisdf.model.rotation import matrix_to_axis_angle
 
 # ---------------------------------------------------------------------------------------------- backbone
 
@@ -166,7 +165,7 @@ def test_bad_input_shape():
 def _random_rotations(n: int, gen: torch.Generator) -> torch.Tensor:
     q = torch.randn(n, 4, generator=gen, dtype=torch.float64)
     aa = q[:, 1:] / q[:, 1:].norm(dim=1, keepdim=True) * torch.rand(n, 1, generator=gen, dtype=torch.float64) * math.pi
-    return batch_rodrigues(aa)
+    return axis_angle_to_matrix(aa)
 
 
 def test_minimal_rotation():
@@ -176,7 +175,7 @@ def test_minimal_rotation():
     b[0] = -2 * a[0]  # opposite
     b[1] = 3 * a[1]  # parallel
     aa = minimal_rotation(a, b)
-    rotated = (batch_rodrigues(aa) @ a[..., None])[..., 0]
+    rotated = (axis_angle_to_matrix(aa) @ a[..., None])[..., 0]
     torch.testing.assert_close(rotated / rotated.norm(dim=1, keepdim=True), b / b.norm(dim=1, keepdim=True))
     expected_angle = torch.arccos(((a * b).sum(1) / a.norm(dim=1) / b.norm(dim=1)).clamp(-1, 1))
     torch.testing.assert_close(aa.norm(dim=1), expected_angle)
@@ -221,7 +220,7 @@ def test_ik_reproduces_joints(mano_right):
     # tips are skinned vertices; the procedural hand moves them rigidly with the distal bone (real MANO: ~mm)
     assert err.max() < 1e-6
     # the global rotation is recovered exactly (wrist->MCP vectors do not depend on the finger pose)
-    torch.testing.assert_close(batch_rodrigues(pose_ik[:, :3]), batch_rodrigues(pose[:, :3]))
+    torch.testing.assert_close(axis_angle_to_matrix(pose_ik[:, :3]), axis_angle_to_matrix(pose[:, :3]))
     # a wrong bone frame (e.g. dropping the accumulated parent rotation) would break this: shift one joint's pose
     broken = pose_ik.clone()
     broken[:, 3:6] += 0.2

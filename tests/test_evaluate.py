@@ -150,8 +150,8 @@ def test_mirrored_records_get_the_mirrored_object_mesh():
     original scene object, wound outward (positive volume)."""
     import trimesh
 
+    from hoidata.geometry.rotation import axis_angle_to_matrix
     from hoisdf.evaluation.scoring import sample_meshes
-    from hoisdf.model.rotation import axis_angle_to_matrix
 
     box = trimesh.creation.box(extents=(0.05, 0.08, 0.1))
     box.apply_translation((0.03, 0.01, -0.02))  # not symmetric in x

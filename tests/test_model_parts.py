@@ -10,6 +10,14 @@ import torch
 import torch.nn.functional as F
 from scipy.spatial.transform import Rotation
 
+from hoidata.geometry.rotation import (
+    axis_angle_to_matrix,
+    matrix_to_axis_angle,
+    matrix_to_quaternion,
+    matrix_to_rot6d,
+    quaternion_to_matrix,
+    rot6d_to_matrix,
+)
 from hoisdf.model.encoding import (
     fourier_encode,
     pixel_aligned_features,
@@ -18,14 +26,6 @@ from hoisdf.model.encoding import (
     sample_pyramid,
 )
 from hoisdf.model.layers import MLP
-from hoisdf.model.rotation import (
-    axis_angle_to_matrix,
-    matrix_to_axis_angle,
-    matrix_to_quaternion,
-    matrix_to_rot6d,
-    quaternion_to_matrix,
-    rot6d_to_matrix,
-)
 from hoisdf.model.sdf_decoder import SDFDecoder, init_sdf_decoder_weights
 from hoisdf.model.transformer import (
     QueryDecoder,

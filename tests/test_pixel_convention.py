@@ -89,5 +89,5 @@ def test_grid_ranked_by_the_unclamped_sdf(mano_dir, project_grid):
         cand = model.grid[inside]
         raw = model._sdf_fn(model.hand_sdf, pyramid, K, root, clamp=False)(cand[None] / model.scale + root[:, None])[0]
     assert raw.abs().min() > 0.15
-    expected = cand[torch.sort(raw.abs(), stable=True).indices[:model.n_hand]]
-    assert torch.allclose(hand[0], expected, atol=1e-6) and not torch.equal(hand[0], cand[:model.n_hand])
+    expected = cand[torch.sort(raw.abs(), stable=True).indices[:model.sampler.n_hand]]
+    assert torch.allclose(hand[0], expected, atol=1e-6) and not torch.equal(hand[0], cand[:model.sampler.n_hand])

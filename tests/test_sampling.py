@@ -96,7 +96,7 @@ def test_model_fixed_shape_and_compact_paths_pick_the_same_query_points(tiny, pr
         pyramid, maps = model.backbone(x["img"])
         picks = {}
         for fixed in (False, True):
-            model.fixed_shape = fixed
+            model.sampler.fixed_shape = fixed
             picks[fixed] = model._query_points(x, pyramid, x["K"], x["hand_root"], x["obj_center"],
                                                model.boxes(x, maps), "field", 0.0, None)
     for a, b in zip(picks[False], picks[True]):
@@ -162,12 +162,11 @@ def test_gradient_variant_steps_along_the_full_field_gradient_at_inference_only(
     with torch.no_grad():
         pyramid, _ = model.eval().backbone(batch["img"])
         moved, _ = model._query_points(batch, pyramid, *args)
-        model.fixed_shape = True
+        model.sampler.fixed_shape = True
         moved_fixed, _ = model._query_points(batch, pyramid, *args)
-        model.fixed_shape = False
-        model.sampling = "absolute"
-        start, _ = model._query_points(batch, pyramid, *args)
-        model.sampling = "gradient"
+        model.sampler.fixed_shape = False
+        absolute = _model(mano, 'model.sampling="absolute"', "model.sdf_dropout=0.0").eval()  # same weights
+        start, _ = absolute._query_points(batch, pyramid, *args)
         model.train()  # trains as "absolute": no step
         trained, _ = model._query_points(batch, pyramid, *args)
     assert torch.equal(trained, start) and torch.allclose(moved, moved_fixed, atol=1e-6)

@@ -18,30 +18,7 @@ from __future__ import annotations
 
 import torch
 
-
-def batch_rodrigues(axis_angle: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
-    """Axis-angle vectors (..., 3) -> rotation matrices (..., 3, 3).
-
-    Uses the Taylor expansion of sin(t)/t and (1 - cos(t))/t^2 near zero, so the gradient stays
-    finite at the zero rotation (the rest pose is where training starts).
-    """
-    theta2 = (axis_angle * axis_angle).sum(-1, keepdim=True)  # (..., 1)
-    theta = torch.sqrt(theta2 + eps * eps)
-    small = theta2 < 1e-6
-    # a = sin(t)/t, b = (1 - cos(t))/t^2, both smooth in t^2
-    a = torch.where(small, 1.0 - theta2 / 6.0, torch.sin(theta) / theta)
-    b = torch.where(small, 0.5 - theta2 / 24.0, (1.0 - torch.cos(theta)) / (theta * theta))
-    k = skew(axis_angle)
-    eye = torch.eye(3, dtype=axis_angle.dtype, device=axis_angle.device).expand_as(k)
-    return eye + a[..., None] * k + b[..., None] * (k @ k)
-
-
-def skew(v: torch.Tensor) -> torch.Tensor:
-    """Vectors (..., 3) -> skew-symmetric cross-product matrices (..., 3, 3)."""
-    x, y, z = v.unbind(-1)
-    zero = torch.zeros_like(x)
-    rows = (zero, -z, y, z, zero, -x, -y, x, zero)
-    return torch.stack(rows, dim=-1).reshape(v.shape[:-1] + (3, 3))
+from hoidata.geometry.rotation import axis_angle_to_matrix
 
 
 def blend_shapes(betas: torch.Tensor, shapedirs: torch.Tensor) -> torch.Tensor:
@@ -132,7 +109,7 @@ def lbs(
     batch = pose.shape[0]
     v_shaped = v_template[None] + blend_shapes(betas, shapedirs)
     rest_joints = vertices_to_joints(j_regressor, v_shaped)
-    rot_mats = pose if pose.ndim == 4 else batch_rodrigues(pose.reshape(batch, -1, 3))
+    rot_mats = pose if pose.ndim == 4 else axis_angle_to_matrix(pose.reshape(batch, -1, 3))
     v_posed = v_shaped + pose_offsets(rot_mats, posedirs)
     joints, rel = rigid_transform(rot_mats, rest_joints, parents)
     return skin(v_posed, weights, rel), joints, rel

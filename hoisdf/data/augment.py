@@ -22,8 +22,7 @@ from typing import ClassVar
 import torch
 import torch.nn.functional as F
 
-from hoidata.hand.lbs import batch_rodrigues
-from hoisdf.model.rotation import matrix_to_axis_angle
+from hoidata.geometry.rotation import axis_angle_to_matrix, matrix_to_axis_angle
 
 POINT_KEYS = ("hand_points", "obj_points", "hand_near_points", "obj_near_points")
 ROTATIONS = ("dexycb", "uniform", "none")
@@ -208,7 +207,7 @@ def gaussian_blur(img: torch.Tensor, sigma: torch.Tensor, radius: int) -> torch.
 
 def rotate_mano_global(pose: torch.Tensor, rot: torch.Tensor) -> torch.Tensor:
     """MANO pose (B, 48) axis-angle -> same with the global rotation (first 3) replaced by rot @ Rot(global)."""
-    glob = matrix_to_axis_angle(rot @ batch_rodrigues(pose[:, :3]))
+    glob = matrix_to_axis_angle(rot @ axis_angle_to_matrix(pose[:, :3]))
     return torch.cat([glob, pose[:, 3:]], 1)
 
 

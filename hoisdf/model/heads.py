@@ -8,9 +8,9 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from hoidata.geometry.rotation import axis_angle_to_matrix, rot6d_to_matrix
 from hoisdf.model.layers import MLP
 from hoisdf.model.precision import full_precision
-from hoisdf.model.rotation import axis_angle_to_matrix, rot6d_to_matrix
 
 N_JOINTS = 21
 N_VOTED = 20  # joint 0 (the wrist, the origin of root-relative coordinates) is not voted

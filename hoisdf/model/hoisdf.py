@@ -12,6 +12,10 @@ Data flow of :meth:`HOISDF.forward` (B batch, Nh / No hand / object query points
 5. Tokens [xyz (3), Fourier (30), feature x density] for own and cross fields; a hand transformer
    (encoder + MANO-query decoder) and an object transformer (encoder); heads (MANO, voting, object).
 
+The variants of the paper's ablations (query sampling, feature augmentation, cross field, hand regressor, inference
+boxes) are parts that :func:`hoisdf.model.build_model` picks from the settings (:mod:`hoisdf.model.parts`,
+:mod:`hoisdf.model.regressors`); the model composes them and compares no setting strings.
+
 Outputs are metres; hand outputs are relative to the (given) hand root, the object translation is
 absolute (camera frame).
 """
@@ -21,136 +25,79 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from hoisdf.model import heads as H
-from hoisdf.model.backbone import ResNetUNet
-from hoisdf.model.encoding import (
-    PIXEL_CONVENTIONS,
-    fourier_encode,
-    pixel_aligned_features,
-    pixel_to_grid,
-    project_points,
-    project_pyramid,
-    sample_projected,
-)
-from hoisdf.model.ik import solve_ik
-from hoisdf.model.layers import MLP
+from hoisdf.model.encoding import fourier_encode, project_pyramid
 from hoisdf.model.precision import full
-from hoisdf.model.sampling import (
-    field_guided_points,
-    grid_points,
-    inside_rows,
-    jitter,
-    random_grid_points,
-)
-from hoisdf.model.sdf_decoder import SDFDecoder
-from hoisdf.model.transformer import (
-    QueryDecoder,
-    TokenEncoder,
-    init_transformer_weights,
-    mano_query_mask,
-    memory_mask,
-)
+from hoisdf.model.sampling import jitter
 
-CHOICES = {
-    "sampling": ("absolute", "signed", "random", "gradient"),
-    "feature_augmentation": ("density", "none", "density_concat", "distance_concat"),
-    "cross_field": ("sdf", "none", "image", "target"),
-    "pose_regressor": ("mano", "mano_only", "voting", "ik"),
-    "density_sign": ("paper", "code"),
-    "object_rotation": ("chordal", "axis_angle"),
-    "test_boxes": ("gt", "predicted"),
-    "pixel_convention": PIXEL_CONVENTIONS,
-}
 POINT_DIM = 33  # xyz (3) + Fourier code (30) of every token
+POINT_MODES = {"gt": True, "field": False}  # forward(points=...): ground-truth guided?
 
 
 class HOISDF(nn.Module):
-    """The full model. Constructor arguments are :class:`hoisdf.config.ModelSettings`'s fields plus ``mano``.
+    """The full model, composed of parts that :func:`hoisdf.model.build_model` builds from the settings.
 
-    ``mano`` (the project's right-hand MANO layer) is used by the MANO head and the IK variant; it is
-    kept out of the state dict (its data is licensed and belongs to the user, not to checkpoints).
+    Args:
+        mano: the project's right-hand MANO layer, used by the MANO head and the IK variant; kept out of the state
+            dict (its data is licensed and belongs to the user, not to checkpoints).
+        backbone: image (B, 3, S, S) -> (feature pyramid, 2D maps (B, 3, S/2, S/2)); ``channels`` per level.
+        sdf_in: pixel feature (B, N, C) -> SDF-decoder feature (B, N, sdf_features).
+        token_in: pixel feature (B, N, C) -> token feature (B, N, d_model - 33 - token_features.extra).
+        hand_sdf: the hand SDF decoder (:class:`hoisdf.model.sdf_decoder.SDFDecoder`).
+        obj_sdf: the object SDF decoder.
+        hand_encoder: the hand token encoder.
+        obj_encoder: the object token encoder.
+        hand_heads: name -> module of the hand regressor (registered under these names: the state-dict keys).
+        obj_head: the object pose head.
+        regressor: the hand regressor variant (:mod:`hoisdf.model.regressors`).
+        sampler: the query sampler (:class:`hoisdf.model.parts.QuerySampler`).
+        camera: pixel-aligned sampling (:class:`hoisdf.model.parts.Camera`).
+        token_features: the feature-augmentation variant (:mod:`hoisdf.model.parts`).
+        cross: the cross-field variant (None: no cross tokens).
+        boxes: (batch, 2D maps) -> (hand box, object box) (B, 4) that filter the inference grid.
+        object_rotation: per-point axis-angles (B, N, 3) -> object rotation (B, 3, 3).
+        scale: metres -> scaled units.
+        clamp: SDF clamp, scaled units.
+        n_freq: Fourier frequencies per axis.
+        beta_init: initial learned density width (scaled units; only if ``token_features.learns_beta``).
+        project_grid: rank the grid through ``project_pyramid`` (exact; fewer channels to sample with a big decoder).
     """
 
-    def __init__(self, mano, depth=50, decoder="small", weights="", normalize_input=True, freeze_bn_affine=True,
-                 channels_last=False, image_size=256, sdf_scale=3.1, sdf_clamp=0.15, n_freq=5, d_model=256, heads=4,
-                 ff=1024, dropout=0.1, hand_layers=6, decoder_layers=4, object_layers=3, sdf_features=256,
-                 sdf_hidden=512, sdf_dropout=0.2, token_hidden=(1024, 512, 256), n_hand=600, n_object=200,
-                 grid_resolution=64, sheared_grid=False, fixed_shape=False, sampling="absolute",
-                 feature_augmentation="density", cross_field="sdf", pose_regressor="mano", density_sign="paper",
-                 beta_init=0.1, beta_min=2e-3,
-                 object_rotation="chordal", test_boxes="gt", mask_threshold=0.5, chunk=32768, cls_dist=0.04,
-                 pixel_convention="centers"):
+    def __init__(self, mano, backbone, sdf_in, token_in, hand_sdf, obj_sdf, hand_encoder, obj_encoder,
+                 hand_heads: dict, obj_head, regressor, sampler, camera, token_features, cross, boxes,
+                 object_rotation, scale: float, clamp: float, n_freq: int, beta_init: float, project_grid: bool):
         super().__init__()
-        for name, value in (("sampling", sampling), ("feature_augmentation", feature_augmentation),
-                            ("cross_field", cross_field), ("pose_regressor", pose_regressor),
-                            ("density_sign", density_sign), ("object_rotation", object_rotation),
-                            ("test_boxes", test_boxes), ("pixel_convention", pixel_convention)):
-            if value not in CHOICES[name]:
-                raise ValueError(f"model.{name} must be one of {CHOICES[name]}, got {value!r}")
-        if not all(int(w) > 0 for w in token_hidden):
-            raise ValueError(f"model.token_hidden must be positive layer widths, got {list(token_hidden)}")
-        if 6 * n_freq + 3 != POINT_DIM:
-            raise ValueError(f"model.n_freq must be 5 (tokens carry a {POINT_DIM}-dim point code), got {n_freq}")
-        if d_model <= POINT_DIM + 1 or d_model % heads:
-            raise ValueError(f"model.d_model must exceed {POINT_DIM + 1} (a token holds the {POINT_DIM}-dim point code) "
-                             f"and be a multiple of model.heads ({heads}), got {d_model}")
-        if sdf_hidden <= sdf_features + POINT_DIM:
-            raise ValueError(f"model.sdf_hidden must exceed model.sdf_features + {POINT_DIM} "
-                             f"({sdf_features + POINT_DIM}: the decoder's skip connection), got {sdf_hidden}")
         self._mano = [mano]  # a list: not a registered submodule, so not in state_dict()
-        self.image_size, self.scale, self.clamp = image_size, sdf_scale, sdf_clamp
-        self.n_freq, self.n_hand, self.n_object = n_freq, n_hand, n_object
-        self.sampling, self.augmentation, self.cross = sampling, feature_augmentation, cross_field
-        self.regressor, self.sign = pose_regressor, (-1.0 if density_sign == "paper" else 1.0)
-        self.beta_min, self.object_rotation, self.test_boxes = beta_min, object_rotation, test_boxes
-        self.mask_threshold, self.chunk, self.cls_dist = mask_threshold, chunk, cls_dist
-        self.fixed_shape, self.pixels = bool(fixed_shape), pixel_convention
-        self.project_grid = False  # set below: grid SDFs through project_pyramid (exact) when it samples fewer channels
-        self.register_buffer("grid", grid_points(grid_resolution, sheared_grid), persistent=False)
-
-        self.backbone = ResNetUNet(depth, decoder, weights or None, freeze_bn_affine, normalize_input, channels_last)
-        feat = sum(self.backbone.channels)
-        self.sdf_in = MLP(feat, [2 * sdf_features], sdf_features, relu_last=True)
-        # sampling the projected maps reads levels x width channels instead of sum(C): a gain for the big decoder
-        # (3968 vs 5 x 512; 2x faster on the CPU, bench/bench_grid_features.py), a loss for the small one (992)
-        self.project_grid = feat > len(self.backbone.channels) * 2 * sdf_features
-        concat = feature_augmentation in ("density_concat", "distance_concat")
-        self.token_in = MLP(feat, token_hidden, d_model - POINT_DIM - int(concat), relu_last=True)
-        pe = 6 * n_freq
-        self.hand_sdf = SDFDecoder(sdf_features, pe, sdf_hidden, dropout=sdf_dropout)
-        self.obj_sdf = SDFDecoder(sdf_features, pe, sdf_hidden, dropout=sdf_dropout)
-        if feature_augmentation != "none":
+        self.scale, self.clamp, self.n_freq, self.project_grid = scale, clamp, n_freq, project_grid
+        self.camera, self.token_features, self.cross, self.regressor = camera, token_features, cross, regressor
+        self.boxes, self.object_rotation = boxes, object_rotation
+        self.sampler = sampler
+        # registration order = state-dict and parameter order (checkpoints, optimizer state): keep it
+        self.backbone, self.sdf_in, self.token_in = backbone, sdf_in, token_in
+        self.hand_sdf, self.obj_sdf = hand_sdf, obj_sdf
+        if token_features.learns_beta:
             self.hand_beta = nn.Parameter(torch.tensor(float(beta_init)))
             self.obj_beta = nn.Parameter(torch.tensor(float(beta_init)))
-        self.hand_encoder = TokenEncoder(hand_layers, d_model, heads, ff, dropout)
-        self.obj_encoder = TokenEncoder(object_layers, d_model, heads, ff, dropout)
-        queries = {"mano": 17, "mano_only": 17, "ik": 1, "voting": 0}[pose_regressor]
-        if queries:
-            self.hand_decoder = QueryDecoder(decoder_layers, queries, d_model, heads, ff, dropout)
-        if pose_regressor in ("mano", "mano_only"):
-            self.mano_head = H.ManoHead(d_model)
-        if pose_regressor == "ik":
-            self.shape_head = H.ShapeHead(d_model)
-        if pose_regressor != "mano_only":
-            self.vote_head = H.VoteHead(d_model)
-        self.obj_head = H.ObjectHead(d_model)
-        for module in (self.hand_encoder, self.obj_encoder, getattr(self, "hand_decoder", None)):
-            if module is not None:
-                init_transformer_weights(module)
+        self.hand_encoder, self.obj_encoder = hand_encoder, obj_encoder
+        for name, module in hand_heads.items():
+            self.add_module(name, module)
+        self.obj_head = obj_head
 
     @property
     def mano(self):
         return self._mano[0]
 
-    # --- fields -------------------------------------------------------------------------------------------
-    def features(self, pyramid: list[torch.Tensor], points_cam: torch.Tensor, K: torch.Tensor,
-                 detach: bool = True) -> torch.Tensor:
-        """Pixel-aligned multi-level features (B, N, C) of camera points (B, N, 3) (``detach=False``: with
-        the gradient through the projection)."""
-        return pixel_aligned_features(pyramid, points_cam, K, self.image_size, detach, self.pixels)
+    @property
+    def grid(self) -> torch.Tensor:
+        """(G, 3) scaled inference lattice."""
+        return self.sampler.grid
 
-    def field(self, decoder: SDFDecoder, sdf_in: torch.Tensor, scaled: torch.Tensor,
-              clamp: bool = True) -> torch.Tensor:
+    @property
+    def fixed_shape(self) -> bool:
+        """Whether field-guided sampling decodes the whole grid (static shapes; set it on ``sampler``)."""
+        return self.sampler.fixed_shape
+
+    # --- fields -------------------------------------------------------------------------------------------
+    def field(self, decoder, sdf_in: torch.Tensor, scaled: torch.Tensor, clamp: bool = True) -> torch.Tensor:
         """Scaled SDF (B, N) of a decoder at scaled points (B, N, 3) with their ``sdf_in`` features, clamped to
         +-``sdf_clamp`` (``clamp=False``: the raw value, which the grid ranking uses, as the reference)."""
         out = full(decoder(sdf_in, fourier_encode(scaled, self.n_freq), scaled))
@@ -163,7 +110,7 @@ class HOISDF(nn.Module):
         ``detach=False``: a function of the points through both the point code and the image features (the
         full field gradient)."""
         def fn(points_cam):
-            return self.field(decoder, self.sdf_in(self.features(pyramid, points_cam, K, detach)),
+            return self.field(decoder, self.sdf_in(self.camera.features(pyramid, points_cam, K, detach)),
                               (points_cam - center[:, None]) * self.scale, clamp)
         return fn
 
@@ -173,80 +120,43 @@ class HOISDF(nn.Module):
         first, rest = self.sdf_in.layers[0], self.sdf_in.layers[1:]
 
         def fn(points_cam):
-            grid = pixel_to_grid(project_points(points_cam.detach(), K), self.image_size, self.pixels)
-            return self.field(decoder, rest(sample_projected(projected, grid, first.bias, self.pixels)),
+            return self.field(decoder, rest(self.camera.projected(projected, points_cam, K, first.bias)),
                               (points_cam - center[:, None]) * self.scale, clamp=False)
         return fn
-
-    def _density(self, sdf: torch.Tensor, which: str) -> torch.Tensor:
-        return H.density(sdf, getattr(self, f"{which}_beta"), self.sign, self.beta_min)
-
-    def _augment(self, feat: torch.Tensor, sdf: torch.Tensor | None, which: str) -> torch.Tensor:
-        """Token feature from the image feature (B, N, F) and a detached scaled SDF (None: not augmented)."""
-        mode, feat = self.augmentation, full(feat)
-        if mode == "none":
-            return feat
-        if sdf is None:  # "image" cross tokens: no field information
-            return feat if mode == "density" else torch.cat([feat, torch.ones_like(feat[..., :1])], -1)
-        sdf = sdf.detach()
-        if mode == "density":
-            return feat * self._density(sdf, which)[..., None]
-        value = self._density(sdf, which) if mode == "density_concat" else sdf
-        return torch.cat([feat, value[..., None].to(feat)], -1)
 
     def _token(self, offset: torch.Tensor, feat: torch.Tensor) -> torch.Tensor:
         return torch.cat([offset, fourier_encode(offset * self.scale, self.n_freq), feat], dim=-1)
 
     # --- query points -------------------------------------------------------------------------------------
     def _training_points(self, batch, K, root, center, boxes, generator):
-        """Scaled ground-truth guided points (the "gt" path) of the sampling variant: near-surface rows
-        ("absolute", "gradient"), rows inside the meshes ("signed"), random grid points in the box ("random")."""
-        if self.sampling == "random":
-            grid, s, c = self.grid, self.scale, self.chunk
-            return (random_grid_points(grid, root, s, K, boxes[0], self.n_hand, generator, c),
-                    random_grid_points(grid, center, s, K, boxes[1], self.n_object, generator, c))
-        if self.sampling == "signed":
-            rows = {w: (torch.cat([batch[f"{w}_points"], batch[f"{w}_near_points"]], 1),
-                        torch.cat([batch[f"{w}_sdf"], batch[f"{w}_near_sdf"]], 1)) for w in ("hand", "obj")}
-            hand = inside_rows(*rows["hand"], self.n_hand, generator)
-            obj = inside_rows(*rows["obj"], self.n_object, generator)
-        else:
-            hand, obj = batch["hand_near_points"][:, :self.n_hand], batch["obj_near_points"][:, :self.n_object]
-        return hand * self.scale, (obj + (root - center)[:, None]) * self.scale
+        """Scaled ground-truth guided points of the sampling variant (see :class:`~hoisdf.model.parts.QuerySampler`)."""
+        return self.sampler.training_points(batch, K, root, center, boxes, generator)
 
-    def _query_points(self, batch, pyramid, K, root, center, boxes, mode, noise, generator):
-        """Scaled query points (hand rel. root (B, Nh, 3), object rel. centre (B, No, 3))."""
-        if mode == "gt":
-            hand, obj = self._training_points(batch, K, root, center, boxes, generator)
-            return jitter(hand, noise, generator), jitter(obj, noise, generator)
-        if mode != "field":
-            raise ValueError(f"points must be 'gt' or 'field', got {mode!r}")
-        # the "gradient" variant trains as "absolute" and moves the points onto the surface only at inference
-        strategy = "absolute" if self.sampling == "gradient" and self.training else self.sampling
-        newton = {}
-        if strategy == "gradient":
-            newton = {"hand": self._sdf_fn(self.hand_sdf, pyramid, K, root, detach=False),
-                      "obj": self._sdf_fn(self.obj_sdf, pyramid, K, center, detach=False)}
+    def _field_points(self, pyramid, K, root, center, boxes, generator):
+        """Scaled field-guided points, ranked by the unclamped SDF (as the reference: clamping would tie every
+        point beyond the clamp)."""
+        newton = (None, None)
+        if self.sampler.uses_newton():
+            newton = (self._sdf_fn(self.hand_sdf, pyramid, K, root, detach=False),
+                      self._sdf_fn(self.obj_sdf, pyramid, K, center, detach=False))
         if self.project_grid:
             projected = project_pyramid(pyramid, self.sdf_in.layers[0])
-            hand_fn = self._grid_sdf_fn(self.hand_sdf, projected, K, root)
-            obj_fn = self._grid_sdf_fn(self.obj_sdf, projected, K, center)
-        else:  # ranked by the unclamped SDF (as the reference: clamping would tie every point beyond the clamp)
-            hand_fn = self._sdf_fn(self.hand_sdf, pyramid, K, root, clamp=False)
-            obj_fn = self._sdf_fn(self.obj_sdf, pyramid, K, center, clamp=False)
-        hand, _ = field_guided_points(self.grid, root, self.scale, K, boxes[0], hand_fn, self.n_hand, strategy,
-                                      self.chunk, generator, self.fixed_shape, newton.get("hand"))
-        obj, _ = field_guided_points(self.grid, center, self.scale, K, boxes[1], obj_fn, self.n_object, strategy,
-                                     self.chunk, generator, self.fixed_shape, newton.get("obj"))
-        return hand, obj
+            fns = (self._grid_sdf_fn(self.hand_sdf, projected, K, root),
+                   self._grid_sdf_fn(self.obj_sdf, projected, K, center))
+        else:
+            fns = (self._sdf_fn(self.hand_sdf, pyramid, K, root, clamp=False),
+                   self._sdf_fn(self.obj_sdf, pyramid, K, center, clamp=False))
+        return self.sampler.field_points(K, root, center, boxes, fns, newton, generator)
 
-    def boxes(self, batch: dict, maps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """2D boxes (B, 4) that filter the inference grid: ground truth, or from the predicted masks."""
-        if self.test_boxes == "gt":
-            return batch["hand_box"], batch["object_box"]
-        prob = torch.sigmoid(maps[:, 1:3].float())
-        return (H.masks_to_boxes(prob[:, 0], self.mask_threshold, self.image_size, self.pixels),
-                H.masks_to_boxes(prob[:, 1], self.mask_threshold, self.image_size, self.pixels))
+    def _query_points(self, batch, pyramid, K, root, center, boxes, mode, noise, generator):
+        """Scaled query points (hand rel. root (B, Nh, 3), object rel. centre (B, No, 3)); ``mode``: "gt"
+        (training rows + uniform noise of half-width ``noise``) or "field"."""
+        if mode not in POINT_MODES:
+            raise ValueError(f"points must be one of {tuple(POINT_MODES)}, got {mode!r}")
+        if POINT_MODES[mode]:
+            hand, obj = self._training_points(batch, K, root, center, boxes, generator)
+            return jitter(hand, noise, generator), jitter(obj, noise, generator)
+        return self._field_points(pyramid, K, root, center, boxes, generator)
 
     # --- forward ------------------------------------------------------------------------------------------
     def forward(self, batch: dict, points: str = "field", noise: float = 0.0,
@@ -274,7 +184,7 @@ class HOISDF(nn.Module):
 
     def _pose(self, pyramid, K, root, center, hp, op) -> dict[str, torch.Tensor]:
         hand_cam, obj_cam = hp / self.scale + root[:, None], op / self.scale + center[:, None]
-        f_hand, f_obj = self.features(pyramid, hand_cam, K), self.features(pyramid, obj_cam, K)
+        f_hand, f_obj = self.camera.features(pyramid, hand_cam, K), self.camera.features(pyramid, obj_cam, K)
         sdf_in_h, sdf_in_o = self.sdf_in(f_hand), self.sdf_in(f_obj)
         tok_h, tok_o = self.token_in(f_hand), self.token_in(f_obj)
         hand_in_obj, obj_in_hand = (hand_cam - center[:, None]), (obj_cam - root[:, None])
@@ -283,51 +193,24 @@ class HOISDF(nn.Module):
             d_o = self.field(self.obj_sdf, sdf_in_o, op)
             d_ho = self.field(self.obj_sdf, sdf_in_h, hand_in_obj * self.scale)  # hand points, object field
             d_oh = self.field(self.hand_sdf, sdf_in_o, obj_in_hand * self.scale)  # object points, hand field
-        hand_tokens = self._token(hp / self.scale, self._augment(tok_h, d_h, "hand"))
-        obj_tokens = self._token(op / self.scale, self._augment(tok_o, d_o, "obj"))
-        if self.cross != "none":
-            cross_sdf = {"sdf": (d_oh, d_ho), "image": (None, None), "target": (d_o, d_h)}[self.cross]
-            cross_beta = ("obj", "hand") if self.cross == "target" else ("hand", "obj")
-            obj_h = self._token(obj_in_hand, self._augment(tok_o, cross_sdf[0], cross_beta[0])).detach()
-            hand_o = self._token(hand_in_obj, self._augment(tok_h, cross_sdf[1], cross_beta[1])).detach()
-            hand_tokens_all, obj_tokens_all = torch.cat([hand_tokens, obj_h], 1), torch.cat([obj_tokens, hand_o], 1)
-        else:
-            hand_tokens_all, obj_tokens_all = hand_tokens, obj_tokens
-        inter_h, memory = self.hand_encoder(hand_tokens_all)
-        inter_o, _ = self.obj_encoder(obj_tokens_all)
+        betas = getattr(self, "hand_beta", None), getattr(self, "obj_beta", None)
+        hand_tokens = self._token(hp / self.scale, self.token_features(tok_h, d_h, betas[0]))
+        obj_tokens = self._token(op / self.scale, self.token_features(tok_o, d_o, betas[1]))
+        if self.cross is not None:
+            (sdf_oh, beta_oh), (sdf_ho, beta_ho) = self.cross(d_h, d_o, d_ho, d_oh, *betas)
+            obj_h = self._token(obj_in_hand, self.token_features(tok_o, sdf_oh, beta_oh)).detach()
+            hand_o = self._token(hand_in_obj, self.token_features(tok_h, sdf_ho, beta_ho)).detach()
+            hand_tokens, obj_tokens = torch.cat([hand_tokens, obj_h], 1), torch.cat([obj_tokens, hand_o], 1)
+        inter_h, memory = self.hand_encoder(hand_tokens)
+        inter_o, _ = self.obj_encoder(obj_tokens)
         nh, no = hp.shape[1], op.shape[1]
         out = {"hand_query": hp / self.scale, "hand_query_sdf": d_h / self.scale,
                "obj_query": op / self.scale, "obj_query_sdf": d_o / self.scale}
-        out.update(self._hand_outputs(inter_h, memory, hp / self.scale, nh))
+        out.update(self.regressor(self, inter_h, memory, hp / self.scale, nh))
         obj = self.obj_head(inter_o[:, :, :no])
-        rotation = H.mean_rotation(obj["rot"][-1], self.object_rotation)
-        out.update({"obj_rot_points": obj["rot"], "obj_trans_points": obj["trans"], "obj_rotation": rotation,
+        out.update({"obj_rot_points": obj["rot"], "obj_trans_points": obj["trans"],
+                    "obj_rotation": self.object_rotation(obj["rot"][-1]),
                     "obj_translation": center + obj["trans"][-1].float().mean(dim=1)})
-        return out
-
-    def _hand_outputs(self, inter_h, memory, hand_metric, nh) -> dict[str, torch.Tensor]:
-        out = {}
-        if self.regressor != "mano_only":
-            votes = self.vote_head(inter_h[:, :, :nh], hand_metric)
-            out.update({"vote_offsets": votes["offsets"], "vote_logits": votes["logits"], "vote_joints": votes["joints"]})
-        if self.regressor == "voting":
-            out["joints"] = H.with_root(votes["joints"][-1])
-            return out
-        n_queries = self.hand_decoder.query_embed.num_embeddings
-        mask = mano_query_mask(memory.device) if n_queries == 17 else None
-        queries = self.hand_decoder(memory, mask, memory_mask(n_queries, memory.shape[1], nh, memory.device))
-        if self.regressor == "ik":
-            betas = self.shape_head(queries)["betas"]
-            out["betas"] = betas
-            voted = H.with_root(votes["joints"][-1])
-            with torch.no_grad():  # the reported hand is the MANO fit of the voted joints (as the reference)
-                pose = solve_ik(voted.detach().float(), betas[-1].detach().float(), self.mano)
-                verts, joints = H.wrist_centred_mano(self.mano, pose, betas[-1].detach().float())
-            out.update({"joints": joints, "verts": verts, "ik_pose": pose})
-            return out
-        mano_out = self.mano_head(queries, self.mano)
-        out.update({"rotations": mano_out["rotations"], "betas": mano_out["betas"], "mano_verts": mano_out["verts"],
-                    "mano_joints": mano_out["joints"], "joints": mano_out["joints"][-1], "verts": mano_out["verts"][-1]})
         return out
 
 

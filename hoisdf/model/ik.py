@@ -24,10 +24,9 @@ import math
 
 import torch
 
-from hoidata.hand.lbs import batch_rodrigues
+from hoidata.geometry.rotation import axis_angle_to_matrix, matrix_to_axis_angle
 from hoidata.hand.model import MANO_TO_DEXYCB
 from hoisdf.model.precision import full_precision
-from hoisdf.model.rotation import matrix_to_axis_angle
 
 # DexYCB order: 0 wrist, then thumb, index, middle, ring, little with 4 joints each (MCP, PIP, DIP, tip).
 MCP_DEXYCB = [1, 5, 9, 13, 17]
@@ -102,6 +101,6 @@ def solve_ik(joints: torch.Tensor, betas: torch.Tensor, mano) -> torch.Tensor:
         local_target = (frame.transpose(-1, -2) @ aim[..., None])[..., 0]
         aa = minimal_rotation(bone_template, local_target)
         pose[:, [MANO_TO_DEXYCB[j] for j in joint_ids]] = aa
-        frame = frame @ batch_rodrigues(aa)
+        frame = frame @ axis_angle_to_matrix(aa)
         position = position + (frame @ bone_template[..., None])[..., 0]
     return pose.reshape(batch, 48)

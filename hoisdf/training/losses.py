@@ -15,9 +15,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from hoidata.geometry.rotation import axis_angle_to_matrix, matrix_to_axis_angle
 from hoidata.hand.model import TIP_VERTICES
 from hoisdf.model.heads import wrist_centred_mano
-from hoisdf.model.rotation import axis_angle_to_matrix, matrix_to_axis_angle
 
 
 @dataclass(frozen=True)

@@ -1,18 +1,30 @@
 """Rotation representations: 6D (two columns), rotation matrices, axis-angle, unit quaternions.
 
-All functions are batched over arbitrary leading dimensions, device/dtype agnostic and differentiable.
-Quaternions are ``(w, x, y, z)`` (scalar first). Rotation matrices act on column vectors (``y = R x``).
+The one rotation module of both packages (the MANO layer, the augmentation, the model heads, the losses and the
+inverse kinematics all use it). All functions are batched over arbitrary leading dimensions, device/dtype agnostic
+and differentiable. Quaternions are ``(w, x, y, z)`` (scalar first). Rotation matrices act on column vectors
+(``y = R x``). Angles are radians.
 """
 
 from __future__ import annotations
 
+import functools
+
 import torch
 import torch.nn.functional as F
 
-from hoisdf.model.precision import full_precision
-
 _SMALL_ANGLE_SQ = 1e-6
 """Squared angle (rad^2) below which Taylor expansions replace the closed forms."""
+
+
+def _full_precision(fn):
+    """Run ``fn`` on a tensor with autocast off and half-precision input cast to fp32: under bf16 autocast the
+    matrix products of Rodrigues' formula would otherwise run in bf16 (errors of 1e-2)."""
+    @functools.wraps(fn)
+    def wrapper(x: torch.Tensor) -> torch.Tensor:
+        with torch.autocast(x.device.type, enabled=False):
+            return fn(x if x.dtype in (torch.float32, torch.float64) else x.float())
+    return wrapper
 
 
 def rot6d_to_matrix(x: torch.Tensor) -> torch.Tensor:
@@ -37,19 +49,21 @@ def matrix_to_rot6d(R: torch.Tensor) -> torch.Tensor:
     return torch.cat([R[..., :, 0], R[..., :, 1]], dim=-1)
 
 
-def _skew(v: torch.Tensor) -> torch.Tensor:
-    """``(..., 3)`` -> ``(..., 3, 3)`` cross-product matrix ``[v]_x``."""
+def skew(v: torch.Tensor) -> torch.Tensor:
+    """Vectors ``(..., 3)`` -> skew-symmetric cross-product matrices ``[v]_x`` ``(..., 3, 3)``."""
     x, y, z = v.unbind(-1)
     zero = torch.zeros_like(x)
     return torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], dim=-1).reshape(*v.shape[:-1], 3, 3)
 
 
-@full_precision
-def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
+@_full_precision
+def axis_angle_to_matrix(aa: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
     """Axis-angle (rotation vector, radians) -> rotation matrix by Rodrigues' formula.
 
-    ``R = I + A [aa]_x + B [aa]_x^2`` with ``A = sin(t)/t`` and ``B = (1 - cos t)/t^2 = 0.5 (sin(t/2)/(t/2))^2``
-    (the latter form has no cancellation); Taylor series near ``t = 0`` keep values and gradients finite.
+    ``R = I + A [aa]_x + B [aa]_x^2`` with ``A = sin(t)/t`` and ``B = (1 - cos t)/t^2``; below ``t^2 = 1e-6``
+    their Taylor series (smooth in ``t^2``) keep values and gradients finite at the zero rotation (the rest pose,
+    where training starts). ``eps`` keeps ``t = sqrt(t^2 + eps^2)`` off zero. Runs in full precision under
+    autocast. (The MANO layer's formula: the stores' hands and the released-weights parity were measured with it.)
 
     Args:
         aa: ``(..., 3)``.
@@ -57,15 +71,14 @@ def axis_angle_to_matrix(aa: torch.Tensor) -> torch.Tensor:
     Returns:
         ``(..., 3, 3)``.
     """
-    t2 = (aa * aa).sum(-1)
-    small = t2 < _SMALL_ANGLE_SQ
-    t = torch.sqrt(torch.where(small, torch.ones_like(t2), t2))
-    half_sinc = torch.sin(t / 2) / (t / 2)
-    a = torch.where(small, 1.0 - t2 / 6.0, torch.sin(t) / t)
-    b = torch.where(small, 0.5 - t2 / 24.0, 0.5 * half_sinc * half_sinc)
-    K = _skew(aa)
-    eye = torch.eye(3, dtype=aa.dtype, device=aa.device).expand_as(K)
-    return eye + a[..., None, None] * K + b[..., None, None] * (K @ K)
+    theta2 = (aa * aa).sum(-1, keepdim=True)  # (..., 1)
+    theta = torch.sqrt(theta2 + eps * eps)
+    small = theta2 < _SMALL_ANGLE_SQ
+    a = torch.where(small, 1.0 - theta2 / 6.0, torch.sin(theta) / theta)
+    b = torch.where(small, 0.5 - theta2 / 24.0, (1.0 - torch.cos(theta)) / (theta * theta))
+    k = skew(aa)
+    eye = torch.eye(3, dtype=aa.dtype, device=aa.device).expand_as(k)
+    return eye + a[..., None] * k + b[..., None] * (k @ k)
 
 
 def quaternion_to_matrix(q: torch.Tensor) -> torch.Tensor:

@@ -1,0 +1,91 @@
+"""Build :class:`hoisdf.model.HOISDF` from :class:`hoisdf.config.ModelSettings`: every setting string is read
+here, once, and becomes a part (a module, a class or a function); the model itself compares no strings.
+
+Construction order is fixed: it decides the random initial weights for a seed and the parameter order of the
+state dict and of the optimizer.
+"""
+
+from __future__ import annotations
+
+from functools import partial
+
+from hoisdf.model import heads as H
+from hoisdf.model import parts as P
+from hoisdf.model.backbone import ResNetUNet
+from hoisdf.model.encoding import PIXEL_CONVENTIONS
+from hoisdf.model.hoisdf import HOISDF, POINT_DIM
+from hoisdf.model.layers import MLP
+from hoisdf.model.regressors import REGRESSORS
+from hoisdf.model.sampling import grid_points
+from hoisdf.model.sdf_decoder import SDFDecoder
+from hoisdf.model.transformer import TokenEncoder, init_transformer_weights
+
+TRAINING_ROWS = {"absolute": P.near_surface_rows, "gradient": P.near_surface_rows, "signed": P.inside_mesh_rows,
+                 "random": P.random_box_rows}
+"""``model.sampling`` -> the training-row variant of the query sampler."""
+CROSS_FIELDS = {"sdf": P.cross_sdf, "image": P.cross_image, "target": P.cross_target, "none": None}
+"""``model.cross_field`` -> the cross-field variant (None: no cross tokens)."""
+OBJECT_ROTATIONS = {"chordal": "chordal", "axis_angle": "axis_angle"}
+"""``model.object_rotation`` -> the :func:`hoisdf.model.heads.mean_rotation` mode."""
+DENSITY_SIGNS = {"paper": -1.0, "code": 1.0}
+"""``model.density_sign`` -> the sign inside the density's sigmoid."""
+
+
+def choose(table: dict, s, key: str):
+    """``table[s.<key>]``; a value outside the table is a ValueError naming ``model.<key>`` (for settings that did
+    not come through :mod:`hoisdf.config`, which checks the same choices)."""
+    value = getattr(s, key)
+    if value not in table:
+        raise ValueError(f"model.{key} must be one of {tuple(table)}, got {value!r}")
+    return table[value]
+
+
+def token_features(s):
+    """The ``model.feature_augmentation`` variant (:mod:`hoisdf.model.parts`) of settings ``s``."""
+    sign = choose(DENSITY_SIGNS, s, "density_sign")
+    variants = {"none": P.PlainFeatures(), "density": P.DensityScaled(sign, s.beta_min),
+                "density_concat": P.Concatenated(True, sign, s.beta_min),
+                "distance_concat": P.Concatenated(False, sign, s.beta_min)}
+    return choose(variants, s, "feature_augmentation")
+
+
+def query_sampler(s) -> P.QuerySampler:
+    """The query sampler of settings ``s``: "gradient" ranks as "absolute" in training and steps onto the surface
+    along the full field gradient at inference only."""
+    gradient = s.sampling == "gradient"
+    return P.QuerySampler(grid_points(s.grid_resolution, s.sheared_grid), s.n_hand, s.n_object, s.sdf_scale, s.chunk,
+                          s.fixed_shape, choose(TRAINING_ROWS, s, "sampling"), "absolute" if gradient else s.sampling,
+                          s.sampling, gradient)
+
+
+def build_model(settings, mano) -> HOISDF:
+    """HOISDF from a ModelSettings dataclass (:mod:`hoisdf.config` validates it on loading) and the MANO layer
+    (None: no MANO outputs can be computed, e.g. to read a state dict)."""
+    s = settings
+    camera = P.Camera(s.image_size, choose({c: c for c in PIXEL_CONVENTIONS}, s, "pixel_convention"))
+    features = token_features(s)
+    sampler = query_sampler(s)
+    backbone = ResNetUNet(s.depth, s.decoder, s.weights or None, s.freeze_bn_affine, s.normalize_input,
+                          s.channels_last)
+    feat = sum(backbone.channels)
+    sdf_in = MLP(feat, [2 * s.sdf_features], s.sdf_features, relu_last=True)
+    # sampling the projected maps reads levels x width channels instead of sum(C): a gain for the big decoder
+    # (3968 vs 5 x 512; 2x faster on the CPU, bench/bench_grid_features.py), a loss for the small one (992)
+    project_grid = feat > len(backbone.channels) * 2 * s.sdf_features
+    token_in = MLP(feat, s.token_hidden, s.d_model - POINT_DIM - features.extra, relu_last=True)
+    hand_sdf = SDFDecoder(s.sdf_features, 6 * s.n_freq, s.sdf_hidden, dropout=s.sdf_dropout)
+    obj_sdf = SDFDecoder(s.sdf_features, 6 * s.n_freq, s.sdf_hidden, dropout=s.sdf_dropout)
+    hand_encoder = TokenEncoder(s.hand_layers, s.d_model, s.heads, s.ff, s.dropout)
+    obj_encoder = TokenEncoder(s.object_layers, s.d_model, s.heads, s.ff, s.dropout)
+    regressor = choose(REGRESSORS, s, "pose_regressor")()
+    hand_heads = regressor.heads(s.d_model, s.decoder_layers, s.heads, s.ff, s.dropout)
+    obj_head = H.ObjectHead(s.d_model)
+    for module in (hand_encoder, obj_encoder, hand_heads.get("hand_decoder")):
+        if module is not None:
+            init_transformer_weights(module)
+    boxes = choose({"gt": P.ground_truth_boxes, "predicted": P.PredictedBoxes(camera, s.mask_threshold)}, s,
+                   "test_boxes")
+    object_rotation = partial(H.mean_rotation, mode=choose(OBJECT_ROTATIONS, s, "object_rotation"))
+    return HOISDF(mano, backbone, sdf_in, token_in, hand_sdf, obj_sdf, hand_encoder, obj_encoder, hand_heads,
+                  obj_head, regressor, sampler, camera, features, choose(CROSS_FIELDS, s, "cross_field"), boxes,
+                  object_rotation, s.sdf_scale, s.sdf_clamp, s.n_freq, s.beta_init, project_grid)
