@@ -1,6 +1,6 @@
 """ResNet encoder + U-Net decoder producing the 5-level feature pyramid and the three 2D auxiliary maps.
 
-Follows the upstream HOISDF backbone (spec ``upstream_hoisdf.md`` §1.2, §1.3, §1.14):
+Follows the upstream HOISDF backbone (docs/upstream.md, "Backbone and decoder" and "Initialisation"):
 
 - a torchvision ResNet-18/34/50 (fc and avgpool unused) gives skip features at strides 2, 4, 8, 16, 32;
 - a U-Net decoder ("small" = upstream ``Decoder``, "big" = upstream ``Decoder_big``) refines them into a
@@ -140,7 +140,8 @@ class BigDecoder(nn.Module):
 
 
 def init_decoder_(module: nn.Module, std: float = 1e-3) -> None:
-    """Upstream decoder init (§1.14): conv/deconv weights N(0, std), conv bias 0, BN weight 1 / bias 0."""
+    """Upstream decoder init (docs/upstream.md, "Initialisation"): conv/deconv weights N(0, std), conv bias 0, BN
+    weight 1 / bias 0."""
     for m in module.modules():
         if isinstance(m, (nn.Conv2d, nn.ConvTranspose2d)):
             nn.init.normal_(m.weight, std=std)
@@ -161,7 +162,8 @@ class ResNetUNet(nn.Module):
             everything else loaded strictly); or "imagenet": torchvision's IMAGENET1K_V1 file from the torch
             hub cache (never downloaded; FileNotFoundError naming the expected path if absent).
         freeze_bn_affine: set ``requires_grad=False`` on the backbone's BatchNorm weights/biases except the
-            ``downsample`` BNs (upstream ``freeze_stages`` quirk, §1.2); running statistics still update.
+            ``downsample`` BNs (upstream's ``freeze_stages`` quirk, docs/upstream.md, "Backbone and decoder");
+            running statistics still update.
         normalize_input: subtract the ImageNet mean / divide by the std inside ``forward``.
         channels_last: NHWC weights and activations; the numbers are the same as with NCHW (``False``). On 2 CPU
             cores a toy training step was 0.97-1.14x as fast as with NCHW over four runs of

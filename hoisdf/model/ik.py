@@ -1,4 +1,6 @@
-"""Inverse kinematics: 21 hand joints + MANO betas -> MANO pose (the "MANO shape + IK" variant, spec §1.13).
+"""Inverse kinematics: 21 hand joints + MANO betas -> MANO pose (the "MANO shape + IK" variant).
+
+Upstream's solver: docs/upstream.md, "The inverse-kinematics regressor".
 
 Method (batched, after gSDF / upstream ``ik_solver_mano``):
 

@@ -76,7 +76,7 @@ class SDFDecoder(nn.Module):
 
 
 def init_sdf_decoder_weights(decoder: SDFDecoder) -> None:
-    """Upstream's training initialisation (§1.14) of an :class:`SDFDecoder`.
+    """Upstream's training initialisation (docs/upstream.md, "Initialisation") of an :class:`SDFDecoder`.
 
     Upstream draws every ``nn.Linear`` weight from N(0, 0.01) with zero bias; for the weight-normalised hidden
     layers the weight draw has no effect (the weight is recomputed from ``g``/``v``), so only their biases

@@ -167,7 +167,8 @@ def memory_mask(n_queries: int, n_tokens: int, n_visible: int,
 
 
 def init_transformer_weights(module: nn.Module) -> None:
-    """Upstream initialisation (§1.10, §1.14) of a transformer module, in place.
+    """Upstream initialisation (docs/upstream.md, "Transformers" and "Initialisation") of a transformer module, in
+    place.
 
     1. xavier-uniform on every parameter with more than one dimension (attention in-projections, FFN and
        out-projection weights), except ``nn.Embedding`` tables (the learned query positions keep N(0, 1));
