@@ -20,10 +20,6 @@ SECTION = re.compile(r"\b(docs/[\w-]+\.md),\s*#?\s*\"([^\"]+)\"")  # docs/page.m
 # point at an outside note's numbering).
 OUTSIDE = re.compile(r"\b(?:DESIGN|upstream_hoisdf|upstream_parity|paper_hoisdf|measured_libraries|user_needs|"
                      r"style_anchors|reliability_probe)\.md\b|\breference/[\w-]+\.md\b|§\s*\d")
-# Files another helper is rewriting right now (issue 24 item 3 owns hoisdf/model/); their citations move there to
-# docs/upstream.md: "Backbone and decoder", "Initialisation", "Transformers", "The inverse-kinematics regressor".
-# test_pending_citations_are_still_pending keeps this list short.
-PENDING: set[str] = set()
 
 
 def _sources() -> dict[str, str]:
@@ -51,7 +47,7 @@ def _problems(sources: dict[str, str], root: Path) -> list[str]:
         for page, section in SECTION.findall(text):
             if (root / page).is_file() and section.replace("`", "").lower() not in _headings(root / page):
                 problems.append(f'{name}: cites {page}, "{section}", which is no heading of that page')
-        if name not in PENDING and OUTSIDE.search(text):
+        if OUTSIDE.search(text):
             problems.append(f"{name}: cites {OUTSIDE.search(text).group(0)}, which lives outside the repository")
     return problems
 
@@ -59,12 +55,6 @@ def _problems(sources: dict[str, str], root: Path) -> list[str]:
 def test_every_citation_resolves_inside_the_repository():
     problems = _problems(_sources(), ROOT)
     assert not problems, "\n".join(problems)
-
-
-def test_pending_citations_are_still_pending():
-    sources = _sources()
-    stale = [name for name in PENDING if name not in sources or not OUTSIDE.search(sources[name])]
-    assert not stale, f"no longer cite outside notes, remove from PENDING: {stale}"
 
 
 def test_the_check_finds_each_kind_of_broken_citation(tmp_path):
