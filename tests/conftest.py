@@ -130,6 +130,18 @@ def ho3d_small(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def ho3d_small_eval_store(ho3d_small, tmp_path_factory):
+    """The evaluation split of ``ho3d_small`` built into a store of ``eval`` records (64 px crops); read-only."""
+    from hoidata.pipeline.runner import build_store
+    from hoidata.pipeline.settings import load_build_config
+
+    out = tmp_path_factory.mktemp("ho3d_small_eval") / "store"
+    build_store(load_build_config("ho3d_eval", ["record.crop_size=64"]), ho3d_small, ho3d_small / "mano",
+                ho3d_small / "models", out, progress=False)
+    return out
+
+
+@pytest.fixture(scope="session")
 def tiny_store_two_shards(tiny_dexycb, tmp_path_factory):
     """The tiny toy DexYCB train split in 2 shards of 8 records (128 px crops): for 2-process (DDP) tests."""
     return _build_tiny_store(tiny_dexycb, tmp_path_factory.mktemp("tiny_store_two_shards") / "store",

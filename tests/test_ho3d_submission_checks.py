@@ -88,16 +88,6 @@ def test_order_must_be_the_ground_truths_own(tmp_path):
 # ---------------------------------------------------------------- through python -m hoisdf.evaluate
 
 
-@pytest.fixture(scope="module")
-def eval_store(ho3d_small, tmp_path_factory):
-    from hoidata.pipeline.runner import build_store
-    from hoidata.pipeline.settings import load_build_config
-
-    out = tmp_path_factory.mktemp("h3e") / "store"
-    build_store(load_build_config("ho3d_eval", ["record.crop_size=64"]), ho3d_small, ho3d_small / "mano",
-                ho3d_small / "models", out, progress=False)
-    return out
-
 
 def _main(untrained_run, store, mano_dir, out, *extra):
     from hoisdf.evaluate import main
@@ -106,10 +96,10 @@ def _main(untrained_run, store, mano_dir, out, *extra):
                  "--plausibility", "0", "--workers", "0", "--no-progress", *map(str, extra)])
 
 
-def test_evaluate_refuses_a_bad_list_with_no_stale_result_beside_it(untrained_run, eval_store, ho3d_small, mano_dir,
-                                                                    tmp_path, capsys):
-    out, gt_list = tmp_path / "out", ho3d_small / "evaluation.txt"
-    assert _main(untrained_run, eval_store, mano_dir, out, "--ho3d-order", gt_list, "--ho3d-gt", ho3d_small) == 0
+def test_evaluate_refuses_a_bad_list_with_no_stale_result_beside_it(untrained_run, ho3d_small_eval_store, ho3d_small,
+                                                                    mano_dir, tmp_path, capsys):
+    out, gt_list, store = tmp_path / "out", ho3d_small / "evaluation.txt", ho3d_small_eval_store
+    assert _main(untrained_run, store, mano_dir, out, "--ho3d-order", gt_list, "--ho3d-gt", ho3d_small) == 0
     assert len(json.loads((out / "pred.json").read_text())[0]) == len(gt_list.read_text().splitlines())
     written = {p.name for p in out.iterdir()}
     assert {"pred.json", "pred.zip", "scores.txt", "metrics.json", "per_object.csv"} <= written
@@ -120,14 +110,14 @@ def test_evaluate_refuses_a_bad_list_with_no_stale_result_beside_it(untrained_ru
     capsys.readouterr()
     for name, text in bad.items():
         (tmp_path / "list.txt").write_bytes(text.encode())
-        rc = _main(untrained_run, eval_store, mano_dir, out, "--ho3d-order", tmp_path / "list.txt",
+        rc = _main(untrained_run, store, mano_dir, out, "--ho3d-order", tmp_path / "list.txt",
                    "--ho3d-gt", ho3d_small)
         err = capsys.readouterr().err.strip()
         assert rc == 2 and len(err.splitlines()) == 1 and str(tmp_path / "list.txt") in err, (name, err)
         assert not written & {p.name for p in out.iterdir()}, name  # no earlier result file looks current
     # without the ground truth the order is the user's to choose, but the frames must still be the store's all
     (tmp_path / "list.txt").write_bytes(bad["reordered"].encode())
-    assert _main(untrained_run, eval_store, mano_dir, out, "--ho3d-order", tmp_path / "list.txt") == 0
+    assert _main(untrained_run, store, mano_dir, out, "--ho3d-order", tmp_path / "list.txt") == 0
     assert (out / "pred.zip").is_file() and not (out / "scores.txt").exists()
-    assert _main(untrained_run, eval_store, mano_dir, out, "--ho3d-order", gt_list, "--limit", 1) == 2
+    assert _main(untrained_run, store, mano_dir, out, "--ho3d-order", gt_list, "--limit", 1) == 2
     assert "--limit 1 leaves out frames" in capsys.readouterr().err and not (out / "pred.zip").exists()

@@ -93,19 +93,9 @@ def by_hand(xyz: np.ndarray, verts: np.ndarray, points: int | None = None) -> li
     return [out_xyz, out_verts]
 
 
-@pytest.fixture(scope="module")
-def eval_store(ho3d_small, tmp_path_factory):
-    from hoidata.pipeline.runner import build_store
-    from hoidata.pipeline.settings import load_build_config
-
-    out = tmp_path_factory.mktemp("score_ho3d_eval") / "store"
-    build_store(load_build_config("ho3d_eval", ["record.crop_size=64"]), ho3d_small, ho3d_small / "mano",
-                ho3d_small / "models", out, progress=False)
-    return out
-
 
 @pytest.fixture(scope="module")
-def evaluator_pred(untrained_run, eval_store, ho3d_small, mano_dir, tmp_path_factory):
+def evaluator_pred(untrained_run, ho3d_small_eval_store, ho3d_small, mano_dir, tmp_path_factory):
     """pred.zip written by python -m hoisdf.evaluate's code for an oracle with 4 mm noise and an offset."""
     from test_ho3d_eval import _oracle
 
@@ -116,8 +106,8 @@ def evaluator_pred(untrained_run, eval_store, ho3d_small, mano_dir, tmp_path_fac
     mp = pytest.MonkeyPatch()
     mp.setattr(HOISDF, "forward", _oracle(ho3d_small, offset=(0.004, 0.0, 0.003), noise=0.004))
     try:
-        evaluate(untrained_run, [eval_store], mano_dir, out, batch_size=3, plausibility=0, progress=False, workers=0,
-                 ho3d_order=ho3d_small / "evaluation.txt")
+        evaluate(untrained_run, [ho3d_small_eval_store], mano_dir, out, batch_size=3, plausibility=0, progress=False,
+                 workers=0, ho3d_order=ho3d_small / "evaluation.txt")
     finally:
         mp.undo()
     return out / "pred.zip"
