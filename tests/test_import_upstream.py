@@ -360,12 +360,27 @@ def test_loss_terms_equal_upstream_eval_losses(imported, mano_dir):
 
 
 @pytest.mark.slow
-def test_evaluate_accepts_an_imported_run(imported, tiny_store, mano_dir, tmp_path):
-    """``python -m hoisdf.evaluate --ckpt RUN`` on an imported run: end to end, the usual result files."""
+def test_evaluate_accepts_an_imported_run(imported, tiny_store, dexycb_s0, mano_dir, tmp_path, capsys):
+    """``python -m hoisdf.evaluate --ckpt RUN`` on an imported run, end to end with the usual result files: on a
+    store of upstream's test crops (``record.crop="upstream"``) every record reaches the network as upstream's, and
+    on a store of the project's crops the one-line note says what the imported weights are not seeing."""
+    from hoidata.pipeline.runner import build_store
+    from hoidata.pipeline.settings import load_build_config
     from hoisdf.evaluate import main
 
     run, _, _ = imported("dexycb")
-    out = tmp_path / "eval"
-    assert main(["--ckpt", str(run), "--shards", str(tiny_store), "--mano", str(mano_dir), "--out", str(out),
-                 "--limit", "2", "--batch-size", "2", "--workers", "0", "--plausibility", "0", "--no-progress"]) == 0
-    assert (out / "metrics.json").is_file() and (out / "per_object.csv").is_file()
+    upstream_store = tmp_path / "upstream_store"
+    build_store(load_build_config("toy", ['dataset.splits=["test"]', "record.n_hand=64", "record.n_object=32",
+                                          'record.crop="upstream"']),
+                dexycb_s0, dexycb_s0 / "mano", dexycb_s0 / "models", upstream_store, progress=False)
+    for store, out in ((upstream_store, tmp_path / "eval_upstream"), (tiny_store, tmp_path / "eval_project")):
+        assert main(["--ckpt", str(run), "--shards", str(store), "--mano", str(mano_dir), "--out", str(out),
+                     "--limit", "4", "--batch-size", "2", "--workers", "0", "--plausibility", "0",
+                     "--no-progress"]) == 0
+        metrics = json.loads((out / "metrics.json").read_text())
+        assert (out / "per_object.csv").is_file() and metrics["samples"] == 4 and "MJE" in capsys.readouterr().out
+        if store == upstream_store:
+            assert metrics["upstream_crop_records"] == 4 and metrics["notes"] == []
+        else:
+            assert metrics["upstream_crop_records"] == 0 and len(metrics["notes"]) == 1
+            assert "record.crop" in metrics["notes"][0]
