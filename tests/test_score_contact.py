@@ -12,24 +12,10 @@ import pytest
 
 from hoisdf.score import main
 
-SIZE = {"train_sequences": 1, "eval_sequences": 1, "frames": 3}
-
-
 @pytest.fixture(scope="module")
-def split(tmp_path_factory):
-    """(toy HO-3D root, its evaluation store)."""
-    from hoidata.pipeline.runner import build_store
-    from hoidata.pipeline.settings import load_build_config
-    from hoidata.toy.ho3d import ToyHO3DSize, write_toy_ho3d
-    from hoidata.toy.make import write_assets
-
-    root = tmp_path_factory.mktemp("ho3d_contact")
-    mano_dir, models_dir = write_assets(root)
-    write_toy_ho3d(root, mano_dir, models_dir, ToyHO3DSize(**SIZE), progress=False)
-    store = tmp_path_factory.mktemp("ho3d_contact_store") / "store"
-    build_store(load_build_config("ho3d_eval", ["record.crop_size=64"]), root, mano_dir, models_dir, store,
-                progress=False)
-    return root, store
+def split(ho3d_small, ho3d_small_eval_store):
+    """(toy HO-3D root, its evaluation store): the session's small HO-3D (conftest)."""
+    return ho3d_small, ho3d_small_eval_store
 
 
 def _truth(root):
@@ -79,7 +65,7 @@ def test_scores_hand_written_pred_json_and_npz_alike(split, tmp_path, capsys):
         want = frame_metrics(closed[k], np.asarray(mano.closed_faces), obj, f, 1e-7, 0.005, 778, 0.05)
         for key in ("penetration_depth_mm", "contact", "contact_area_cm2", "intersection_volume_cm3"):
             assert got[key] == pytest.approx(want[key], abs=1e-9), key
-    assert result["mean"]["num_samples"] == SIZE["frames"]
+    assert result["mean"]["num_samples"] == 3  # ho3d_small: one evaluation sequence of 3 frames
 
     # the .npz form: OpenCV vertices and record keys give the same numbers (here in 2 worker processes)
     labels = index.labels
