@@ -56,13 +56,13 @@ def test_the_build_leaves_other_readers_sections_to_them_and_training_refuses_a_
 
 
 @pytest.mark.parametrize("overrides,command,needle", [
-    (["model.depth=18"], "build", r"'model\.depth': build-sdf does not use \[model\] settings \(it reads "
-                                  r"\[dataset\], \[record\], \[store\]\)"),
+    (["model.depth=18"], "build", (r"'model\.depth': build-sdf does not use \[model\] settings \(it reads "
+                                   r"\[dataset\], \[record\], \[store\]\)")),
     (["recrod.n_hand=8"], "build", r"'recrod\.n_hand': build-sdf does not use \[recrod\] settings"),
-    (["record.n_hand=8"], "train", r"'record\.n_hand': training does not use \[record\] settings \(hoidata "
-                                   r"build-sdf reads them\)"),
-    (["optimizer.lr=1"], "train", r"'optimizer\.lr': training does not use \[optimizer\] settings \(it reads "
-                                  r"\[model\], \[train\], \[augment\], \[loss\]\)"),
+    (["record.n_hand=8"], "train", (r"'record\.n_hand': training does not use \[record\] settings \(hoidata "
+                                    r"build-sdf reads them\)")),
+    (["optimizer.lr=1"], "train", (r"'optimizer\.lr': training does not use \[optimizer\] settings \(it reads "
+                                   r"\[model\], \[train\], \[augment\], \[loss\]\)")),
 ])
 def test_an_override_of_a_section_the_command_does_not_read_names_the_key(overrides, command, needle):
     load = build.load_build_config if command == "build" else training.load_train_config
