@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from hoidata.atomic import write_atomic
-from hoidata.cli import local_path, non_negative_int, positive_int
+from hoidata.cli_types import local_path, non_negative_int, positive_int
 from hoidata.errors import DataError, run_cli
 from hoidata.schema import FULL
 from hoidata.store import RemoteStore, read_index, resolve_store

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hoidata.cli import non_negative_int, positive_int
+from hoidata.cli_types import non_negative_int, positive_int
 from hoidata.errors import DataError
 from hoidata.geometry.mirror import mirror_mesh
 from hoidata.store import read_index
