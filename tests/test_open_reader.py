@@ -140,3 +140,18 @@ def test_export_reads_the_models_folder_it_is_given(tiny_dexycb, tmp_path, capsy
     exported, skips, _ = export_frames(_dexycb(), tiny_dexycb, tiny_dexycb / "mano", half, ("train",))
     assert [f.frame_id for f in exported] == [f.frame_id for f in _read(tiny_dexycb, half).frames]
     assert sum("hand-object distance" in s.reason for s in skips) == 8
+
+
+def test_the_grasp_source_reads_the_models_folder_it_is_given(tiny_dexycb, tmp_path):
+    """render-synthetic's DexYCB grasp source (the dexycb preset's 5 mm filter) measures the models it is given:
+    with the can halved no right-hand grasp is close enough. (render_synthetic passes its --models: issue 24.)"""
+    import torch
+
+    from hoidata.hand import load_mano
+    from hoidata.synth.source import load_grasps
+
+    mano = load_mano(tiny_dexycb / "mano", side="right", dtype=torch.float64)
+    assert [g.object_name for g in load_grasps(tiny_dexycb, mano)] == [CAN, CAN]  # frames 0 and 5 (stride 5)
+    half = _scaled_models(tiny_dexycb / "models", tmp_path / "half", {CAN: 0.5})
+    with pytest.raises(DataError, match="no right-hand grasps"):
+        load_grasps(tiny_dexycb, mano, tiny_dexycb / "mano", half)
