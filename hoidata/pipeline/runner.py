@@ -23,6 +23,8 @@ from tqdm import tqdm
 from hoidata import schema, store
 from hoidata.atomic import write_json_atomic
 from hoidata.datasets.frame import Skip
+from hoidata.datasets.frame_list import frame_list_provenance, read_frame_list
+from hoidata.datasets.open import read_splits
 from hoidata.errors import DataError
 from hoidata.pipeline import fingerprint
 from hoidata.pipeline.finish import (  # noqa: F401 - re-exported: render-synthetic and the CLI use them from here
@@ -34,7 +36,6 @@ from hoidata.pipeline.finish import (  # noqa: F401 - re-exported: render-synthe
     read_shard_skips,
     skip_groups,
 )
-from hoidata.pipeline.frame_list import check_listed, frame_list_provenance, read_frame_list
 from hoidata.pipeline.settings import BuildConfig, stated_count_warnings
 
 BUILD_FILE = "build.json"
@@ -43,26 +44,12 @@ BUILD_FILE = "build.json"
 def read_frames(cfg: BuildConfig, root: Path, mano_dir: Path,
                 models_dir: Path | None = None) -> tuple[list, list[Skip]]:
     """All frames of the configured splits, in reader order, and the reader's skips. ``models_dir`` (default
-    ``root/models``) is what DexYCB's proximity filter reads: the build's ``--models``, as export's."""
-    frames, skips = [], []
-    for split in cfg.dataset.splits:
-        if cfg.dataset.name == "dexycb":
-            from hoidata.datasets.dexycb import DexYCBReader
-
-            listed = read_frame_list(cfg.dataset.frame_list) if cfg.dataset.frame_list else None
-            reader = DexYCBReader(root, mano_dir, split, cfg.dataset.dexycb_setting(), models_dir, on_error="skip",
-                                  frame_ids=None if listed is None else frozenset(listed))
-        elif cfg.dataset.name == "ho3d":
-            from hoidata.datasets.ho3d import HO3DReader
-
-            reader = HO3DReader(root, mano_dir, split, on_error="skip", version=cfg.dataset.version)
-        else:
-            raise ValueError(f"unknown dataset {cfg.dataset.name!r}; expected 'dexycb' or 'ho3d'")
-        read = list(reader.frames())  # frames without hand labels become 'eval' records (schema.RECORD_KINDS)
-        if cfg.dataset.frame_list:  # every listed id must be a frame of the dataset
-            check_listed(cfg.dataset.frame_list, listed, read, reader.skipped, reader.toolkit)
-        frames, skips = frames + read, skips + reader.skipped
-    return frames, skips
+    ``root/models``) is what DexYCB's proximity filter reads: the build's ``--models``, as export's
+    (:func:`hoidata.datasets.open.read_splits`, with the frame-list check)."""
+    d = cfg.dataset
+    got = read_splits(d.name, root, mano_dir, d.splits, models_dir=models_dir, dexycb=d.dexycb_setting(),
+                      version=d.version, frame_list=d.frame_list)
+    return got.frames, got.skips
 
 
 @dataclass
