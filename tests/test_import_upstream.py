@@ -249,6 +249,7 @@ def test_bad_snapshots_are_refused_in_one_line_and_write_nothing(tmp_path, mano_
     assert not (tmp_path / "run").exists()
 
 
+@pytest.mark.slow
 def test_training_starts_from_imported_weights(tiny_store, mano_dir, tmp_path):
     """``hoisdf.train --init RUN``: the new run takes RUN's weights and [model] settings (here a tiny model with
     the released switches, as an imported run holds) and trains on; one AdamW step moves weights by ~lr only."""
