@@ -32,7 +32,7 @@ def pytest_report_header(config):
 STORE_FIXTURES = frozenset({
     "tiny_dexycb", "tiny_store", "tiny_store_two_shards", "dexycb_8cam", "dexycb_s0", "ho3d_small",
     "ho3d_small_eval_store",
-    "dex_root", "ho3d_root", "synth_store", "ho3d_source",  # the same kind, kept by one test file each
+    "dex_root", "ho3d_root", "v3_root", "synth_store", "ho3d_source",  # the same kind, in one test file each
 })
 _RUNNING = pytest.StashKey()
 

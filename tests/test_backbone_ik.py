@@ -121,6 +121,7 @@ def test_load_state_dict_file(tmp_path):
         ResNetUNet(depth=18, weights=str(tmp_path / "partial.pth"))
 
 
+@pytest.mark.slow
 def test_gradients_reach_decoder_and_backbone():
     torch.manual_seed(0)
     net = ResNetUNet(depth=18, decoder="small")
@@ -133,6 +134,7 @@ def test_gradients_reach_decoder_and_backbone():
     assert net.backbone.bn1.weight.grad is None
 
 
+@pytest.mark.slow
 def test_channels_last_computes_the_same_numbers_as_nchw():
     """The NHWC layout changes memory order only: same state dict keys and values, same outputs and gradients."""
     torch.manual_seed(0)

@@ -197,6 +197,7 @@ def _zeros_network(setting="dexycb"):
     return {f"module.{k}": torch.zeros(s, dtype=getattr(torch, d)) for k, s, d, *_ in _key_list(setting)}
 
 
+@pytest.mark.slow
 def test_unexpected_missing_and_misshaped_keys_are_one_line():
     from hoisdf.import_upstream import released_config
     from hoisdf.model import build_model
