@@ -1,6 +1,7 @@
 """The official evaluators' scores (hoisdf.evaluation.official) on hand-made hands whose answers follow from the
-construction: identical, moved by 1 cm, scaled about the wrist, another topology. The fast tier's check of the
-scoring code; tests/test_score.py holds the golden numbers of the evaluators' own scripts on toy data (slow)."""
+construction: identical, moved by 1 cm, scaled about the wrist, another topology; and the hoisdf command's
+dispatch. The fast tier's check of the scoring code; tests/test_score.py holds the golden numbers of the evaluators'
+own scripts on toy data (slow)."""
 
 from __future__ import annotations
 
@@ -71,7 +72,19 @@ def test_dexycb_hpe_scores_of_a_moved_hand(hands):
     assert same["absolute"] == same["root-relative"] == {"mpjpe": 0.0, "auc": 1.0}
     assert same["procrustes"]["mpjpe"] == pytest.approx(0.0, abs=1e-6)
     moved = dexycb_hpe_scores(gt_mm + SHIFT * 1000.0, gt_mm)
-    assert moved["absolute"]["mpjpe"] == pytest.approx(10.0) and moved["absolute"]["auc"] == pytest.approx(0.8, abs=STEP)
+    assert moved["absolute"]["mpjpe"] == pytest.approx(10.0)
+    assert moved["absolute"]["auc"] == pytest.approx(0.8, abs=STEP)
     for alignment in ("root-relative", "procrustes"):
         assert moved[alignment]["mpjpe"] == pytest.approx(0.0, abs=1e-6), alignment
         assert moved[alignment]["auc"] == pytest.approx(1.0, abs=STEP), alignment
+
+
+def test_the_hoisdf_command_dispatches_score_and_refuses_the_unknown(tmp_path, capsys):
+    from hoisdf.cli import main
+
+    assert main(["--help"]) == 0 and "usage: hoisdf {score}" in capsys.readouterr().out
+    assert main(["nonsense"]) == 2 and "usage: hoisdf {score}" in capsys.readouterr().err
+    missing = tmp_path / "pred.json"
+    assert main(["score", "ho3d", "--pred", str(missing), "--gt", str(tmp_path)]) == 2  # reached hoisdf.score
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("hoisdf score ho3d: error: ") and str(missing) in err[0]
