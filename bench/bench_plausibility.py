@@ -2,7 +2,7 @@
 inheriting their parent's inside/outside (:func:`hoisdf.evaluation.solids._child_hints`), on one process and on
 ``--workers`` processes (:func:`hoisdf.evaluation.plausibility.frame_metrics_many`).
 
-Frames: the three analytic cases of :mod:`bench.plausibility_cases` (a sphere, a cube, a cylinder standing for the
+Frames: the three analytic cases of :mod:`bench.analytic_solids` (a sphere, a cube, a cylinder standing for the
 hand) shifted by a few millimetres, ``--frames`` in all, at ``--tolerance`` m^3. Every variant must report the
 same numbers (checked); the table gives wall seconds, CPU seconds of this process and the load average.
 
@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-from bench.plausibility_cases import cases
+from bench.analytic_solids import cases
 from hoisdf.evaluation import solids
 from hoisdf.evaluation.plausibility import frame_metrics_many
 
