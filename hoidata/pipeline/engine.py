@@ -19,12 +19,12 @@ export's chunks, the toy writer's sequences) hands :func:`run_task` one task obj
 
 Where the jobs run: with ``workers <= 1`` and no ``executor``, here, in order, in one worker context that the
 engine closes when the run ends (also on an error). Otherwise in ``executor(fn, jobs, workers, init, initargs)``
-(default :func:`hoidata.pipeline.pool.run_pool`; :func:`hoidata.pipeline.ray_tasks.run_ray` has the same contract),
-whose processes each open the task's worker context once, on their first job, keep it in this module's registry
-(``_OPEN``, the engine's only per-process state) and close it when the process exits normally (best effort:
-``multiprocessing``'s exit finalisers in a pool worker, ``atexit`` elsewhere; a terminated or killed process
-just ends, and the OS reclaims its GL contexts and memory). A context that cannot open is one WorkerError line
-naming the spec's ``open``.
+(default :func:`hoidata.pipeline.pool.run_pool`; :func:`hoidata.pipeline.ray_tasks.run_ray` has the same
+contract), whose processes each open the task's worker context once, before their first job, keep it in this
+module's registry (``_OPEN``, the only place a task's per-process state is kept) and close it when the process
+exits normally (best effort: ``multiprocessing``'s exit finalisers in a pool worker, ``atexit`` elsewhere; a
+terminated or killed process just ends, and the OS reclaims its GL contexts and memory). A context that cannot
+open is one WorkerError line naming the spec's ``open``.
 """
 
 from __future__ import annotations
@@ -122,11 +122,13 @@ def run_task(task: ShardTask, workers: int = 1, part: tuple[int, int] = (0, 1), 
         task.check_kept([n for n in owned if n in kept])
     result = RunResult(plan.units, plan.items, units_kept=len(owned) - len(mine))
     bar = tqdm(total=sum(plan.size(n) for n in mine), desc=task.desc, unit="item", disable=not progress)
+    results = _results(task, [task.job(n) for n in mine], workers, executor) if mine else iter(())
     try:
-        if mine:
-            _tally(_results(task, [task.job(n) for n in mine], workers, executor), plan, result, bar, start)
+        _tally(results, plan, result, bar, start)
     finally:
         bar.close()
+        if hasattr(results, "close"):
+            results.close()  # an interrupted run: the serial context is closed now, the pool's workers stopped
     result.seconds = time.perf_counter() - start
     if done is not None:
         result.all_done = done(plan.units, False) >= set(plan.units)
@@ -172,7 +174,9 @@ def _tally(results, plan: Plan, result: RunResult, bar, start: float) -> None:
 
 # --- worker process side -------------------------------------------------------------------------------------------
 
-_OPEN: dict = {}  # in a worker process: spec -> its open context (the engine's only per-process state)
+# In a worker process: spec -> its open context. The one place a task's per-process state is kept (the executors
+# keep only their own bookkeeping: which initialisers ran or failed).
+_OPEN: dict = {}
 
 
 def _open_in_process(spec) -> None:
