@@ -1,5 +1,5 @@
 """Packaging beyond pyproject.toml: the top-level ``pipelines/`` folder ships as the package ``hoidata.presets``,
-so an installed ``hoidata`` finds its named pipelines (``hoidata.pipeline.settings.pipelines_dir``)."""
+so an installed ``hoidata`` finds its named pipelines (``hoidata.sections.pipelines_dir``)."""
 
 from setuptools import find_packages, setup
 

@@ -70,7 +70,7 @@ def _section_table(name: str, cls) -> str:
     doc = "" if doc.startswith(f"{cls.__name__}(") else inspect.cleandoc(doc)  # not the generated signature
     lines = [f"### `[{name}]`", "", f"From `{cls.__module__}.{cls.__qualname__}`. {doc.splitlines()[0] if doc else ''}",
              "", "| key | type | default | allowed | meaning |", "|---|---|---|---|---|"]
-    limits = getattr(cls, "LIMITS", {})  # the ranges settings.section checks (floats must also be finite)
+    limits = getattr(cls, "LIMITS", {})  # the ranges hoidata.sections.section checks (floats must also be finite)
     for f in dataclasses.fields(cls):
         meaning = comments.get(f.name, "").replace("|", "\\|")
         allowed = ", ".join(limits.get(f.name, ())).replace(">", "&gt;").replace("<", "&lt;")

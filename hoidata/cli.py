@@ -12,41 +12,9 @@ import sys
 from pathlib import Path
 
 from hoidata import __version__
+from hoidata.cli_types import count_type, non_negative_int, positive_int
 from hoidata.errors import run_cli
 from hoidata.pipeline.launch import add_launcher_flags, launch
-
-
-def count_type(low: int):
-    """argparse type: a whole number >= low, the flag named in the error (argparse adds it)."""
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a whole number >= {low}, got {text!r}") from None
-        if value < low:
-            raise argparse.ArgumentTypeError(f"expected a whole number >= {low}, got {value}")
-        return value
-
-    parse.__name__ = f"whole number >= {low}"
-    return parse
-
-
-positive_int, non_negative_int = count_type(1), count_type(0)
-
-
-def local_path(text: str) -> Path:
-    """argparse type of an option that names a local folder or file (``python -m hoisdf.train --out``): text
-    naming a URL is refused before anything runs (:func:`hoidata.store.paths.local_folder`)."""
-    from hoidata.errors import DataError
-    from hoidata.store.paths import local_folder
-
-    try:
-        return local_folder(text, "this option")
-    except DataError as exc:
-        raise argparse.ArgumentTypeError(f"{text!r}: {exc.problem}") from None
-
-
-local_path.__name__ = "local path"
 
 
 def folder(args: argparse.Namespace, name: str, default: Path | None = None) -> Path | None:
@@ -135,7 +103,6 @@ def cmd_export(args: argparse.Namespace) -> int:
     """Write a dataset's frames as another codebase's files (docs/other-codebases.md)."""
     from hoidata.export import export_dataset
     from hoidata.pipeline.settings import load_build_config
-
     from hoidata.store.verify import opened_store
 
     root, out = folder(args, "root"), folder(args, "out")

@@ -89,8 +89,7 @@ def training_runs(rows) -> dict[tuple[str, ...], str]:
 def derive_checkpoint(run_dir: Path, overrides: tuple[str, ...], out: Path) -> Path:
     """A copy of ``run_dir``'s last checkpoint (model weights, progress) whose config has the inference
     ``overrides`` applied: the same network evaluated with another inference setting."""
-    from hoidata.pipeline.settings import apply_overrides
-    from hoisdf.config import config_from_dict
+    from hoisdf.config import overridden_config
     from hoisdf.training.checkpoint import (
         CHECKPOINTS,
         LAST,
@@ -99,7 +98,7 @@ def derive_checkpoint(run_dir: Path, overrides: tuple[str, ...], out: Path) -> P
     )
 
     payload = load_checkpoint(run_dir)
-    config = config_from_dict(apply_overrides(payload["config"], list(overrides), run_dir / "config.json"))
+    config = overridden_config(payload["config"], list(overrides), run_dir / "config.json")
     return save_checkpoint(out / CHECKPOINTS / LAST, {"model": payload["model"], "config": config.as_dict(),
                                                        "progress": payload.get("progress", {})})
 

@@ -12,13 +12,14 @@ from pathlib import Path
 from typing import ClassVar
 
 from hoidata.errors import DataError
-from hoidata.pipeline.settings import (
-    TRAIN_SECTIONS,
+from hoidata.sections import (
     apply_overrides,
+    check_sections,
     read_pipeline,
     refuse_unused,
     resolve_pipeline,
     section,
+    section_names,
 )
 from hoisdf.data.augment import AugmentSettings
 from hoisdf.model.encoding import PIXEL_CONVENTIONS
@@ -178,6 +179,18 @@ class TrainConfig:
         return asdict(self)
 
 
+TRAIN_SECTIONS = section_names(TrainConfig)  # ("model", "train", "augment", "loss"): what training reads of a file
+# The build's sections of the same files (hoidata.pipeline.settings.BUILD_SECTIONS, which training does not import:
+# it stands beside the build, not on it; tests/test_settings_floor.py holds the two equal)
+BUILD_SECTIONS = ("dataset", "record", "store")
+BUILD_READER = {name: "hoidata build-sdf" for name in BUILD_SECTIONS}  # section -> the command that reads it
+
+
+def refuse_build_overrides(overrides: list[str], path: Path) -> None:
+    """An override of a section training does not read is a DataError naming ``path`` and the key."""
+    refuse_unused(list(overrides), TRAIN_SECTIONS, "training", path, BUILD_READER)
+
+
 def load_train_config(name_or_path: str | None, overrides: list[str] = ()) -> TrainConfig:
     """Pipeline TOML (or the defaults when None) + ``section.key=value`` overrides -> TrainConfig.
 
@@ -185,12 +198,13 @@ def load_train_config(name_or_path: str | None, overrides: list[str] = ()) -> Tr
     ``augment.input_size`` follows ``model.image_size`` unless set; a mismatch is an error.
     """
     where = resolve_pipeline(name_or_path) if name_or_path else Path("<defaults>")
-    refuse_unused(list(overrides), TRAIN_SECTIONS, "training", "hoidata build-sdf", where)
+    refuse_build_overrides(overrides, where)
     if name_or_path:
         path, data = read_pipeline(name_or_path, overrides)
     else:
         path = where
         data = apply_overrides({}, overrides, path)
+    check_sections(data, path, TRAIN_SECTIONS, BUILD_SECTIONS)  # training knows every reader of the file
     model = _model_section(data.get("model", {}), path)
     train = section(TrainSettings, with_recipe(data.get("train", {}), path), path, "train")
     augment_values = dict(data.get("augment", {}))
@@ -225,3 +239,13 @@ def config_from_dict(data: dict, path: Path | str = "<checkpoint>") -> TrainConf
     train = section(TrainSettings, data.get("train", {}), path, "train")
     return TrainConfig(model, train, section(AugmentSettings, data.get("augment", {}), path, "augment"),
                        section(LossWeights, data.get("loss", {}), path, "loss"))
+
+
+def overridden_config(data: dict, overrides: list[str], path: Path | str) -> TrainConfig:
+    """A saved config (:meth:`TrainConfig.as_dict`, as a checkpoint holds it) with ``section.key=value``
+    ``overrides`` applied (``data`` is left as it is); errors name ``path`` (the checkpoint or run file), also an
+    override of a section training does not read."""
+    import copy
+
+    refuse_build_overrides(list(overrides), Path(path))
+    return config_from_dict(apply_overrides(copy.deepcopy(data), list(overrides), Path(path)), path)

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from hoidata.atomic import write_atomic
-from hoidata.cli import local_path, non_negative_int, positive_int
+from hoidata.cli_types import local_path, non_negative_int, positive_int
 from hoidata.errors import DataError, run_cli
 from hoidata.schema import FULL
 from hoidata.store import RemoteStore, read_index, resolve_store
@@ -74,7 +74,8 @@ def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=No
         ho3d_order: HO-3D ``evaluation.txt`` -> pred.json / pred.zip; checked before any work against every HO-3D
             store (:mod:`hoisdf.evaluation.ho3d_list`); a store or list that cannot give a complete submission is
             a DataError, never a missing file. baseline_store: store whose labels
-            give the mean pose (default: the first evaluated store). workers: loader processes.
+            give the mean pose (default: the first evaluated store). workers: loader processes, and processes for the
+            plausibility report.
         ho3d_gt: folder with the challenge's ``evaluation_xyz.json`` / ``evaluation_verts.json``: the written
             pred.json is scored against them (``metrics.json["ho3d_challenge"]``, ``scores.txt``).
         precision: "fp32" (as upstream) or "bf16" (autocast; geometry, ranking and head outputs stay fp32).
@@ -121,7 +122,7 @@ def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=No
                                "identity rotation", "mean_pose_from": str(base_src), "rows_max": BASELINE_ROWS,
                      "peeks_at_evaluated_labels": base_src.resolve() in [s.resolve() for s in stores],
                      "overall": base_summary or {"skipped": f"{base_src} has no hand labels; --baseline-store TRAIN"}},
-        "plausibility": plausibility_summary(col, meshes, mano, plausibility, progress),
+        "plausibility": plausibility_summary(col, meshes, mano, plausibility, progress, workers),
         "units": "mm for lengths, ratios for AUC and F-scores",
     }
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -179,7 +180,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--baseline-store", default=None, metavar="STORE",
                    help="store whose mean hand pose is the baseline (e.g. the training store)")
     p.add_argument("--workers", type=non_negative_int, default=4,
-                   help="loader processes decoding records (0: decode in this process)")
+                   help="loader processes decoding records, and processes for the plausibility report (0: this process)")
     p.add_argument("--precision", choices=("fp32", "bf16"), default="fp32",
                    help="fp32 (default, as upstream) or bf16 autocast (geometry stays fp32; metrics.json "
                         "records the dtype of every stage)")

@@ -24,7 +24,7 @@ import json
 import sys
 
 from hoidata.atomic import write_atomic
-from hoidata.cli import local_path
+from hoidata.cli_types import local_path
 from hoidata.errors import run_cli
 
 SUBCOMMANDS = {

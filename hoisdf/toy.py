@@ -1,6 +1,6 @@
 """``python -m hoisdf.toy --out toy_run``: the main job on the embedded toy data, end to end.
 
-1. ``hoidata toy-pipeline``: procedural MANO, objects and toy DexYCB / HO-3D; verified train and test stores;
+1. ``python -m hoidata toy-pipeline`` (a child process): procedural MANO, objects and toy DexYCB / HO-3D; verified train and test stores;
 2. ``python -m hoisdf.train --config toy`` on the train store (a small model, CPU minutes);
 3. ``python -m hoisdf.evaluate`` on the test store, against a mean-pose baseline from the train store;
 4. a report folder: metrics.json, training_curve.png, result pictures, and a verdict line.
@@ -17,14 +17,17 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
+import signal
+import subprocess
 import sys
 import time
 from pathlib import Path
 
+import hoidata
 from hoidata.atomic import write_atomic
-from hoidata.cli import main as hoidata_main
-from hoidata.cli import local_path, non_negative_int, positive_int
+from hoidata.cli_types import local_path, non_negative_int, positive_int
 from hoidata.errors import run_cli
 from hoisdf.ablation import TABLES, run_table
 from hoisdf.evaluate import evaluate
@@ -40,13 +43,42 @@ def beats_baseline(model: dict, baseline: dict, names=COMPARED) -> dict[str, boo
     return {n: model[n] < baseline[n] for n in names if n in model and n in baseline}
 
 
+def data_command(out: Path, workers: int, seed: int, sequences: int | None, frames: int | None,
+                 debug: bool = False) -> list[str]:
+    """Step 1 as a command line: ``python -m hoidata toy-pipeline`` into ``out`` (data/, store/, store_grid.png)
+    with ``workers`` build processes, the toy ``seed`` and size (None: make-toy's default); ``debug``: a traceback
+    instead of the one error line."""
+    argv = [sys.executable, "-m", "hoidata", "toy-pipeline", "--out", str(out), "--workers", str(workers),
+            "--seed", str(seed)]
+    argv += [*(["--sequences", str(sequences)] if sequences else []), *(["--frames", str(frames)] if frames else [])]
+    return argv + (["--debug"] if debug else [])
+
+
+def run_data(argv: list[str]) -> int:
+    """Run a ``hoidata`` command line in a child process and return its exit code.
+
+    A child, not an import of ``hoidata.cli``: the model package stands beside the build, on hoidata's library
+    layers only (tests/test_layout.py). The child's output streams through as it comes, and its error is its own
+    one ``hoidata ...: error:`` line (exit 2); it imports the same ``hoidata`` as this process."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    here = str(Path(hoidata.__file__).resolve().parents[1])  # the folder holding this process's hoidata
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (here, os.environ.get("PYTHONPATH")) if p)}
+    code = subprocess.run(argv, env=env, check=False).returncode
+    if code < 0:  # killed by a signal: it printed nothing, so say it here
+        name = signal.Signals(-code).name if -code in signal.valid_signals() else f"signal {-code}"
+        print(f"error: {' '.join(argv[2:4])} was stopped by {name}", file=sys.stderr)
+        return 128 - code
+    return code
+
+
 def run(out: Path, steps: int, workers: int, seed: int, sequences: int | None, frames: int | None,
-        vis: int, extra: list[str], ablation: str | None = None) -> int:
+        vis: int, extra: list[str], ablation: str | None = None, debug: bool = False) -> int:
     out = Path(out)
     t0 = time.perf_counter()
-    data_args = ["toy-pipeline", "--out", str(out), "--workers", str(workers), "--seed", str(seed)]
-    data_args += [*(["--sequences", str(sequences)] if sequences else []), *(["--frames", str(frames)] if frames else [])]
-    status = hoidata_main(data_args)
+    argv = data_command(out, workers, seed, sequences, frames, debug)
+    print(f"$ python -m hoidata {' '.join(argv[3:])}", flush=True)
+    status = run_data(argv)
     if status:
         return status
     mano = out / "data" / "dexycb" / "mano"
@@ -108,7 +140,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("overrides", nargs="*", metavar="section.key=value", help="training overrides")
     args = p.parse_intermixed_args(argv)  # overrides before and after other options
     return run_cli("", lambda: run(args.out, args.steps, args.workers, args.seed, args.sequences, args.frames,
-                                   args.vis, args.overrides, args.ablation), args.debug)
+                                   args.vis, args.overrides, args.ablation, args.debug), args.debug)
 
 
 if __name__ == "__main__":

@@ -21,13 +21,12 @@ from pathlib import Path
 import torch
 
 from hoidata.atomic import write_atomic
-from hoidata.cli import local_path
+from hoidata.cli_types import local_path
 from hoidata.errors import DataError, redact_urls, run_cli
-from hoidata.pipeline.runner import git_commit
-from hoidata.pipeline.settings import TRAIN_SECTIONS, apply_overrides, refuse_unused
+from hoidata.provenance import git_commit
 from hoidata.store import resolve_store
 from hoidata.store.remote import url_authority
-from hoisdf.config import TrainConfig, config_from_dict, load_train_config
+from hoisdf.config import TrainConfig, load_train_config, overridden_config
 from hoisdf.data import StoreSpec
 from hoisdf.training.checkpoint import CHECKPOINTS, LAST, find_checkpoint, load_checkpoint, load_weights
 from hoisdf.training.trainer import CURVE, Trainer, unwrap
@@ -141,8 +140,7 @@ def run(args, argv: list[str]) -> int:
     checkpoint = find_checkpoint(run_dir) if args.resume else None
     payload = load_checkpoint(checkpoint) if args.resume else None
     if payload:  # the run's own config; overrides (e.g. a later train.max_steps) still apply
-        refuse_unused(args.overrides, TRAIN_SECTIONS, "training", "hoidata build-sdf", checkpoint)
-        config = config_from_dict(apply_overrides(payload["config"], args.overrides, checkpoint), checkpoint)
+        config = overridden_config(payload["config"], args.overrides, checkpoint)
     else:
         if (run_dir / CHECKPOINTS / LAST).exists():
             raise DataError(run_dir, None, "the run folder already holds a checkpoint: pass --resume or another --out")
@@ -150,8 +148,7 @@ def run(args, argv: list[str]) -> int:
     init = load_checkpoint(args.init) if args.init and not payload else None
     if init:  # the weights' own model settings (model.* overrides still apply); the rest from --config
         model_overrides = [o for o in args.overrides if o.startswith("model.")]
-        config = replace(config, model=config_from_dict(apply_overrides(init["config"], model_overrides, args.init),
-                                                        args.init).model)
+        config = replace(config, model=overridden_config(init["config"], model_overrides, args.init).model)
     rank, world, device = distributed_setup(args.device)
     torch.manual_seed(config.train.seed + rank)
     run_dir.mkdir(parents=True, exist_ok=True)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 import shlex
 import shutil
+import sys
 from pathlib import Path
 
 import pytest
@@ -100,6 +101,11 @@ def test_toy_commands_build_whole_stores_inside_an_array_task(tmp_path, monkeypa
     import hoisdf.toy
     from hoidata.pipeline import runner
 
+    def in_process(argv):  # the child's command line (python -m hoidata ...), run here so the stand-in sees it
+        assert argv[:3] == [sys.executable, "-m", "hoidata"]
+        return hoidata(argv[3:])
+
+    monkeypatch.setattr(hoisdf.toy, "run_data", in_process)
     parts = []
 
     def build_store(*args, part, **kwargs):  # stands in for the build: records the part it was asked for

@@ -19,17 +19,18 @@ def test_presets_read_through_the_resources_api_of_any_package_kind(tmp_path, mo
     import importlib.resources
     from importlib.resources.readers import MultiplexedPath
 
-    from hoidata.pipeline import settings
+    from hoidata import sections
+    from hoidata.pipeline.settings import load_build_config
 
     (tmp_path / "toy.toml").write_bytes((REPO / "pipelines" / "toy.toml").read_bytes())
-    monkeypatch.setattr(settings, "CHECKOUT_PIPELINES", tmp_path / "no-checkout")
+    monkeypatch.setattr(sections, "CHECKOUT_PIPELINES", tmp_path / "no-checkout")
     monkeypatch.setattr(importlib.resources, "files", lambda name: MultiplexedPath(tmp_path))
-    assert settings.load_build_config("toy", ["record.n_hand=8"]).record.n_hand == 8
-    assert settings.read_pipeline("toy")[1] == settings.read_pipeline(str(REPO / "pipelines" / "toy.toml"))[1]
+    assert load_build_config("toy", ["record.n_hand=8"]).record.n_hand == 8
+    assert sections.read_pipeline("toy")[1] == sections.read_pipeline(str(REPO / "pipelines" / "toy.toml"))[1]
     from hoidata.errors import DataError
 
     with pytest.raises(DataError, match=r"nope\.toml: pipeline config not found"):
-        settings.resolve_pipeline("nope")
+        sections.resolve_pipeline("nope")
 
 
 def test_the_wheel_ships_the_presets_as_a_regular_package():

@@ -1,4 +1,5 @@
-"""The package layout's promises: no import cycles, hoidata never imports hoisdf, files within the size budget.
+"""The package layout's promises: no import cycles, hoidata never imports hoisdf, each package's layers, hoisdf on
+hoidata's library layers only (never the build or its command line), files within the size budget.
 
 Imports are read from the source (``ast``), lazy ones inside functions included, so a cycle hidden behind a
 function-level import is still a cycle. ``from pkg import name`` counts as importing ``pkg.name`` when that
@@ -110,22 +111,27 @@ def test_files_stay_within_the_size_budget():
 # hoidata's layers, bottom first: a module may import its own layer and the layers below, never one above, so the
 # data flows one way (readers -> frames -> records -> shards; the toy writers and the CLI on top).
 HOIDATA_LAYERS = (
-    ("hoidata.errors", "hoidata.atomic", "hoidata.schema"),
-    ("hoidata.safe_pickle", "hoidata.geometry", "hoidata.store", "hoidata.render"),
+    ("hoidata.errors", "hoidata.atomic", "hoidata.schema", "hoidata.sections", "hoidata.provenance"),
+    ("hoidata.safe_pickle", "hoidata.geometry", "hoidata.store", "hoidata.render", "hoidata.cli_types"),
     ("hoidata.hand", "hoidata.objects"),
     ("hoidata.datasets",),
     ("hoidata.pipeline",),
     ("hoidata.synth", "hoidata.export"),
     ("hoidata.toy",),
-    ("hoidata.cli",),
+    ("hoidata.cli", "hoidata.__main__"),
 )
 
 
-def _layer(module: str) -> int | None:
-    for level, prefixes in enumerate(HOIDATA_LAYERS):
-        if any(module == p or module.startswith(p + ".") for p in prefixes):
-            return level
-    return None
+def _layer(module: str, layers=HOIDATA_LAYERS) -> int | None:
+    """The layer of the longest prefix in ``layers`` that holds ``module`` (``hoisdf.training.losses`` before
+    ``hoisdf.training``); a bare package name (``hoisdf``) holds only itself."""
+    best = None
+    for level, prefixes in enumerate(layers):
+        for p in prefixes:
+            inside = module == p or ("." in p and module.startswith(p + "."))
+            if inside and (best is None or len(p) > best[0]):
+                best = (len(p), level)
+    return None if best is None else best[1]
 
 
 def test_every_hoidata_module_has_a_layer():
@@ -138,6 +144,82 @@ def test_hoidata_imports_only_its_own_layer_and_below():
           for m, targets in _graph().items() if m.startswith("hoidata.")}
     up = {m: t for m, t in up.items() if t}
     assert not up, f"imports that run up a layer: {up}"
+
+
+# hoisdf's layers, bottom first, the same rule: the network's parts; the data they eat; the loss math; the settings
+# (which gather the parts' settings dataclasses); the trainer and checkpoints, which read the settings; evaluation,
+# which loads checkpoints; the command lines on top.
+HOISDF_LAYERS = (
+    ("hoisdf", "hoisdf.model"),
+    ("hoisdf.data",),
+    ("hoisdf.training.losses",),
+    ("hoisdf.config",),
+    ("hoisdf.training",),
+    ("hoisdf.evaluation",),
+    ("hoisdf.train", "hoisdf.evaluate", "hoisdf.score", "hoisdf.import_upstream", "hoisdf.ablation", "hoisdf.toy",
+     "hoisdf.cli"),
+)
+# What hoisdf may import of hoidata: its library layers (prefixes), never the build (pipeline, export, synth, toy
+# writers, render) nor its command line. hoisdf stands beside the build, not on it.
+HOISDF_MAY_IMPORT = (
+    "hoidata",  # the package itself (its version, where it lives): not its subpackages
+    "hoidata.errors", "hoidata.atomic", "hoidata.schema", "hoidata.sections", "hoidata.provenance",
+    "hoidata.cli_types", "hoidata.safe_pickle", "hoidata.store", "hoidata.geometry", "hoidata.hand",
+    "hoidata.objects",
+    "hoidata.datasets.dexycb_layout",  # the DexYCB toolkit's file layout, for scoring its result files
+    "hoidata.datasets.dexycb_frames",  # the toolkit's invalid-label marker (TOOLKIT_INVALID), for submissions
+)
+HOISDF_NEVER = ("hoidata.cli", "hoidata.__main__", "hoidata.pipeline", "hoidata.export", "hoidata.synth",
+                "hoidata.toy", "hoidata.render")
+
+
+def test_every_hoisdf_module_has_a_layer():
+    missing = [m for m in _modules() if m.split(".")[0] == "hoisdf" and _layer(m, HOISDF_LAYERS) is None]
+    assert not missing, f"hoisdf modules in no layer of HOISDF_LAYERS: {missing}"
+
+
+def test_hoisdf_imports_only_its_own_layer_and_below():
+    up = {m: sorted(t for t in targets if t.split(".")[0] == "hoisdf"
+                    and _layer(t, HOISDF_LAYERS) > _layer(m, HOISDF_LAYERS))
+          for m, targets in _graph().items() if m.split(".")[0] == "hoisdf"}
+    up = {m: t for m, t in up.items() if t}
+    assert not up, f"imports that run up a layer: {up}"
+
+
+def _hoisdf_problems(graph: dict[str, set[str]]) -> list[str]:
+    """hoisdf's imports of hoidata outside :data:`HOISDF_MAY_IMPORT`, and every hoidata module of
+    :data:`HOISDF_NEVER` that hoisdf reaches, directly or through the hoidata modules it imports."""
+    allowed = [(p, p != "hoidata") for p in HOISDF_MAY_IMPORT]  # (prefix, whether its submodules count)
+    problems, reached, todo = [], set(), []
+    for m, targets in sorted(graph.items()):
+        for t in sorted(targets):
+            if m.split(".")[0] == "hoisdf" and t.split(".")[0] == "hoidata":
+                if not any(t == p or (deep and t.startswith(p + ".")) for p, deep in allowed):
+                    problems.append(f"{m} imports {t}, which is not on the allow-list")
+                todo.append(t)
+    while todo:
+        t = todo.pop()
+        if t not in reached:
+            reached.add(t)
+            todo.extend(graph.get(t, ()))
+    problems += [f"hoisdf reaches {t}" for t in sorted(reached)
+                 if any(t == p or t.startswith(p + ".") for p in HOISDF_NEVER)]
+    return problems
+
+
+def test_hoisdf_imports_only_the_allowed_hoidata_layers_and_never_the_build_or_its_cli():
+    problems = _hoisdf_problems(_graph())
+    assert not problems, problems
+
+
+def test_the_hoisdf_check_finds_a_cli_import_and_a_build_reached_through_a_library_module():
+    graph = {"hoisdf.toy": {"hoidata.cli", "hoidata.cli_types"}, "hoisdf.train": {"hoidata.store"},
+             "hoidata.cli": {"hoidata.pipeline.runner"}, "hoidata.cli_types": set(),
+             "hoidata.store": {"hoidata.pipeline.finish"}, "hoidata.pipeline.runner": set(),
+             "hoidata.pipeline.finish": set()}
+    assert _hoisdf_problems(graph) == ["hoisdf.toy imports hoidata.cli, which is not on the allow-list",
+                                       "hoisdf reaches hoidata.cli", "hoisdf reaches hoidata.pipeline.finish",
+                                       "hoisdf reaches hoidata.pipeline.runner"]
 
 
 def _bench_problems(bench: Path) -> list[str]:

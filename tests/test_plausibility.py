@@ -201,3 +201,41 @@ def test_depth_and_contact_on_posed_hand_match_brute_force(mano_right):
     assert got["contact_area_cm2"] == pytest.approx(area * 1e4, rel=1e-12)
     assert got["vertex_contact_ratio"] == pytest.approx((ref <= 0.005).mean())
     assert got["ivu_cm"] == pytest.approx(got["intersection_volume_cm3"] / got["contact_area_cm2"])
+
+
+def test_inherited_membership_changes_no_number(bench, monkeypatch):
+    """Children inside a parent's decided ball take its inside/outside instead of casting rays
+    (hoisdf.evaluation.solids._child_hints): the bounds and the estimate are the same as with every centre asked."""
+    from hoisdf.evaluation import solids
+
+    cases = bench.cases()
+    pairs = [(cases["two spheres (lens)"]["hand"], cases["two spheres (lens)"]["object"]),
+             (cases["box and sphere (cap)"]["hand"], cases["box and sphere (cap)"]["object"])]
+    with_hints = [intersection_bounds(*h, *o, TOL) for h, o in pairs]
+    asked = {"n": 0}
+    real = solids._child_hints
+
+    def no_hints(parts, per_part, open_, radius):
+        hints = real(parts, per_part, open_, radius)
+        asked["n"] += sum(int(known.sum()) for known, _ in hints)
+        return [(np.zeros_like(known), member) for known, member in hints]
+
+    monkeypatch.setattr(solids, "_child_hints", no_hints)
+    without = [intersection_bounds(*h, *o, TOL) for h, o in pairs]
+    assert asked["n"] > 0  # the hints did spare ray casts
+    assert with_hints == without
+
+
+def test_frames_on_worker_processes_equal_frames_here(bench):
+    """frame_metrics_many on 2 spawned processes: the same numbers, in the samples' order."""
+    from hoisdf.evaluation.plausibility import frame_metrics_many
+
+    box_v, box_f = bench.cases()["box and sphere (cap)"]["object"]
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=0.01)
+    bv, bf = np.asarray(ball.vertices), np.asarray(ball.faces)
+    samples = [(bv + [0, 0, z], bf, box_v, box_f) for z in (0.05, 0.0249, 0.027, 0.05)]
+    here = frame_metrics_many(samples, 1, tolerance=TOL)
+    there = frame_metrics_many(samples, 2, tolerance=TOL)
+    assert [f["contact"] for f in here] == [0.0, 1.0, 1.0, 0.0]
+    for a, b in zip(here, there):
+        np.testing.assert_equal(a, b)

@@ -243,7 +243,7 @@ def test_frame_list_ids_missing_from_the_dataset_are_named(tiny_dexycb, tmp_path
 @pytest.mark.parametrize("content, match", [('["00000001", "x7"]', "item 1"), ("[3, 3]", "more than once: \\[3\\]"),
                                             ('{"ids": [1]}', "non-empty JSON list"), ("[1.5]", "item 0")])
 def test_frame_list_bad_files(tmp_path, content, match):
-    from hoidata.pipeline.frame_list import read_frame_list
+    from hoidata.datasets.frame_list import read_frame_list
 
     path = tmp_path / "list.json"
     path.write_text(content)

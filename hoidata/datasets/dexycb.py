@@ -83,7 +83,7 @@ class DexYCBReader:
         models_dir: YCB models folder, default ``root/models`` (proximity filter only).
         on_error: 'raise' stops at the first malformed file; 'skip' records it in ``skipped``.
         frame_ids: read exactly these toolkit sample ids (a published frame list,
-            :mod:`hoidata.pipeline.frame_list`) instead of the setting's sides, frame stride and proximity rules;
+            :mod:`hoidata.datasets.frame_list`) instead of the setting's sides, frame stride and proximity rules;
             listed left hands are mirrored.
 
     Every frame carries ``sample_index``, its index in the toolkit's enumeration of the split
@@ -137,6 +137,10 @@ class DexYCBReader:
                 self._fail(e, f"{SUBJECTS[s]}_{seq_dir.name}")
                 continue
             yield from sequence_frames(self, s, i, seq_dir, meta)
+
+    def published_ids(self, frames) -> list[int]:
+        """Each of ``frames``' (this reader's) toolkit sample index: the id of result files and frame lists."""
+        return [f.sample_index for f in frames]
 
     def _fail(self, error: DataError, frame_id: str) -> None:
         if self.on_error == "raise":

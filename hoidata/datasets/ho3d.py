@@ -132,6 +132,11 @@ class HO3DReader:
     def __len__(self) -> int:
         return len(self.entries)
 
+    def published_ids(self, frames) -> list[int]:
+        """Each of ``frames``' (this reader's) line in ``<split>.txt``: HO-3D's id of a frame (annotation files)."""
+        line = {entry: n for n, entry in enumerate(self.entries)}
+        return [line[f"{f.source['sequence']}/{f.source['id']}"] for f in frames]
+
     def frames(self) -> Iterator[Frame]:
         for entry in self.entries:
             seq, fid = entry.split("/")

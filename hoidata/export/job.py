@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from hoidata import schema
+from hoidata.datasets.open import read_splits
 from hoidata.errors import DataError, read_json
 from hoidata.export import gsdf, handoccnet
 from hoidata.export.files import write_json
@@ -61,29 +62,10 @@ def export_frames(cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path
     DexYCB toolkit's sample index, or an HO-3D frame's line in ``<split>.txt``. Frames without a hand pose
     (HO-3D's evaluation split) are kept: annotation formats carry what the split has. A DexYCB
     ``dataset.frame_list`` is read as ``build-sdf`` reads it: exactly the listed frames."""
-    frames, skips, ids = [], [], []
-    for split in splits:
-        if cfg.dataset.name == "dexycb":
-            from hoidata.datasets.dexycb import DexYCBReader
-            from hoidata.pipeline.frame_list import check_listed, read_frame_list
-
-            listed = read_frame_list(cfg.dataset.frame_list) if cfg.dataset.frame_list else None
-            reader = DexYCBReader(root, mano_dir, split, cfg.dataset.dexycb_setting(), models_dir, on_error="skip",
-                                  frame_ids=None if listed is None else frozenset(listed))
-            got = list(reader.frames())
-            if listed is not None:  # every listed id must be a frame of the dataset
-                check_listed(cfg.dataset.frame_list, listed, got, reader.skipped, reader.toolkit)
-            ids += [f.sample_index for f in got]
-        else:
-            from hoidata.datasets.ho3d import HO3DReader
-
-            reader = HO3DReader(root, mano_dir, split, on_error="skip", version=cfg.dataset.version)
-            line = {entry: n for n, entry in enumerate(reader.entries)}
-            got = list(reader.frames())
-            ids += [line[f"{f.source['sequence']}/{f.source['id']}"] for f in got]
-        frames += got
-        skips += reader.skipped
-    return frames, skips, ids
+    d = cfg.dataset
+    got = read_splits(d.name, root, mano_dir, splits, models_dir=models_dir, dexycb=d.dexycb_setting(),
+                      version=d.version, frame_list=d.frame_list)
+    return got.frames, got.skips, got.ids
 
 
 def _spec(fmt: str, cfg: BuildConfig, splits, keys: list[str], options: dict, inputs: dict) -> dict:

@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import hashlib
 import json
-import subprocess
 from pathlib import Path
 
 from hoidata import schema, store
 from hoidata.errors import DataError
+from hoidata.provenance import git_commit  # the runner also names it from here
 
 
 def extra_name(number: int) -> str:
@@ -33,16 +33,6 @@ def read_shard_skips(out: Path, number: int) -> dict:
     if not ok or not all(isinstance(s, dict) and {"frame_id", "reason"} <= set(s) for s in value["skipped"]):
         raise DataError(path, None, "not a skips file (expected 'skipped' entries and 'records'); rerun the build")
     return value
-
-
-
-def git_commit() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).parent, capture_output=True,
-                              text=True, timeout=5).stdout.strip() or "unknown"
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
-
 
 
 def skip_dict(skip) -> dict:

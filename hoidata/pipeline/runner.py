@@ -23,10 +23,12 @@ from pathlib import Path
 
 from hoidata import schema
 from hoidata.datasets.frame import Skip
+from hoidata.datasets.frame_list import frame_list_provenance, read_frame_list
+from hoidata.datasets.open import read_splits
 from hoidata.errors import DataError
 from hoidata.pipeline import fingerprint
 from hoidata.pipeline.engine import Plan, RunResult, run_task
-from hoidata.pipeline.finish import (  # noqa: F401 - git_commit, skip_groups: re-exported (training, the CLI)
+from hoidata.pipeline.finish import (  # noqa: F401 - git_commit, skip_groups: re-exported (the CLI, tests)
     describe_skips,
     finish_store,
     git_commit,
@@ -34,7 +36,6 @@ from hoidata.pipeline.finish import (  # noqa: F401 - git_commit, skip_groups: r
     skip_dict,
     skip_groups,
 )
-from hoidata.pipeline.frame_list import check_listed, frame_list_provenance, read_frame_list
 from hoidata.pipeline.records import RecordSettings
 from hoidata.pipeline.settings import BuildConfig, stated_count_warnings
 from hoidata.pipeline.store_shards import check_build_file, shards_done
@@ -44,26 +45,12 @@ from hoidata.pipeline.worker import RecordWorker, RecordWorkerSpec, ShardJob
 def read_frames(cfg: BuildConfig, root: Path, mano_dir: Path,
                 models_dir: Path | None = None) -> tuple[list, list[Skip]]:
     """All frames of the configured splits, in reader order, and the reader's skips. ``models_dir`` (default
-    ``root/models``) is what DexYCB's proximity filter reads: the build's ``--models``, as export's."""
-    frames, skips = [], []
-    for split in cfg.dataset.splits:
-        if cfg.dataset.name == "dexycb":
-            from hoidata.datasets.dexycb import DexYCBReader
-
-            listed = read_frame_list(cfg.dataset.frame_list) if cfg.dataset.frame_list else None
-            reader = DexYCBReader(root, mano_dir, split, cfg.dataset.dexycb_setting(), models_dir, on_error="skip",
-                                  frame_ids=None if listed is None else frozenset(listed))
-        elif cfg.dataset.name == "ho3d":
-            from hoidata.datasets.ho3d import HO3DReader
-
-            reader = HO3DReader(root, mano_dir, split, on_error="skip", version=cfg.dataset.version)
-        else:
-            raise ValueError(f"unknown dataset {cfg.dataset.name!r}; expected 'dexycb' or 'ho3d'")
-        read = list(reader.frames())  # frames without hand labels become 'eval' records (schema.RECORD_KINDS)
-        if cfg.dataset.frame_list:  # every listed id must be a frame of the dataset
-            check_listed(cfg.dataset.frame_list, listed, read, reader.skipped, reader.toolkit)
-        frames, skips = frames + read, skips + reader.skipped
-    return frames, skips
+    ``root/models``) is what DexYCB's proximity filter reads: the build's ``--models``, as export's
+    (:func:`hoidata.datasets.open.read_splits`, with the frame-list check)."""
+    d = cfg.dataset
+    got = read_splits(d.name, root, mano_dir, d.splits, models_dir=models_dir, dexycb=d.dexycb_setting(),
+                      version=d.version, frame_list=d.frame_list)
+    return got.frames, got.skips
 
 
 @dataclass

@@ -1,41 +1,31 @@
-"""Build settings: ``pipelines/<name>.toml`` -> typed dataclasses, with ``section.key=value`` overrides.
+"""Build settings: the ``[dataset]``, ``[record]`` and ``[store]`` sections of ``pipelines/<name>.toml`` -> typed
+dataclasses, with ``section.key=value`` overrides.
 
-The resolved config is saved in every store's index. Nothing else reads TOML: the pipeline gets
-these dataclasses and passes explicit values on.
+Reading the file, the overrides and the per-key checks are :mod:`hoidata.sections` (shared with training); this
+module holds the build's dataclasses and the checks across their keys. The resolved config is saved in every
+store's index. Nothing else reads TOML: the pipeline gets these dataclasses and passes explicit values on.
 """
 
 from __future__ import annotations
 
-import math
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import ClassVar
-
-import tomllib
 
 from hoidata.datasets.dexycb import DexYCBSetting
 from hoidata.errors import DataError
 from hoidata.geometry.sdf import BACKENDS as SDF_BACKENDS
 from hoidata.pipeline.records import RecordSettings
-
-# A checkout's pipelines/ folder; an installed wheel carries the same files as the regular package hoidata.presets
-# (pipelines/__init__.py makes it one; setup.py maps the folder to that name).
-CHECKOUT_PIPELINES = Path(__file__).resolve().parents[2] / "pipelines"
-
-
-def pipelines_dir():
-    """Where the named pipelines live: the checkout's ``pipelines/`` when there is one, else the installed copy.
-
-    The installed copy is reached through ``importlib.resources`` and returned as its Traversable (a ``Path`` for
-    an ordinary install, something else for a zipped or namespace one): callers only use ``joinpath``,
-    ``is_file``, ``read_text`` and ``str``, which every Traversable has. ``Path(str(...))`` would break on the
-    others (a namespace package's ``MultiplexedPath`` prints as ``MultiplexedPath('...')``).
-    """
-    if CHECKOUT_PIPELINES.is_dir():
-        return CHECKOUT_PIPELINES
-    from importlib.resources import files
-
-    return files("hoidata.presets")
+from hoidata.sections import (
+    check_sections,
+    origin,
+    read_pipeline,
+    refuse_unused,
+    resolve_pipeline,
+    section,
+    section_names,
+    value_problem,
+)
 
 
 @dataclass(frozen=True)
@@ -86,127 +76,15 @@ class BuildConfig:
         return asdict(self)
 
 
-_SCALARS = {"bool": (bool,), "int": (int,), "float": (int, float), "str": (str,)}
-_WORDS = {"bool": "true or false", "int": "an integer", "float": "a number", "str": "a string"}
-
-
-def value_problem(annotation: str, value) -> str | None:
-    """Why ``value`` does not fit a settings field annotated ``annotation`` (None when it fits).
-
-    Understands the annotations the settings dataclasses use: bool, int, float (an int is accepted), str, and
-    tuples of them, either ``tuple[T, ...]`` or a fixed ``tuple[T, T]``; others are not checked. A bool is
-    not an int here.
-    """
-    if annotation in _SCALARS:
-        ok = isinstance(value, _SCALARS[annotation]) and (annotation == "bool" or not isinstance(value, bool))
-        if ok and annotation == "float" and not math.isfinite(value):
-            return f"must be a finite number, got {value!r}"
-        return None if ok else f"must be {_WORDS[annotation]}, got {value!r}"
-    if annotation.startswith("tuple[") and annotation.endswith("]"):
-        items = [a.strip() for a in annotation[6:-1].split(",")]
-        if not isinstance(value, (list, tuple)):
-            return f"must be a list ({annotation}), got {value!r}"
-        if items[-1] != "..." and len(value) != len(items):
-            return f"must hold {len(items)} values ({annotation}), got {len(value)}"
-        for v in value:
-            problem = value_problem(items[0], v)
-            if problem:
-                return f"every item {problem}"
-    return None
-
-
-def limit_problem(rules: tuple[str, ...], value) -> str | None:
-    """Why ``value`` (a number or a list of numbers) breaks one of ``rules`` such as (">= 1",) or ("> 0", "<= 1")."""
-    ops = {">": lambda a, b: a > b, ">=": lambda a, b: a >= b, "<": lambda a, b: a < b, "<=": lambda a, b: a <= b}
-    for item in value if isinstance(value, (list, tuple)) else [value]:
-        for rule in rules:
-            op, bound = rule.split()
-            if not ops[op](item, float(bound)):
-                return f"must be {' and '.join(rules)}{' (every item)' if isinstance(value, (list, tuple)) else ''}, got {value!r}"
-    return None
-
-
-def section(cls, values: dict, path: Path, name: str):
-    """``cls(**values)`` after checking every key is a field of ``cls``, every value fits its annotation and the
-    range the class declares for it (``LIMITS``: field -> rules like (">= 1",); the defaults obey them too)."""
-    known = {f.name: f for f in fields(cls)}
-    limits = getattr(cls, "LIMITS", {})
-    kwargs = {}
-    for key, value in values.items():
-        if key not in known:
-            raise DataError(path, f"{name}.{key}", f"unknown setting; expected one of {sorted(known)}")
-        problem = value_problem(known[key].type, value) or (key in limits and limit_problem(limits[key], value))
-        if problem:
-            raise DataError(path, f"{name}.{key}", problem)
-        kwargs[key] = tuple(value) if isinstance(value, list) else value
-    return cls(**kwargs)
-
-
-def resolve_pipeline(name_or_path: str) -> Path:
-    """'dexycb' -> pipelines/dexycb.toml (a Traversable of the installed presets outside a checkout, see
-    :func:`pipelines_dir`); a path is used as it is."""
-    path = Path(name_or_path)
-    if path.suffix != ".toml":
-        path = pipelines_dir().joinpath(f"{name_or_path}.toml")
-    if not path.is_file():
-        raise DataError(path, None, "pipeline config not found")
-    return path
-
-
-TRAIN_SECTIONS = ("model", "train", "augment", "loss")  # read by hoisdf.config, ignored by the build
-
-
-def apply_overrides(data: dict, overrides: list[str], path: Path) -> dict:
-    """Set ``section.key=value`` items (values parsed as TOML, else kept as bare strings) in ``data``; returns it."""
-    for item in overrides:
-        key, sep, raw = item.partition("=")
-        section_name, dot, name = key.partition(".")
-        if not sep or not dot:
-            raise DataError(path, item, "overrides look like section.key=value, e.g. record.n_hand=2048")
-        try:
-            data.setdefault(section_name, {})[name] = tomllib.loads(f"v = {raw}")["v"]
-        except tomllib.TOMLDecodeError:
-            data.setdefault(section_name, {})[name] = raw  # a bare string
-    unknown = set(data) - {"dataset", "record", "store", *TRAIN_SECTIONS}
-    if unknown:
-        raise DataError(path, sorted(unknown)[0], "unknown section")
-    return data
-
-
-def read_pipeline(name_or_path: str, overrides: list[str] = ()) -> tuple[Path, dict]:
-    """A pipeline TOML as a dict of sections with ``section.key=value`` overrides applied."""
-    path = resolve_pipeline(name_or_path)
-    try:
-        data = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as e:
-        raise DataError(path, None, f"invalid TOML: {e}") from e
-    return path, apply_overrides(data, overrides, path)
-
-
-BUILD_SECTIONS = ("dataset", "record", "store")  # read by the build, ignored by training
-
-
-def refuse_unused(overrides: list[str], used: tuple[str, ...], command: str, user: str, path: Path) -> None:
-    """An override of a section this command does not read is an error, not silently ignored."""
-    for item in overrides:
-        section_name = item.partition("=")[0].partition(".")[0]
-        if section_name not in used and section_name in (*BUILD_SECTIONS, *TRAIN_SECTIONS):
-            raise DataError(path, item.partition("=")[0], f"{command} does not use [{section_name}] settings "
-                                                          f"({user} reads them); leave this override out")
-
-
-def origin(path: Path, overrides, *keys: str) -> str:
-    """Who set ``keys`` (``section.key``), for an error about them: the pipeline file, and the command line's
-    overrides of them where there are any (an error caused by an override does not blame the file alone)."""
-    given = [item for item in overrides if item.partition("=")[0].strip() in keys]
-    return f"{path} with the command line's {' '.join(given)}" if given else str(path)
+BUILD_SECTIONS = section_names(BuildConfig)  # ("dataset", "record", "store"): what the build reads of a file
 
 
 def load_build_config(name_or_path: str, overrides: list[str] = ()) -> BuildConfig:
-    """Read a pipeline TOML and apply ``section.key=value`` overrides (values parsed as TOML); overrides of the
-    training sections are an error (the build does not use them)."""
-    refuse_unused(list(overrides), BUILD_SECTIONS, "build-sdf", "python -m hoisdf.train", resolve_pipeline(name_or_path))
+    """Read a pipeline TOML (a name in ``pipelines/`` or a path) and apply ``section.key=value`` overrides (values
+    parsed as TOML); an override of a section the build does not read is an error (:mod:`hoidata.sections`)."""
+    refuse_unused(list(overrides), BUILD_SECTIONS, "build-sdf", resolve_pipeline(name_or_path))
     path, data = read_pipeline(name_or_path, overrides)
+    check_sections(data, path, BUILD_SECTIONS, None)  # the file's other sections are their readers' to check
     record = section(RecordSettings, data.get("record", {}), path, "record")
     dataset = section(DatasetConfig, data.get("dataset", {}), path, "dataset")
     if dataset.name not in ("dexycb", "ho3d"):

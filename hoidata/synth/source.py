@@ -65,22 +65,28 @@ def grasps_from_frames(frames, mano) -> list[GraspSource]:
     return out
 
 
-def load_grasps(source: Path, mano) -> list[GraspSource]:
-    """Grasps from a store folder (``index.zarr``), an HO-3D folder (``train.txt``) or a DexYCB folder."""
+def load_grasps(source: Path, mano, mano_dir: Path | None = None, models_dir: Path | None = None) -> list[GraspSource]:
+    """Grasps from a store folder (``index.zarr``), an HO-3D folder (``train.txt``) or a DexYCB folder.
+
+    Args:
+        source: the folder; mano: the right MANO layer (the grasps' rest wrist).
+        mano_dir: the MANO folder a dataset reader uses (default ``source/mano``); models_dir: the YCB models the
+            DexYCB proximity filter reads (default ``source/models``). Give render-synthetic's ``--mano`` and
+            ``--models``, so the grasps are selected with the files that render them.
+    """
+    from dataclasses import replace
+
+    from hoidata.datasets.dexycb import SETTINGS
+    from hoidata.datasets.open import open_reader
+
     source = Path(source)
+    mano_dir = source / "mano" if mano_dir is None else Path(mano_dir)
     if (source / "index.zarr").exists():
         grasps = grasps_from_store(source, mano)
-    elif (source / "train.txt").is_file():
-        from hoidata.datasets.ho3d import HO3DReader
-
-        grasps = grasps_from_frames(HO3DReader(source, source / "mano", "train", on_error="skip").frames(), mano)
-    elif (source / "calibration").is_dir():
-        from dataclasses import replace
-
-        from hoidata.datasets.dexycb import SETTINGS, DexYCBReader
-
+    elif (source / "train.txt").is_file() or (source / "calibration").is_dir():
+        dataset = "ho3d" if (source / "train.txt").is_file() else "dexycb"
         setting = replace(SETTINGS["dexycb"], complete_subjects=False)  # any grasps will do, splits do not matter
-        reader = DexYCBReader(source, source / "mano", "train", setting, on_error="skip")
+        reader = open_reader(dataset, source, mano_dir, "train", models_dir=models_dir, dexycb=setting)
         grasps = grasps_from_frames(reader.frames(), mano)
     else:
         raise DataError(source, None, "not a store (index.zarr), an HO-3D folder (train.txt) or a DexYCB folder "

@@ -76,22 +76,22 @@ def prepare_folder(out: Path, settings: dict) -> None:
 
 def split_rows(root: str | Path, layout: str) -> list[dict]:
     """Frames and skips per split and setting, read back through the real readers."""
-    root = Path(root)
-    rows = []
-    if layout == "dexycb":
-        from hoidata.datasets.dexycb import SETTINGS, DexYCBReader
+    from hoidata.datasets.dexycb import SETTINGS
+    from hoidata.datasets.open import open_reader
 
+    root, rows = Path(root), []
+    if layout == "dexycb":
         for name, setting in SETTINGS.items():
             for split in ("train", "val", "test"):
-                reader = DexYCBReader(root, root / "mano", split, replace(setting, complete_subjects=False))
+                reader = open_reader("dexycb", root, root / "mano", split, on_error="raise",
+                                     dexycb=replace(setting, complete_subjects=False))
                 frames = list(reader.frames())
                 rows.append({"setting": name, "split": split, "frames": len(frames),
                              "left_mirrored": sum(f.mirror for f in frames), "skipped": len(reader.skipped)})
     else:
-        from hoidata.datasets.ho3d import HO3DReader
-
         for split in ("train", "evaluation"):
-            reader = HO3DReader(root, root / "mano", split, version="v3" if layout == "ho3d_v3" else "v2")
+            reader = open_reader("ho3d", root, root / "mano", split, on_error="raise",
+                                 version="v3" if layout == "ho3d_v3" else "v2")
             rows.append({"setting": layout, "split": split, "frames": len(list(reader.frames())),
                          "skipped": len(reader.skipped)})
     return rows

@@ -20,12 +20,11 @@ every frame's numbers with ``--out FILE.json``. It follows ``hoisdf score``'s su
 from __future__ import annotations
 
 import argparse
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
-from hoidata.cli import non_negative_int, positive_int
+from hoidata.cli_types import non_negative_int, positive_int
 from hoidata.errors import DataError
 from hoidata.geometry.mirror import mirror_mesh
 from hoidata.store import read_index
@@ -33,7 +32,7 @@ from hoisdf.evaluation.plausibility import (
     CONTACT_THRESHOLD,
     REL_TOLERANCE,
     TOLERANCE,
-    frame_metrics,
+    frame_metrics_many,
     summarize,
 )
 from hoisdf.evaluation.submissions import OPENCV_TO_OPENGL, read_ho3d_lists
@@ -131,11 +130,6 @@ def posed_objects(index, rows: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]
     return out
 
 
-def _one(args) -> dict:
-    hand_v, hand_f, obj_v, obj_f, tolerance, rel, threshold, max_cells = args
-    return frame_metrics(hand_v, hand_f, obj_v, obj_f, tolerance, threshold, MANO_VERTS, rel, max_cells)
-
-
 def score_contact(pred, store, mano_dir, order=None, tolerance: float = TOLERANCE, rel_tolerance: float = REL_TOLERANCE,
                   threshold: float = CONTACT_THRESHOLD, limit: int | None = None, workers: int = 1,
                   max_cells: int = MAX_CELLS) -> dict:
@@ -169,13 +163,9 @@ def score_contact(pred, store, mano_dir, order=None, tolerance: float = TOLERANC
     mano = load_mano(mano_dir, side="right")
     closed = mano.close(torch.as_tensor(verts)).numpy().astype(np.float64)
     faces = np.asarray(mano.closed_faces, dtype=np.int64)
-    jobs = [(closed[k], faces, *obj, tolerance, rel_tolerance, threshold, max_cells)
-            for k, obj in enumerate(posed_objects(index, rows))]
-    if workers > 1:
-        with ProcessPoolExecutor(workers) as pool:
-            frames = list(pool.map(_one, jobs, chunksize=4))
-    else:
-        frames = [_one(job) for job in jobs]
+    samples = [(closed[k], faces, *obj) for k, obj in enumerate(posed_objects(index, rows))]
+    frames = frame_metrics_many(samples, workers, tolerance=tolerance, threshold=threshold, n_points=MANO_VERTS,
+                                rel_tolerance=rel_tolerance, max_cells=max_cells)
     return {"mean": summarize(frames, tolerance), "subset": len(frames) < total, "frames_total": total,
             "frames": [{"id": i, **f} for i, f in zip(ids, frames)],
             "settings": {"pred": str(pred), "store": str(store), "tolerance_m3": tolerance,

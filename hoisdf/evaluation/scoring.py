@@ -73,17 +73,19 @@ def sample_meshes(objects: dict, names: list[str], mirrored) -> list[tuple[np.nd
     return out
 
 
-def plausibility_of(verts, poses, meshes: list, mano, progress: bool = True) -> dict:
+def plausibility_of(verts, poses, meshes: list, mano, progress: bool = True, workers: int = 1) -> dict:
     """Penetration depth, intersection volume, contact ratio, IVU and self-penetration of closed hands (N, 778, 3)
-    against the object meshes (N (vertices, faces), see :func:`sample_meshes`) posed by ``poses`` (N, 4, 4); see
-    :func:`hoisdf.evaluation.plausibility.plausibility_report` (volumes to 0.1 cm^3 or 5 %, whichever is larger)."""
+    against the object meshes (N (vertices, faces), see :func:`sample_meshes`) posed by ``poses`` (N, 4, 4), on
+    ``workers`` processes; see :func:`hoisdf.evaluation.plausibility.plausibility_report` (volumes to 0.1 cm^3 or
+    5 %, whichever is larger)."""
     if len(verts) == 0:
         return plausibility_report([])
     closed = mano.close(torch.as_tensor(verts, dtype=torch.float32)).cpu().numpy().astype(np.float64)
     faces = np.asarray(mano.closed_faces)
-    samples = ((closed[i], faces, v @ poses[i][:3, :3].T + poses[i][:3, 3], f) for i, (v, f) in enumerate(meshes))
-    samples = tqdm(samples, total=len(meshes), desc="plausibility", disable=not progress, leave=False)
-    return plausibility_report(samples, n_points=verts.shape[1], rel_tolerance=REL_TOLERANCE)
+    samples = [(closed[i], faces, v @ poses[i][:3, :3].T + poses[i][:3, 3], f) for i, (v, f) in enumerate(meshes)]
+    with tqdm(total=len(samples), desc="plausibility", disable=not progress, leave=False) as bar:
+        return plausibility_report(samples, n_points=verts.shape[1], rel_tolerance=REL_TOLERANCE, workers=workers,
+                                   progress=lambda _: bar.update())
 
 
 def baseline_scores(col: Collected, mano, store, obj_verts: list, obj_valid, index=None) -> dict[str, np.ndarray]:
@@ -96,8 +98,9 @@ def baseline_scores(col: Collected, mano, store, obj_verts: list, obj_valid, ind
                  pose, col.get("gt_obj_pose"), obj_verts, obj_valid)
 
 
-def plausibility_summary(col: Collected, meshes: list, mano, count: int, progress: bool) -> dict:
-    """Plausibility of the predicted hand/object and, for reference, of the ground truth, first ``count`` samples."""
+def plausibility_summary(col: Collected, meshes: list, mano, count: int, progress: bool, workers: int = 1) -> dict:
+    """Plausibility of the predicted hand/object and, for reference, of the ground truth, first ``count`` samples,
+    on ``workers`` processes."""
     verts, k = col.get("verts"), min(count, len(col.keys))
     if verts is None or k == 0:
         return {"skipped": "no predicted hand mesh" if verts is None else "--plausibility 0"}
@@ -105,7 +108,8 @@ def plausibility_summary(col: Collected, meshes: list, mano, count: int, progres
     for name, v, p in (("model", "verts", "obj_pose"), ("ground_truth", "gt_verts", "gt_obj_pose")):
         hands, poses = col.get(v)[:k], col.get(p)[:k]
         known = np.flatnonzero(np.isfinite(hands).all((1, 2)) & np.isfinite(poses).all((1, 2)))  # eval records: no GT
-        out[name] = (plausibility_of(hands[known], poses[known], [meshes[i] for i in known], mano, progress)
+        out[name] = (plausibility_of(hands[known], poses[known], [meshes[i] for i in known], mano, progress,
+                                     workers)
                      if len(known) else {"skipped": "no ground-truth hand mesh (evaluation records)"})
     return out
 

@@ -1,0 +1,43 @@
+"""argparse types shared by every command line of the project (``hoidata``, ``python -m hoisdf.train`` /
+``evaluate`` / ``toy``, ``hoisdf score``), beside :func:`hoidata.errors.run_cli` which reports their errors.
+
+A bad value is argparse's own one-line error naming the flag (exit 2), before anything is read or written.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def count_type(low: int):
+    """argparse type: a whole number >= ``low``, the flag named in the error (argparse adds it)."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number >= {low}, got {text!r}") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"expected a whole number >= {low}, got {value}")
+        return value
+
+    parse.__name__ = f"whole number >= {low}"
+    return parse
+
+
+positive_int, non_negative_int = count_type(1), count_type(0)
+
+
+def local_path(text: str) -> Path:
+    """argparse type of an option that names a local folder or file (``python -m hoisdf.train --out``): text
+    naming a URL is refused before anything runs (:func:`hoidata.store.paths.local_folder`)."""
+    from hoidata.errors import DataError
+    from hoidata.store.paths import local_folder
+
+    try:
+        return local_folder(text, "this option")
+    except DataError as exc:
+        raise argparse.ArgumentTypeError(f"{text!r}: {exc.problem}") from None
+
+
+local_path.__name__ = "local path"
