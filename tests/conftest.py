@@ -26,6 +26,45 @@ def pytest_report_header(config):
     return "packages: " + ", ".join(f"{name} {found(name)}" for name in REPORTED_PACKAGES)
 
 
+# The fixtures that write a toy dataset or build a store (seconds each, and every fixture built on them): a test
+# that uses one belongs to the slow tier (docs/development.md, "Test tiers"), so that `pytest -m "not slow"` stays a
+# one-minute loop. A test left unmarked is refused at collection, or when it asks for one by name at run time.
+STORE_FIXTURES = frozenset({
+    "tiny_dexycb", "tiny_store", "tiny_store_two_shards", "dexycb_8cam", "dexycb_s0", "ho3d_small",
+    "ho3d_small_eval_store",
+    "dex_root", "ho3d_root", "v3_root", "synth_store", "ho3d_source",  # the same kind, in one test file each
+})
+_RUNNING = pytest.StashKey()
+
+
+def _store_fixture_misuse(item, names) -> str | None:
+    """``item``'s nodeid and the store fixtures among ``names`` when ``item`` is not marked slow, else None."""
+    used = sorted(STORE_FIXTURES.intersection(names))
+    if used and item.get_closest_marker("slow") is None:
+        return f"{item.nodeid} uses {', '.join(used)}"
+    return None
+
+
+def pytest_collection_modifyitems(config, items):
+    wrong = [line for item in items if (line := _store_fixture_misuse(item, item.fixturenames))]
+    if wrong:
+        raise pytest.UsageError("tests that build a toy dataset or a store must be marked @pytest.mark.slow "
+                                "(docs/development.md, \"Test tiers\"):\n  " + "\n  ".join(wrong))
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_protocol(item, nextitem):
+    item.config.stash[_RUNNING] = item
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_fixture_setup(fixturedef, request):
+    # request.getfixturevalue(name) escapes the collection check above; this catches it when it runs
+    item = request.config.stash.get(_RUNNING, None)
+    if item is not None and (line := _store_fixture_misuse(item, [fixturedef.argname])):
+        pytest.fail(f"{line}: mark it @pytest.mark.slow (docs/development.md, \"Test tiers\")", pytrace=False)
+
+
 @pytest.fixture(scope="session")
 def mano_dir(tmp_path_factory):
     from hoidata.toy.hand import write_toy_mano

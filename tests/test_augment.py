@@ -69,6 +69,7 @@ def _output_to_source(out: dict, i: int) -> np.ndarray:
     return (out["K_in"][i] @ out["rotation"][i].T @ torch.linalg.inv(out["K"][i])).double().numpy()
 
 
+@pytest.mark.slow
 def test_joints_project_with_new_intrinsics(batch, augmented):
     assert (project_points(augmented["joints_3d"], augmented["K"]) - augmented["joints_2d"]).abs().max() < 1e-3
     rot = augmented["rotation"]
@@ -83,6 +84,7 @@ def test_joints_project_with_new_intrinsics(batch, augmented):
     assert torch.allclose(augmented["obj_center"][:, 2], augmented["hand_root"][:, 2])
 
 
+@pytest.mark.slow
 def test_rotated_crop_keeps_the_stored_centre_in_the_middle(batch):
     """Rotation about the optical axis moves the crop centre; the crop follows it (no jitter, scale 1)."""
     settings = AugmentSettings(input_size=64, rotation="uniform", center_jitter=0.0, scale_sigma=0.0)
@@ -93,6 +95,7 @@ def test_rotated_crop_keeps_the_stored_centre_in_the_middle(batch):
     torch.testing.assert_close(out["crop_scale"], torch.ones(4))
 
 
+@pytest.mark.slow
 def test_boxes_contain_the_moved_box_corners(batch, augmented):
     for name in ("hand_box", "object_box"):
         x1, y1, x2, y2 = batch[name].unbind(1)
@@ -111,6 +114,7 @@ def _distance_check(mesh: trimesh.Trimesh, points: torch.Tensor, sdf: torch.Tens
     return int(near.sum())
 
 
+@pytest.mark.slow
 def test_hand_sdf_samples_follow_the_rotated_mano_mesh(augmented, mano_right):
     checked = 0
     for i in torch.nonzero(~augmented["mirrored"])[:, 0].tolist():
@@ -125,6 +129,7 @@ def test_hand_sdf_samples_follow_the_rotated_mano_mesh(augmented, mano_right):
     assert checked >= 20
 
 
+@pytest.mark.slow
 def test_object_sdf_samples_follow_the_new_object_pose(augmented, tiny_dexycb):
     from hoidata.objects import class_name, load_object_mesh, object_mesh_path
 
@@ -142,6 +147,7 @@ def test_object_sdf_samples_follow_the_new_object_pose(augmented, tiny_dexycb):
     assert checked >= 20
 
 
+@pytest.mark.slow
 def test_image_and_masks_follow_the_new_intrinsics(batch, augmented):
     out = dict(augmented, K_in=batch["K"])
     size, half = GEOMETRY.input_size, GEOMETRY.input_size // 2
@@ -179,6 +185,7 @@ def test_image_and_masks_follow_the_new_intrinsics(batch, augmented):
     assert len(inside) >= 5 and np.mean(inside) >= 0.9
 
 
+@pytest.mark.slow
 def test_eval_is_the_central_crop(batch, tiny_store):
     out = augment_batch(batch, AugmentSettings(input_size=64), None, train=False)
     torch.testing.assert_close(out["img"], float_image(batch["img"])[:, :, 32:96, 32:96], atol=1e-5, rtol=0)
@@ -196,6 +203,7 @@ def test_eval_is_the_central_crop(batch, tiny_store):
     assert torch.equal(out["rotation"], torch.eye(3).expand(4, 3, 3)) and torch.equal(out["crop_scale"], torch.ones(4))
 
 
+@pytest.mark.slow
 def test_untouched_entries_pass_through(batch, augmented):
     for key in ("hand_sdf", "obj_sdf", "hand_near_sdf", "hand_rows", "obj_near_rows", "mano_betas", "object_id",
                 "mirrored", "is_synthetic", "key"):
@@ -205,6 +213,7 @@ def test_untouched_entries_pass_through(batch, augmented):
     assert augmented["heatmap"].shape == (4, 1, 32, 32) and augmented["heatmap"].max() <= 1.0
 
 
+@pytest.mark.slow
 def test_same_seed_same_output(batch):
     first, again, other = (augment_batch(batch, FULL, torch.Generator().manual_seed(seed), train=True)
                            for seed in (5, 5, 6))
@@ -213,6 +222,7 @@ def test_same_seed_same_output(batch):
     assert not torch.allclose(first["img"], other["img"]) and not torch.allclose(first["K"], other["K"])
 
 
+@pytest.mark.slow
 def test_mano_global_rotation_rotates_the_wrist_centred_mesh(batch, augmented, mano_right):
     with torch.no_grad():
         before = mano_right(batch["mano_pose"].double(), batch["mano_betas"].double())
@@ -252,6 +262,7 @@ def test_colour_and_blur_identities_and_effects():
     torch.testing.assert_close(blurred[1].mean(), img[1].mean(), atol=0.02, rtol=0)
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_cuda_matches_cpu(batch):
     cpu = augment_batch(batch, FULL, torch.Generator().manual_seed(7), train=True)

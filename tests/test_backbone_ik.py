@@ -16,7 +16,8 @@ from hoisdf.model.ik import kabsch_rotation, minimal_rotation, solve_ik
 # ---------------------------------------------------------------------------------------------- backbone
 
 
-@pytest.mark.parametrize("decoder, channels", [("small", [32, 16, 32, 64, 128]), ("big", [32, 64, 128, 256, 512])])
+@pytest.mark.parametrize("decoder, channels", [("small", [32, 16, 32, 64, 128]),
+                                               pytest.param("big", [32, 64, 128, 256, 512], marks=pytest.mark.slow)])
 def test_r18_shapes(decoder, channels):
     torch.manual_seed(0)
     net = ResNetUNet(depth=18, decoder=decoder)
@@ -27,7 +28,8 @@ def test_r18_shapes(decoder, channels):
     assert torch.isfinite(maps).all()
 
 
-@pytest.mark.parametrize("decoder, total, first_fuse_in", [("small", 992, 96), ("big", 3968, 192)])
+@pytest.mark.parametrize("decoder, total, first_fuse_in", [("small", 992, 96),
+                                                          pytest.param("big", 3968, 192, marks=pytest.mark.slow)])
 def test_r50_channels(decoder, total, first_fuse_in):
     net = ResNetUNet(depth=50, decoder=decoder).eval()
     assert sum(net.channels) == net.feature_dim == total
@@ -121,6 +123,7 @@ def test_load_state_dict_file(tmp_path):
         ResNetUNet(depth=18, weights=str(tmp_path / "partial.pth"))
 
 
+@pytest.mark.slow
 def test_gradients_reach_decoder_and_backbone():
     torch.manual_seed(0)
     net = ResNetUNet(depth=18, decoder="small")
@@ -133,6 +136,7 @@ def test_gradients_reach_decoder_and_backbone():
     assert net.backbone.bn1.weight.grad is None
 
 
+@pytest.mark.slow
 def test_channels_last_computes_the_same_numbers_as_nchw():
     """The NHWC layout changes memory order only: same state dict keys and values, same outputs and gradients."""
     torch.manual_seed(0)

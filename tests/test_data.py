@@ -19,6 +19,8 @@ from hoisdf.data import StoreSpec, build_dataset, make_loader
 from hoisdf.data.augment import AugmentSettings, augment_batch, float_image, unpack_masks
 from hoisdf.data.loader import _key_seed, sample_sdf
 
+pytestmark = pytest.mark.slow  # loads batches from a store built from the tiny toy DexYCB
+
 CROP, N_HAND, N_OBJECT, NEAR = 128, 32, 16, 0.05
 UPSTREAM_CROP_ENTRIES = {"upstream_crop", "grid_hand_box", "grid_object_box", "object_anchor"}  # loader.crop_entries
 # one shard per store on purpose: the two-worker test needs fewer shards than workers

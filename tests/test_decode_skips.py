@@ -16,6 +16,8 @@ import pytest
 
 from hoidata.errors import DataError
 
+pytestmark = pytest.mark.slow  # builds stores from damaged toy DexYCB and HO-3D trees
+
 GARBAGE = bytes(range(256)) * 8
 
 

@@ -64,6 +64,7 @@ def test_the_meta_default_device_catches_a_tensor_made_without_a_device():
         assert float((x + torch.zeros(3, device=x.device)).sum()) == 3.0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("variant", sorted(VARIANTS))
 def test_training_step_and_eval_batch_make_every_tensor_on_the_inputs_device(variant, tiny_store, mano, tmp_path):
     cfg, trainer, batch, eval_batch = _setup(tiny_store, mano, tmp_path, VARIANTS[variant])
@@ -75,6 +76,7 @@ def test_training_step_and_eval_batch_make_every_tensor_on_the_inputs_device(var
     assert all(p.device.type == "cpu" for p in trainer.model.parameters())
 
 
+@pytest.mark.slow
 def test_training_step_and_eval_batch_keep_the_inputs_dtype(tiny_store, mano, tmp_path):
     cfg, trainer, batch, eval_batch = _setup(tiny_store, mano, tmp_path, [])
     torch.set_default_dtype(torch.float64)

@@ -16,6 +16,8 @@ import pytest
 
 from hoidata.errors import user_message
 
+pytestmark = pytest.mark.slow  # every writer run against a full filesystem, on a built store
+
 NOSPACE = "No space left on device"
 
 
@@ -94,7 +96,6 @@ def _cli(capsys, main, argv) -> str:
     return err
 
 
-@pytest.mark.slow
 def test_each_command_prints_the_file_on_a_full_disk(full, tiny_dexycb, tiny_store, untrained_run, mano_dir, capsys):
     """build-sdf, export, evaluate and inspect, with their output on the full disk: one line, the path, the reason."""
     from hoidata.cli import main as hoidata

@@ -90,6 +90,7 @@ def test_the_plan_cuts_items_into_units_and_parts():
     assert isinstance(SquaresTask(Path("."), SquaresSpec(""), plan), ShardTask)  # the protocol's names
 
 
+@pytest.mark.slow  # starts a worker pool
 def test_serial_and_two_pool_workers_write_the_same_units(tmp_path):
     serial = run_task(_task(tmp_path, "serial"), workers=1, progress=False)
     pooled = run_task(_task(tmp_path, "pool"), workers=2, progress=False)
@@ -100,6 +101,7 @@ def test_serial_and_two_pool_workers_write_the_same_units(tmp_path):
     assert json.loads((tmp_path / "serial" / "unit-004.json").read_text()) == [400, 441, 484]
 
 
+@pytest.mark.slow  # starts a worker pool
 def test_each_pool_process_opens_one_context_and_closes_it_at_exit(tmp_path):
     run_task(_task(tmp_path, "pool", items=40, per=2), workers=2, progress=False)
     log = tmp_path / "pool-log"
@@ -109,6 +111,7 @@ def test_each_pool_process_opens_one_context_and_closes_it_at_exit(tmp_path):
 
 
 def test_a_resumed_run_keeps_the_done_units_and_builds_the_rest(tmp_path):
+    """Serial runs (the pool gives the same units: the test above)."""
     task = _task(tmp_path, "store")
     first = run_task(task, part=(0, 2), progress=False)
     assert first.units_written == 3 and not first.all_done  # units 0, 2, 4; the other part's are missing
@@ -148,7 +151,7 @@ def test_the_serial_context_is_closed_at_the_end_and_after_an_error(tmp_path):
     assert [p.stem for p in (tmp_path / "bad-log").glob("*.closed")] == [me]
 
 
-@pytest.mark.parametrize("workers", [1, 2])
+@pytest.mark.parametrize("workers", [1, pytest.param(2, marks=pytest.mark.slow)])  # 2: starts a worker pool
 def test_a_worker_that_cannot_start_is_one_worker_error_line(tmp_path, workers):
     task = _task(tmp_path, "store", fail="no GL here (test)\nsecond line")
     with pytest.raises(WorkerError) as info:

@@ -52,6 +52,7 @@ def _store_size(store) -> int:
     return len(read_index(store).keys)
 
 
+@pytest.mark.slow
 def test_evaluate_writes_finite_metrics_for_every_sample(evaluated, tiny_store):
     out, result = evaluated
     n = _store_size(tiny_store)
@@ -74,6 +75,7 @@ def test_evaluate_writes_finite_metrics_for_every_sample(evaluated, tiny_store):
     assert "PA-MJE" in result["table"] and "mean-pose baseline" in result["table"]
 
 
+@pytest.mark.slow
 def test_hpe_file_reads_back_to_the_predicted_joints(evaluated, run_dir, tiny_store, mano_dir):
     from hoidata.hand import load_mano
     from hoisdf.evaluation.inference import infer, load_for_eval
@@ -96,6 +98,7 @@ def test_hpe_file_reads_back_to_the_predicted_joints(evaluated, run_dir, tiny_st
     assert np.linalg.norm(joints[:, 0] - (col.get("gt_joints") * sign)[:, 0], axis=-1).max() < 1e-6
 
 
+@pytest.mark.slow
 def test_vis_writes_non_blank_pictures(evaluated):
     out, _ = evaluated
     pngs = sorted((out / "vis").glob("*.png"))
@@ -118,6 +121,7 @@ def _oracle_forward(self, batch, points="field", **_):
             "hand_query": zeros, "hand_query_sdf": zeros[..., 0], "obj_query": zeros, "obj_query_sdf": zeros[..., 0]}
 
 
+@pytest.mark.slow
 def test_oracle_predictions_score_zero_and_the_baseline_does_not(run_dir, tiny_store, mano_dir, tmp_path,
                                                                  monkeypatch):
     from hoisdf.evaluate import evaluate
@@ -172,6 +176,7 @@ def test_cli_help_runs():
     assert proc.returncode == 0 and "--ckpt" in proc.stdout and "--ho3d-order" in proc.stdout
 
 
+@pytest.mark.slow
 def test_cli_default_out_limit_and_ho3d_skip(run_dir, tiny_store, mano_dir, tmp_path, capsys):
     from hoisdf.evaluate import main
 
@@ -190,6 +195,7 @@ def test_cli_default_out_limit_and_ho3d_skip(run_dir, tiny_store, mano_dir, tmp_
     assert not (out / "pred.json").exists() and "dexycb_hpe_s0_train_subset.txt: a subset of s0_train" in printed
 
 
+@pytest.mark.slow
 def test_ho3d_export_follows_the_evaluation_list(tiny_store, tmp_path):
     from hoisdf.evaluation.inference import Collected
     from hoisdf.evaluation.outputs import export
@@ -220,6 +226,7 @@ def test_ho3d_export_follows_the_evaluation_list(tiny_store, tmp_path):
     assert not (tmp_path / "pred.json").exists()
 
 
+@pytest.mark.slow
 def test_missing_checkpoint_is_a_data_error_naming_it(tiny_store, mano_dir, tmp_path):
     from hoisdf.evaluate import evaluate
 

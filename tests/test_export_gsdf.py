@@ -26,6 +26,8 @@ from hoidata.hand import load_mano
 from hoidata.objects import YCB_CLASSES, load_object_mesh, object_mesh_path, repair_mesh
 from hoidata.pipeline.settings import load_build_config
 
+pytestmark = pytest.mark.slow  # exports the toy DexYCB s0 split (rendered toy data, SDF files)
+
 KEYS = ("fx", "fy", "cx", "cy", "bbox", "hand_joints_3d", "hand_poses", "hand_shapes", "hand_trans", "obj_transform",
         "obj_corners_3d", "obj_rest_corners_3d", "obj_center_3d", "ycb_id")
 SHAPES = {"hand_joints_3d": (21, 3), "hand_poses": (48,), "hand_shapes": (10,), "hand_trans": (3,),

@@ -27,6 +27,8 @@ from hoidata.export import export_dataset
 from hoidata.hand import load_mano, mean_relative_to_flat
 from hoidata.pipeline.settings import load_build_config
 
+pytestmark = pytest.mark.slow  # exports the toy DexYCB s0 and HO-3D trees
+
 HO3D_TO_DEXYCB = [0, 13, 14, 15, 16, 1, 2, 3, 17, 4, 5, 6, 18, 10, 11, 12, 19, 7, 8, 9, 20]  # jointsMapManoToSimple
 
 

@@ -29,6 +29,8 @@ from hoidata.pipeline.runner import build_store
 from hoidata.pipeline.settings import load_build_config
 from hoisdf.data import StoreSpec, build_dataset, make_loader
 
+pytestmark = pytest.mark.slow  # each fault is a build of the tiny toy DexYCB
+
 SMALL = ['dataset.splits=["train"]', "record.crop_size=128", "record.n_hand=256", "record.n_object=128",
          "store.records_per_shard=4"]
 ROOT = Path(__file__).resolve().parents[1]
@@ -274,7 +276,6 @@ def test_the_build_summary_names_the_readers_skips_and_their_reasons(tiny_dexycb
     assert "MANO_RIGHT.pkl" in err and "not found" in err and len(err.strip().splitlines()) == 1
 
 
-@pytest.mark.slow
 def test_make_toy_never_mixes_old_and_new_files(tmp_path, capsys):
     from hoidata.toy.make import split_rows
 
@@ -352,7 +353,6 @@ def test_member_names_and_sizes_are_checked_exactly(store_copy):
 # --- 5. no hangs when a worker cannot start ------------------------------------------------------------------
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("command", ["make-toy", "build-sdf"])
 def test_a_worker_that_cannot_start_ends_the_command_with_one_error(tiny_dexycb, tmp_path, command):
     fake = tmp_path / "fake"

@@ -44,6 +44,7 @@ COMMANDS = {  # each command's own options, abbreviated where argparse lets them
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("command", sorted(COMMANDS))
 def test_the_array_task_line_is_rebuilt_from_the_parsed_values(command, tiny_store, capsys):
     launcher = ["--laun", "slurm", "--slurm-ar", "3", "--slurm-c", "2", "--slurm-ti", "0-01:00", "--slurm-p", "cpu",
@@ -69,6 +70,7 @@ def test_the_array_task_line_is_rebuilt_from_the_parsed_values(command, tiny_sto
     assert mine == {k: v for k, v in vars(again).items() if k in mine}
 
 
+@pytest.mark.slow
 def test_a_task_inside_an_array_refuses_to_submit_another(tiny_dexycb, tmp_path, monkeypatch, capsys):
     bin_dir, marker = tmp_path / "bin", tmp_path / "sbatch-ran"
     bin_dir.mkdir()
@@ -85,6 +87,7 @@ def test_a_task_inside_an_array_refuses_to_submit_another(tiny_dexycb, tmp_path,
     assert not marker.exists() and not out.exists()
 
 
+@pytest.mark.slow
 def test_the_slurm_launcher_without_slurm_is_one_line(tiny_dexycb, tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("PATH", str(tmp_path))  # no sbatch anywhere
     monkeypatch.delenv("SLURM_ARRAY_TASK_ID", raising=False)
@@ -140,6 +143,7 @@ def _write_commands(url: str, root: Path, store: Path) -> list[list[str]]:
             ["inspect", str(store), "--out", url + "/grid.png"]]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("url", URLS)
 def test_a_url_where_a_folder_is_needed_is_one_line_before_anything_is_written(url, tiny_dexycb, tiny_store,
                                                                                tmp_path, monkeypatch, capsys):
@@ -166,6 +170,7 @@ def test_the_model_commands_refuse_a_url_as_out(module, tmp_path, monkeypatch, c
     assert not list(tmp_path.iterdir())
 
 
+@pytest.mark.slow
 def test_an_export_store_that_cannot_be_opened_is_one_line_and_pins_nothing(tiny_dexycb, tiny_store, tmp_path,
                                                                              capsys):
     (tmp_path / "unfinished").mkdir()

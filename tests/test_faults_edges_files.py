@@ -56,6 +56,7 @@ def _move_object(path: Path) -> None:
     np.savez(path, **labels)
 
 
+@pytest.mark.slow
 def test_an_export_rerun_with_other_inputs_is_refused_naming_them(tiny_dexycb, tmp_path, capsys):
     root = shutil.copytree(tiny_dexycb, tmp_path / "data")
     mano2 = _changed_copy(root / "mano", tmp_path / "mano2", "MANO_RIGHT.pkl", _append(b"\n"))
@@ -84,6 +85,7 @@ def test_an_export_rerun_with_other_inputs_is_refused_naming_them(tiny_dexycb, t
         assert _tree(out) == first  # nothing written
 
 
+@pytest.mark.slow
 def test_a_gsdf_export_uses_a_store_only_when_it_was_built_from_the_same_inputs(tiny_dexycb, tiny_store, tmp_path,
                                                                                 capsys):
     from hoidata.export import gsdf
@@ -138,6 +140,7 @@ def test_the_index_lock_never_follows_a_planted_link(tmp_path):
         assert (store / "index.lock").is_file()
 
 
+@pytest.mark.slow
 def test_a_root_spelled_another_way_is_the_same_dataset(tiny_dexycb, tmp_path, monkeypatch, capsys):
     from hoidata import schema, store
 
@@ -162,6 +165,7 @@ def test_a_root_spelled_another_way_is_the_same_dataset(tiny_dexycb, tmp_path, m
 DEEP = "[" * 100_000 + "]" * 100_000
 
 
+@pytest.mark.slow
 def test_damaged_or_deeply_nested_json_is_one_line_naming_the_file(tiny_dexycb, tmp_path, capsys):
     from hoidata.export.job import chunk_done, read_manifest
 
@@ -193,6 +197,7 @@ def test_damaged_or_deeply_nested_json_is_one_line_naming_the_file(tiny_dexycb, 
     _one_error_line(capsys.readouterr().err, str(frame_list), "RecursionError")
 
 
+@pytest.mark.slow
 def test_a_deeply_nested_build_file_is_one_line(tiny_dexycb, tmp_path, capsys):
     out = tmp_path / "store"
     _build(tiny_dexycb, out, part=(0, 4))
@@ -201,6 +206,7 @@ def test_a_deeply_nested_build_file_is_one_line(tiny_dexycb, tmp_path, capsys):
     _one_error_line(capsys.readouterr().err, str(out / "build.json"))
 
 
+@pytest.mark.slow
 def test_render_synthetic_count_is_bounded_before_anything_is_allocated(tiny_store, tmp_path, capsys):
     from hoidata.synth.render_synthetic import MAX_COUNT, render_synthetic
 
@@ -263,6 +269,7 @@ def test_an_error_caused_by_an_override_names_the_command_line(tmp_path):
     assert "command line" not in str(caught.value) and "toy.toml" in str(caught.value)
 
 
+@pytest.mark.slow
 def test_the_proximity_filter_reads_the_models_the_build_was_given(tiny_dexycb, tmp_path):
     """DexYCB's proximity filter (the dexycb preset) uses --models, as the SDF stage and export do, not ROOT/models."""
     from hoidata.export.job import export_frames
@@ -283,6 +290,7 @@ def test_the_proximity_filter_reads_the_models_the_build_was_given(tiny_dexycb, 
     assert frames and not any("not found" in s.reason for s in skips), [s.reason for s in skips][:3]
 
 
+@pytest.mark.slow
 def test_a_synthetic_store_resumes_with_its_source_spelled_another_way(ho3d_source, synth_store, tmp_path,  # noqa: F811
                                                                        monkeypatch):
     from test_synthetic import _render
@@ -294,6 +302,7 @@ def test_a_synthetic_store_resumes_with_its_source_spelled_another_way(ho3d_sour
     assert again.shards_written == 0 and again.shards_kept > 0
 
 
+@pytest.mark.slow
 def test_a_rerun_of_a_finished_store_says_nothing_was_written(tiny_dexycb, tmp_path, capsys):
     out = tmp_path / "store"
     argv = ["build-sdf", "--dataset", "toy", "--root", str(tiny_dexycb), "--out", str(out), *SMALL]

@@ -27,6 +27,8 @@ from hoisdf.evaluate import main as evaluate
 from hoisdf.toy import main as toy
 from hoisdf.train import main as train
 
+pytestmark = pytest.mark.slow  # each fault is a training or evaluation run on a built store
+
 TINY = ["model.depth=18", "model.image_size=64", "model.d_model=64", "model.ff=128", "model.hand_layers=2",
         "model.decoder_layers=2", "model.object_layers=1", "model.sdf_features=32", "model.sdf_hidden=96",
         "model.token_hidden=[48]", "model.n_hand=32", "model.n_object=16", "model.grid_resolution=16",
@@ -89,7 +91,6 @@ def test_validation_stores_are_checked_before_the_first_step(tiny_store, mano_di
     assert not (out / "metrics.csv").exists()  # not a single step was trained before the error
 
 
-@pytest.mark.slow
 def test_an_epoch_is_saved_before_its_validation_runs(tiny_store, mano_dir, tmp_path, capsys):
     val = tmp_path / "val"
     shutil.copytree(tiny_store, val)
@@ -106,7 +107,6 @@ def test_an_epoch_is_saved_before_its_validation_runs(tiny_store, mano_dir, tmp_
 # --- 4. exact resume under DDP, logs that match the checkpoint ------------------------------------------------
 
 
-@pytest.mark.slow
 def test_ddp_resume_is_exact(tiny_store_two_shards, mano_dir, tmp_path):
     """torchrun 2 processes (gloo): 2 steps + --resume 2 steps == 4 steps, bit for bit, weights and optimizer."""
     def torchrun(out, *extra, port, resume=False):
@@ -134,7 +134,6 @@ def _steps(run: Path) -> list[int]:
     return [int(r[2]) for r in rows if r[3] == "total"]
 
 
-@pytest.mark.slow
 def test_logs_drop_rows_logged_after_the_checkpoint_they_resume_from(tiny_store, mano_dir, tmp_path):
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 

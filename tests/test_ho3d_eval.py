@@ -19,6 +19,8 @@ import torch
 
 from hoidata.errors import DataError
 
+pytestmark = pytest.mark.slow  # builds and evaluates a toy HO-3D store
+
 SIZE = {"train_sequences": 1, "eval_sequences": 1, "frames": 4}
 
 

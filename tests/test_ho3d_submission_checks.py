@@ -96,6 +96,7 @@ def _main(untrained_run, store, mano_dir, out, *extra):
                  "--plausibility", "0", "--workers", "0", "--no-progress", *map(str, extra)])
 
 
+@pytest.mark.slow
 def test_evaluate_refuses_a_bad_list_with_no_stale_result_beside_it(untrained_run, ho3d_small_eval_store, ho3d_small,
                                                                     mano_dir, tmp_path, capsys):
     out, gt_list, store = tmp_path / "out", ho3d_small / "evaluation.txt", ho3d_small_eval_store

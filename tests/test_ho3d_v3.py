@@ -28,6 +28,7 @@ def v3_root(tmp_path_factory):
     return root
 
 
+@pytest.mark.slow
 def test_v3_layout_is_read_and_a_v2_reading_is_refused(v3_root):
     import cv2
 

@@ -197,6 +197,7 @@ def _zeros_network(setting="dexycb"):
     return {f"module.{k}": torch.zeros(s, dtype=getattr(torch, d)) for k, s, d, *_ in _key_list(setting)}
 
 
+@pytest.mark.slow
 def test_unexpected_missing_and_misshaped_keys_are_one_line():
     from hoisdf.import_upstream import released_config
     from hoisdf.model import build_model
@@ -249,6 +250,7 @@ def test_bad_snapshots_are_refused_in_one_line_and_write_nothing(tmp_path, mano_
     assert not (tmp_path / "run").exists()
 
 
+@pytest.mark.slow
 def test_training_starts_from_imported_weights(tiny_store, mano_dir, tmp_path):
     """``hoisdf.train --init RUN``: the new run takes RUN's weights and [model] settings (here a tiny model with
     the released switches, as an imported run holds) and trains on; one AdamW step moves weights by ~lr only."""

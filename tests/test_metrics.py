@@ -236,6 +236,7 @@ def test_intersection_volume_of_overlapping_boxes():
     assert same == pytest.approx(1e-3, rel=0.05)
 
 
+@pytest.mark.slow
 def test_separated_and_touching_meshes():
     from hoisdf.evaluation.plausibility import (
         contact,

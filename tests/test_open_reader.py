@@ -27,6 +27,7 @@ FILTERED = ['dataset.splits=["train"]', "dataset.complete_subjects=false", "data
 SMALL = ["record.crop_size=128", "record.n_hand=256", "record.n_object=128", "store.records_per_shard=64"]
 
 
+
 def _scaled_models(models: Path, dst: Path, scales: dict[str, float]) -> Path:
     """A copy of a YCB models folder with each named object's mesh scaled about its model origin."""
     shutil.copytree(models, dst)
@@ -49,6 +50,7 @@ def _read(root: Path, models: Path):
     return read_splits("dexycb", root, root / "mano", d.splits, models_dir=models, dexycb=d.dexycb_setting())
 
 
+@pytest.mark.slow  # reads the tiny toy DexYCB
 def test_an_unknown_dataset_name_is_one_line_naming_the_field(tiny_dexycb):
     from hoidata.export.job import export_frames
     from hoidata.pipeline.runner import read_frames
@@ -68,6 +70,7 @@ def test_an_unknown_dataset_name_is_one_line_naming_the_field(tiny_dexycb):
         open_reader("ho3d", tiny_dexycb, tiny_dexycb / "mano", "train", frame_ids=[1])
 
 
+@pytest.mark.slow  # reads the tiny toy DexYCB
 def test_build_and_export_both_check_a_frame_list(tiny_dexycb, tmp_path, capsys):
     """An id the dataset does not have stops build-sdf and export alike, naming the list; nothing is written."""
     frames = _read(tiny_dexycb, tiny_dexycb / "models").frames
@@ -82,6 +85,7 @@ def test_build_and_export_both_check_a_frame_list(tiny_dexycb, tmp_path, capsys)
         read_splits("dexycb", tiny_dexycb, tiny_dexycb / "mano", ["train", "test"], frame_list=listed)
 
 
+@pytest.mark.slow  # reads the tiny toy DexYCB
 def test_build_sdf_filters_and_samples_with_the_models_folder_it_is_given(tiny_dexycb, tmp_path, capsys):
     """``--models X``: X's larger can is what the right-hand records' object SDFs measure, and X's half-size box
     is what the proximity filter measures (every left-hand frame is then too far; with ROOT/models 6 stay)."""
@@ -120,6 +124,7 @@ def test_build_sdf_filters_and_samples_with_the_models_folder_it_is_given(tiny_d
     assert checked == 8
 
 
+@pytest.mark.slow  # reads the tiny toy DexYCB
 def test_export_reads_the_models_folder_it_is_given(tiny_dexycb, tmp_path, capsys):
     """``hoidata export --models Y`` with a model missing from Y: its frames are skipped naming Y's file, the
     others exported; with Y's box halved instead, export selects the frames build-sdf selects with Y."""
@@ -141,6 +146,7 @@ def test_export_reads_the_models_folder_it_is_given(tiny_dexycb, tmp_path, capsy
     assert sum("hand-object distance" in s.reason for s in skips) == 8
 
 
+@pytest.mark.slow  # reads the tiny toy DexYCB
 def test_the_grasp_source_reads_the_models_folder_it_is_given(tiny_dexycb, tmp_path):
     """render-synthetic's DexYCB grasp source (the dexycb preset's 5 mm filter) measures the models it is given:
     with the can halved no right-hand grasp is close enough. (render_synthetic passes its --models: issue 24.)"""
@@ -154,3 +160,11 @@ def test_the_grasp_source_reads_the_models_folder_it_is_given(tiny_dexycb, tmp_p
     half = _scaled_models(tiny_dexycb / "models", tmp_path / "half", {CAN: 0.5})
     with pytest.raises(DataError, match="no right-hand grasps"):
         load_grasps(tiny_dexycb, mano, tiny_dexycb / "mano", half)
+
+
+@pytest.mark.parametrize("name", ["ho4d", "DexYCB", ""])
+def test_open_reader_refuses_an_unknown_name_before_reading_anything(tmp_path, name):
+    """Fast tier: the name is checked before any file is opened (the folder here does not even exist)."""
+    with pytest.raises(DataError, match="dataset.name") as err:
+        open_reader(name, tmp_path / "absent", tmp_path / "mano", "train")
+    assert len(str(err.value).splitlines()) == 1

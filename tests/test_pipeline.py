@@ -15,6 +15,8 @@ from hoidata.pipeline.runner import build_store
 from hoidata.pipeline.settings import load_build_config
 from hoidata.toy.make import write_assets
 
+pytestmark = pytest.mark.slow  # build-sdf end to end on the tiny toy DexYCB
+
 SMALL = ["dataset.splits=[\"train\"]", "record.crop_size=128", "record.n_hand=384", "record.n_object=256",
          "store.records_per_shard=5"]
 
@@ -53,7 +55,6 @@ def test_build_writes_a_verified_store(built):
     assert all(len(v) == 1000 for v, _ in index.objects.values())
 
 
-@pytest.mark.slow
 def test_two_workers_give_byte_identical_shards(built, tiny_root, tmp_path):
     out, _ = built
     _build(tiny_root, tmp_path / "two", workers=2)
@@ -152,7 +153,6 @@ def test_cli_verify_names_a_truncated_shard(built, tmp_path, capsys):
     assert main(["verify", str(out)]) == 0
 
 
-@pytest.mark.slow
 def test_ho3d_build_converts_and_records_quality(tmp_path):
     from hoidata.toy.ho3d import ToyHO3DSize, write_toy_ho3d
 

@@ -65,7 +65,7 @@ def test_project_default_stays_pixel_centres():
         build_model(load_train_config(None, TINY + ['model.pixel_convention="corners"']).model, None)
 
 
-@pytest.mark.parametrize("project_grid", [False, True])
+@pytest.mark.parametrize("project_grid", [pytest.param(False, marks=pytest.mark.slow), True])
 def test_grid_ranked_by_the_unclamped_sdf(mano_dir, project_grid):
     """Every in-box grid point has |SDF| beyond the clamp: the picks are still the n smallest unclamped |SDF|
     (clamped values would all tie at 0.15 and the picks would be the first n in grid order)."""

@@ -239,3 +239,25 @@ def test_frames_on_worker_processes_equal_frames_here(bench):
     assert [f["contact"] for f in here] == [0.0, 1.0, 1.0, 0.0]
     for a, b in zip(here, there):
         np.testing.assert_equal(a, b)
+
+
+def test_the_evaluator_report_and_the_scorer_share_one_budget(mano_right, monkeypatch):
+    """The evaluator's report (scoring.plausibility_of) spends at most the scorer's cell budget per volume, with the
+    same tolerances (docs/plausibility.md, "Cost"): one constant, not two that drift apart."""
+    from hoisdf.evaluation import plausibility, score_contact
+    from hoisdf.evaluation.scoring import plausibility_of
+
+    seen = []
+
+    def record(*sample, **settings):
+        seen.append(settings)
+        return dict.fromkeys((*plausibility.SUMMARY_KEYS, "contact", "tolerance_met"), 0.0)
+
+    monkeypatch.setattr(plausibility, "frame_metrics", record)
+    box = trimesh.creation.box(extents=(0.02, 0.02, 0.02))
+    plausibility_of(np.zeros((2, 778, 3)), np.tile(np.eye(4), (2, 1, 1)), [(box.vertices, box.faces)] * 2,
+                    mano_right, progress=False)
+    assert len(seen) == 2
+    assert {s["max_cells"] for s in seen} == {score_contact.MAX_CELLS} == {plausibility.BUDGET}
+    assert {s["rel_tolerance"] for s in seen} == {plausibility.REL_TOLERANCE}
+    assert {s["tolerance"] for s in seen} == {plausibility.TOLERANCE}

@@ -65,6 +65,7 @@ def model_and_batch(tiny_store, mano_dir):
     return model, {k: v for k, v in batch.items() if not k.endswith(("_points", "_sdf", "_rows"))}
 
 
+@pytest.mark.slow
 def test_model_under_cpu_autocast_keeps_geometry_fp32(model_and_batch):
     model, batch = model_and_batch
     with torch.no_grad(), autocast("cpu", "bf16"), trace_dtypes(model) as seen:
@@ -84,6 +85,7 @@ def test_model_under_cpu_autocast_keeps_geometry_fp32(model_and_batch):
     assert dist.min(dim=1).values.max() < 1e-6
 
 
+@pytest.mark.slow
 def test_fp32_and_bf16_evaluation_differ_only_in_the_learned_layers(model_and_batch):
     model, batch = model_and_batch
     with torch.no_grad():
@@ -99,6 +101,7 @@ def test_precision_setting_is_checked():
         autocast("cpu", "fp16")
 
 
+@pytest.mark.slow
 def test_evaluate_precision_switch_is_recorded_in_metrics(tiny_store, mano_dir, tmp_path):
     import json
 

@@ -158,6 +158,7 @@ CASES = [("dexycb", [], gsdf_rule, {}), ("dexycb_full", [], handoccnet_rule, {})
          ("dexycb_grasping", [], grasping_rule, {})]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("preset,overrides,rule,kw", CASES, ids=[f"{c[0]}{'-' + c[1][0] if c[1] else ''}" for c in CASES])
 def test_presets_select_what_their_rules_say(dexycb_s0, preset, overrides, rule, kw):
     dataset = load_build_config(preset, ["dataset.complete_subjects=false", *overrides]).dataset
@@ -175,6 +176,7 @@ def test_presets_select_what_their_rules_say(dexycb_s0, preset, overrides, rule,
         assert total < loose
 
 
+@pytest.mark.slow
 def test_a_complete_build_warns_when_its_count_differs(dexycb_s0, monkeypatch, capsys):
     cfg = load_build_config("dexycb_full")
     assert stated_count_warnings(cfg.dataset, ["train"] * 401507 + ["test"] * 78005) == []

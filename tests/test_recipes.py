@@ -41,6 +41,7 @@ def test_unknown_recipe_or_optimizer_names_the_setting(override, field):
         load_train_config(None, [override])
 
 
+@pytest.mark.slow
 def test_trainer_builds_the_recipe_optimizer(tiny_store, mano_dir, tmp_path):
     from hoidata.hand import load_mano
     from hoisdf.data import StoreSpec

@@ -44,6 +44,7 @@ def test_file_names_join_the_path_and_the_query_stays():
     assert str(where) == "https://h:8443/stores/dexycb?sv=***&sig=***"  # a signature is a secret too
 
 
+@pytest.mark.slow
 def test_a_store_url_with_a_query_reads_as_its_folder(served, tiny_store_two_shards):
     from hoisdf.data.shards import store_shards
 

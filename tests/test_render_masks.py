@@ -40,6 +40,7 @@ def renderers():
         yield reference, fast
 
 
+@pytest.mark.slow
 def test_same_masks_as_pyrender(renderers, mano_right):
     reference, fast = renderers
     rng = np.random.default_rng(7)

@@ -85,6 +85,7 @@ def _model(mano, *extra):
     return build_model(load_train_config(None, TINY + list(extra)).model, mano)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("project_grid", [False, True])
 def test_model_fixed_shape_and_compact_paths_pick_the_same_query_points(tiny, project_grid):
     """The real network's fields (in float64, so that per-row matmul rounding cannot reorder near-ties)."""
@@ -103,6 +104,7 @@ def test_model_fixed_shape_and_compact_paths_pick_the_same_query_points(tiny, pr
         assert torch.equal(a, b)
 
 
+@pytest.mark.slow
 def test_signed_variant_trains_on_points_inside_the_meshes(tiny):
     mano, batch = tiny
     model = _model(mano, 'model.sampling="signed"').train()
@@ -126,6 +128,7 @@ def test_inside_rows_falls_back_to_the_deepest_row():
     assert torch.equal(picked, points[:, [1, 1, 1]])
 
 
+@pytest.mark.slow
 def test_random_variant_trains_on_random_grid_points_inside_the_box(tiny):
     mano, batch = tiny
     model = _model(mano, 'model.sampling="random"').train()
@@ -154,6 +157,7 @@ def test_features_carry_the_gradient_to_the_points_only_when_asked():
     assert not pixel_aligned_features(fmap, q, K, 32).requires_grad
 
 
+@pytest.mark.slow
 def test_gradient_variant_steps_along_the_full_field_gradient_at_inference_only(tiny):
     mano, batch = tiny
     model = _model(mano, 'model.sampling="gradient"', "model.sdf_dropout=0.0")  # same field in train mode

@@ -26,6 +26,8 @@ import pytest
 from hoisdf.evaluation.official import HO3D_SCORES
 from hoisdf.score import main as score_main
 
+pytestmark = pytest.mark.slow  # scores result files against toy DexYCB and HO-3D trees and stores
+
 # eval.py's scores.txt values (full precision) for the files the tests below write; see the module docstring
 GOLDEN_HO3D_EVALUATOR = {
     "xyz_mean3d": 0.8098653999928481, "xyz_auc3d": 0.8381433381433381,

@@ -12,6 +12,8 @@ import pytest
 
 from hoisdf.score import main
 
+pytestmark = pytest.mark.slow  # scores a toy HO-3D evaluation store end to end
+
 @pytest.fixture(scope="module")
 def split(ho3d_small, ho3d_small_eval_store):
     """(toy HO-3D root, its evaluation store): the session's small HO-3D (conftest)."""
@@ -79,7 +81,6 @@ def test_scores_hand_written_pred_json_and_npz_alike(split, tmp_path, capsys):
         assert a == {**b, "id": key}
 
 
-@pytest.mark.slow
 def test_hands_pushed_into_the_object_score_worse(split, tmp_path, capsys):
     from hoidata.store import read_index
 

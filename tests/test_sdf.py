@@ -117,7 +117,7 @@ def test_brute_force_sphere_is_within_faceting_of_analytic():
 
 # ---------------------------------------------------------------- libigl against the reference
 
-@pytest.mark.parametrize("pose", ["flat", "curled"])
+@pytest.mark.parametrize("pose", [pytest.param("flat", marks=pytest.mark.slow), "curled"])
 def test_igl_matches_reference_on_posed_hand(hands, pose):
     vertices, faces, root = hands[pose]
     rng = np.random.default_rng(3)
@@ -145,7 +145,7 @@ def test_default_hand_sign_survives_self_overlap(hands):
     assert np.array_equal(default, winding[differ])
 
 
-@pytest.mark.parametrize("watertight", [True, False])
+@pytest.mark.parametrize("watertight", [True, pytest.param(False, marks=pytest.mark.slow)])
 def test_igl_matches_reference_on_toy_object(objects, watertight):
     vertices, faces = objects["011_banana"]
     points = near_and_inside(vertices, faces, 500, np.random.default_rng(4))

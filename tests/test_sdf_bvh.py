@@ -44,7 +44,7 @@ def query_points(vertices, faces, root, seed: int) -> np.ndarray:
     return np.concatenate([near_and_inside(vertices, faces, 600, rng), root + rng.uniform(-0.32, 0.32, (200, 3))])
 
 
-@pytest.mark.parametrize("pose", ["flat", "curled"])
+@pytest.mark.parametrize("pose", [pytest.param("flat", marks=pytest.mark.slow), "curled"])
 @pytest.mark.parametrize("watertight", [False, True])
 def test_bvh_hand_distances_exact_and_signs_as_igl(hands, pose, watertight):
     vertices, faces, root = hands[pose]
@@ -64,7 +64,7 @@ def test_bvh_hand_distances_exact_and_signs_as_igl(hands, pose, watertight):
     assert np.mean(face == ref_face) > 0.8
 
 
-@pytest.mark.parametrize("name", ["011_banana", "002_master_chef_can"])
+@pytest.mark.parametrize("name", [pytest.param("011_banana", marks=pytest.mark.slow), "002_master_chef_can"])
 def test_bvh_object_pseudonormal_at_corners_and_edges(objects, name):
     """Points right off the corners and edges, where the pseudonormal needs the vertex and edge
     normals (the interior case is the face normal): same signs as libigl and the reference."""

@@ -44,6 +44,7 @@ def _reader(root, split, setting="dexycb_full"):
     return DexYCBReader(root, root / "mano", split, replace(SETTINGS[setting], complete_subjects=False))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("toy", ["tiny_dexycb", "dexycb_8cam"])
 def test_reader_frames_carry_the_toolkits_ids(toy, request):
     """tiny_dexycb has one camera of eight (the ids leave gaps); dexycb_8cam has invalid frames, whose skips keep
@@ -66,12 +67,14 @@ def test_reader_frames_carry_the_toolkits_ids(toy, request):
         assert len(frames) + len(invalid) == len(ref) == 3 * 8 * 2 and len(invalid) == 8
 
 
+@pytest.mark.slow
 def test_strided_setting_keeps_the_ids_of_the_full_enumeration(tiny_dexycb):
     full = {f.frame_id: f.sample_index for f in _reader(tiny_dexycb, "train").frames()}
     subset = list(_reader(tiny_dexycb, "train", "dexycb").frames())  # right hands, every 5th frame
     assert subset and all(full[f.frame_id] == f.sample_index for f in subset)
 
 
+@pytest.mark.slow
 def test_toolkit_split_offsets(tiny_dexycb):
     enum = toolkit_split(tiny_dexycb, "s0", "train")
     seqs = sorted(p.name for p in (tiny_dexycb / SUBJECTS[0]).iterdir())
@@ -80,6 +83,7 @@ def test_toolkit_split_offsets(tiny_dexycb):
     assert toolkit_split(tiny_dexycb, "s0", "test").size == 0  # subject 0 has no test sequences
 
 
+@pytest.mark.slow
 def test_store_index_and_records_hold_the_ids(tiny_store, tiny_dexycb):
     from hoidata.store import iter_records, read_index
 
@@ -186,6 +190,7 @@ def test_hpe_file_of_a_whole_split_is_accepted_by_the_toolkit(store_8cam, dexycb
         assert overall[key] == pytest.approx(official[name]["mpjpe"], abs=1e-3), key
 
 
+@pytest.mark.slow
 def test_hpe_file_of_a_subset_says_so(store_8cam, dexycb_8cam, untrained_run, mano_dir, tmp_path, capsys):
     from hoisdf.evaluate import evaluate
 
@@ -216,6 +221,7 @@ def _build_listed(root, out, ids, *extra):
     return listed
 
 
+@pytest.mark.slow
 def test_frame_list_builds_exactly_the_listed_frames(tiny_dexycb, tmp_path):
     from hoidata.store import read_index
 
@@ -230,6 +236,7 @@ def test_frame_list_builds_exactly_the_listed_frames(tiny_dexycb, tmp_path):
     assert index.provenance["frame_list"]["ids"] == 3 and index.config["dataset"]["frame_list"] == str(listed)
 
 
+@pytest.mark.slow
 def test_frame_list_ids_missing_from_the_dataset_are_named(tiny_dexycb, tmp_path):
     ref = reference_ids(tiny_dexycb, "train")
     seqs = sorted(p.name for p in (tiny_dexycb / SUBJECTS[0]).iterdir())

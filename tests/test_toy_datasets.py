@@ -73,6 +73,7 @@ def _implied_count(split, stride, sides):
     return total
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("split", ["train", "val", "test"])
 def test_dexycb_split_counts_match_the_layout(dex_root, split):
     full, _ = _read(dex_root, split, "dexycb_full")
@@ -85,6 +86,7 @@ def test_dexycb_split_counts_match_the_layout(dex_root, split):
     assert all(int(f.source["frame"]) % 5 == 0 for f in subset)
 
 
+@pytest.mark.slow
 def test_dexycb_invalid_annotations_are_skipped_with_reasons(dex_root):
     _, reader = _read(dex_root, "train", "dexycb_full")
     reasons = {s.reason for s in reader.skipped}
@@ -92,6 +94,7 @@ def test_dexycb_invalid_annotations_are_skipped_with_reasons(dex_root):
     assert all(s.path.endswith(f"labels_{INVALID_FRAME:06d}.npz") for s in reader.skipped)
 
 
+@pytest.mark.slow
 def test_dexycb_other_setups_select_by_subject_and_camera(dex_root):
     s2 = {split: {f.source["serial"] for f in DexYCBReader(dex_root, dex_root / "mano", split,
                                                            SETTINGS["dexycb_full"].__class__(setup="s2", sides=("right", "left"),
@@ -107,6 +110,7 @@ def _mano_joints(frame, mano):
     return out.joints[0].numpy(), out.vertices[0].numpy()
 
 
+@pytest.mark.slow
 def test_dexycb_labels_are_consistent(dex_root):
     frames, reader = _read(dex_root, "train", "dexycb_full")
     assert {f.side for f in frames} == {"right", "left"}
@@ -116,6 +120,7 @@ def test_dexycb_labels_are_consistent(dex_root):
         np.testing.assert_allclose(joints, frame.joints_3d, atol=1e-5)  # PCA pose -> axis-angle is exact
 
 
+@pytest.mark.slow
 def test_ho3d_labels_are_consistent(ho3d_root):
     reader = HO3DReader(ho3d_root, ho3d_root / "mano", "train")
     frames = list(reader.frames())
@@ -133,6 +138,7 @@ def test_ho3d_labels_are_consistent(ho3d_root):
         assert frame.tip_convention == "ho3d"
 
 
+@pytest.mark.slow
 def test_ho3d_evaluation_split_has_reduced_ground_truth(ho3d_root):
     frames = list(HO3DReader(ho3d_root, ho3d_root / "mano", "evaluation").frames())
     assert len(frames) == HO3D_SIZE.frames
@@ -158,6 +164,7 @@ def _model_silhouette(frame, root, shape):
     return sil > 0
 
 
+@pytest.mark.slow
 def test_dexycb_joints_and_object_agree_with_the_pixels(dex_root):
     """Every projected joint lies under the hand or under what occludes it: the rendered surface at
     the joint's pixel is at or in front of the joint (the object, or the hand itself, hides it)."""
@@ -182,6 +189,7 @@ def test_dexycb_joints_and_object_agree_with_the_pixels(dex_root):
     assert np.mean(on_hand) >= 0.5  # over all views most joints are seen on the hand itself
 
 
+@pytest.mark.slow
 def test_ho3d_segmentation_and_depth_agree_with_the_labels(ho3d_root):
     frame = next(HO3DReader(ho3d_root, ho3d_root / "mano", "train").frames())
     seg = cv2.cvtColor(cv2.imread(str(frame.segmentation_path)), cv2.COLOR_BGR2RGB)
@@ -214,6 +222,7 @@ def test_no_toy_grasp_penetrates_more_than_2mm(dex_root):
         assert (dist[wn > 0.5] <= 0.002).all(), key
 
 
+@pytest.mark.slow
 def test_bad_dexycb_input(dex_root, tmp_path):
     root = tmp_path / "dex"
     shutil.copytree(dex_root, root)
@@ -231,6 +240,7 @@ def test_bad_dexycb_input(dex_root, tmp_path):
         DexYCBReader(root, root / "mano", "dev")
 
 
+@pytest.mark.slow
 def test_bad_ho3d_input(ho3d_root, tmp_path):
     root = tmp_path / "ho3d"
     shutil.copytree(ho3d_root, root)
@@ -252,6 +262,7 @@ def test_bad_ho3d_input(ho3d_root, tmp_path):
         HO3DReader(root, root / "mano", "evaluation")
 
 
+@pytest.mark.slow
 def test_malformed_values_name_the_file_and_field(dex_root, ho3d_root, tmp_path):
     import yaml
 
@@ -278,6 +289,7 @@ def test_malformed_values_name_the_file_and_field(dex_root, ho3d_root, tmp_path)
         list(HO3DReader(hroot, hroot / "mano", "train").frames())
 
 
+@pytest.mark.slow
 def test_partial_subjects_are_refused_by_default(dex_root):
     with pytest.raises(DataError, match=r"20200709-subject-01: 5 sequence folders, expected 100"):
         list(DexYCBReader(dex_root, dex_root / "mano", "train").frames())

@@ -109,6 +109,7 @@ def test_missing_key_names_file_and_key(tmp_path):
         read_mano_file(path)
 
 
+@pytest.mark.slow
 def test_bad_faces_and_tree(tmp_path):
     arrays = build_toy_mano()
     bad_f = arrays["f"].copy()
@@ -132,6 +133,7 @@ def test_truncated_and_missing_model_files(tmp_path, mano_dir):
         load_mano(mano_dir, side="both")
 
 
+@pytest.mark.slow
 def test_inward_wound_file_is_turned_outward(tmp_path):
     """Some MANO_LEFT copies keep the right hand's winding; the layer must still face outward."""
     arrays = build_toy_mano()

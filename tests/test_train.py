@@ -43,6 +43,7 @@ def _batch(store, n=2, training=True, seed=0):
     return next(iter(data))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("regressor", ["mano", "voting", "ik", "mano_only"])
 def test_forward_backward_shapes_and_gradients(tiny_store, mano, regressor):
     cfg = load_train_config(None, TINY + [f'model.pose_regressor="{regressor}"'])
@@ -127,6 +128,7 @@ def test_field_guided_sampler_picks_smallest_abs_sdf_inside_box():
     assert 0 < n_inside < 50 and int(inside_box(few / scale + center[:, None], K, tiny_box).sum()) == n_inside
 
 
+@pytest.mark.slow
 def test_ground_truth_hand_matches_stored_joints_incl_mirrored(tiny_store, mano):
     """hand_targets (right model, mirrored-shape twin for mirrored records) reproduces the records' joints."""
     data = build_dataset([StoreSpec(tiny_store)], 16, training=False, n_hand=8, n_object=8)
@@ -242,6 +244,7 @@ def test_ddp_two_processes_gloo_see_disjoint_samples(tiny_store_two_shards, mano
     assert (run / "checkpoints" / "last.pt").is_file() and (run / "config.json").is_file()
 
 
+@pytest.mark.slow
 def test_cli_refuses_to_overwrite_a_run(tiny_store, mano_dir, tmp_path):
     from hoisdf.train import main
 
@@ -261,6 +264,7 @@ def test_replace_keeps_config_roundtrip():
     assert config_from_dict(cfg.as_dict()) == cfg and replace(cfg.train, batch_size=3) == cfg.train
 
 
+@pytest.mark.slow
 def test_projected_grid_features_equal_direct_sampling(tiny_store, mano):
     """The big decoder's inference grid path applies sdf_in's first layer before sampling: the same SDF."""
     cfg = load_train_config(None, TINY)

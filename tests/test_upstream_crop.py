@@ -46,6 +46,7 @@ def _frames(root: Path, pipeline: str, overrides) -> dict:
     return {schema.record_key(f.dataset, f.split, f.frame_id): f for f in frames}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fixture, pipeline, overrides", [
     ("dexycb_s0", "toy", ['dataset.splits=["test"]']),
     ("dexycb_s0", "toy", LEFT),
@@ -61,6 +62,7 @@ def test_views_equal_upstream_data_crop(request, fixture, pipeline, overrides):
         assert_as_upstream(key, view.image, view.K, view.grid_hand_box, view.grid_object_box, view.anchor, golden)
 
 
+@pytest.mark.slow
 def test_left_hand_is_flipped_as_upstream_flips_it(dexycb_s0):
     """Without the flip the crop is another one: the golden left-hand facts pin upstream's cx' = W - cx - 1."""
     from dataclasses import replace
@@ -125,6 +127,7 @@ def test_left_hand_records_equal_upstream(dexycb_s0, tmp_path):
     _check_store(tmp_path / "store", GOLDEN["dexycb_s0"], 8)  # frames 0 and 3 of 4 left sequences
 
 
+@pytest.mark.slow
 def test_ho3d_evaluation_records_equal_upstream(ho3d_small, tmp_path):
     build_store(load_build_config("ho3d_eval", ['record.crop="upstream"']), ho3d_small, ho3d_small / "mano",
                 ho3d_small / "models", tmp_path / "store", progress=False)

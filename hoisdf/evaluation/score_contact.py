@@ -29,6 +29,7 @@ from hoidata.errors import DataError
 from hoidata.geometry.mirror import mirror_mesh
 from hoidata.store import read_index
 from hoisdf.evaluation.plausibility import (
+    BUDGET,
     CONTACT_THRESHOLD,
     REL_TOLERANCE,
     TOLERANCE,
@@ -38,7 +39,7 @@ from hoisdf.evaluation.plausibility import (
 from hoisdf.evaluation.submissions import OPENCV_TO_OPENGL, read_ho3d_lists
 
 MANO_VERTS = 778
-MAX_CELLS = 2_000_000  # per volume and frame (about 20-40 s on one core); a frame over it reports its wider bound
+MAX_CELLS = BUDGET  # per volume and frame, as the evaluator's report
 
 
 def _finite_hands(verts, path, field: str) -> np.ndarray:
