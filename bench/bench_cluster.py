@@ -64,10 +64,10 @@ def build_rows(root: Path, work: Path, per: int) -> list[dict]:
 
     rows.append(timed("submitit local", slurm_local))
     rows.append(timed("ray (with init)", lambda out: task(out, workers=2, progress=False,
-                                                         engine=functools.partial(run_ray, address=None))))
+                                                         executor=functools.partial(run_ray, address=None))))
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     try:
-        rows.append(timed("ray (running)", lambda out: task(out, workers=2, progress=False, engine=run_ray)))
+        rows.append(timed("ray (running)", lambda out: task(out, workers=2, progress=False, executor=run_ray)))
     finally:
         ray.shutdown()
     reference = shard_bytes(rows[0]["out"])

@@ -146,7 +146,7 @@ def test_ray_renders_the_synthetic_store_of_a_local_run(local_ray, ho3d_source, 
 
     local, _ = synth_store
     out = tmp_path / "ray"
-    assert _render(ho3d_source, out, workers=2, engine=partial(run_ray, address=None)).index_written
+    assert _render(ho3d_source, out, workers=2, executor=partial(run_ray, address=None)).index_written
     assert _files(out) == _files(local) and RECORD.crop_size == 128
 
 

@@ -260,3 +260,63 @@ def test_the_bench_check_finds_a_sibling_import_and_a_path_edit(tmp_path):
     (bench / "b.py").write_text('from bench.a import X\nfrom bench.common import X\n')
     assert _bench_problems(bench) == ["a.py imports its sibling common by bare name",
                                               "a.py touches sys.path", "b.py imports the script a"]
+
+
+def _private_uses(package: Path) -> list[str]:
+    """Uses of another module's ``_private`` names inside ``package``: ``from X import _name`` and ``X._name``
+    where X is another module of the package (imported under any alias, or spelled out as ``pkg.mod._name``)."""
+    root = package.parent
+    modules = {".".join(p.relative_to(root).with_suffix("").parts).removesuffix(".__init__"): p
+               for p in sorted(package.rglob("*.py"))}
+    found = []
+    for name, path in modules.items():
+        tree = ast.parse(path.read_text(), str(path))
+        aliases = {}  # local name -> module it stands for
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and node.module and not node.level and node.module in modules:
+                for alias in node.names:
+                    target = f"{node.module}.{alias.name}"
+                    if target in modules:
+                        aliases[alias.asname or alias.name] = target
+                    elif alias.name.startswith("_") and not alias.name.startswith("__") and node.module != name:
+                        found.append(f"{name} imports {node.module}.{alias.name}")
+            elif isinstance(node, ast.Import):
+                for alias in node.names:
+                    if alias.name in modules:
+                        aliases[alias.asname or alias.name.split(".")[0]] = alias.asname and alias.name
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__"):
+                owner = _dotted(node.value)
+                if owner is None:
+                    continue
+                head, _, rest = owner.partition(".")
+                module = aliases.get(head) or head
+                module = f"{module}.{rest}" if rest else module
+                if module in modules and module != name:
+                    found.append(f"{name} uses {module}.{node.attr}")
+    return sorted(set(found))
+
+
+def _dotted(node) -> str | None:
+    if isinstance(node, ast.Name):
+        return node.id
+    if isinstance(node, ast.Attribute):
+        inner = _dotted(node.value)
+        return None if inner is None else f"{inner}.{node.attr}"
+    return None
+
+
+def test_no_module_uses_another_modules_private_names():
+    assert not _private_uses(ROOT / "hoidata"), _private_uses(ROOT / "hoidata")
+
+
+def test_the_private_name_check_finds_imports_and_attributes(tmp_path):
+    pkg = tmp_path / "pkg"
+    (pkg / "sub").mkdir(parents=True)
+    for path in (pkg / "__init__.py", pkg / "sub" / "__init__.py"):
+        path.write_text("")
+    (pkg / "sub" / "a.py").write_text("_STATE = {}\ndef _helper():\n    return _STATE\n")
+    (pkg / "b.py").write_text("from pkg.sub.a import _helper\nfrom pkg.sub import a\nimport pkg.sub.a as m\n"
+                              "import pkg.sub.a\nx = a._STATE, m._helper, pkg.sub.a._STATE, a.__name__\n")
+    assert _private_uses(pkg) == ["pkg.b imports pkg.sub.a._helper", "pkg.b uses pkg.sub.a._STATE",
+                                  "pkg.b uses pkg.sub.a._helper"]

@@ -11,6 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from hoidata.geometry import sdf as sdf_module
 from hoidata.geometry.sampling import (
+    SdfSampling,
     build_sdf_record,
     compute_sdf_samples,
     sample_query_points,
@@ -230,7 +231,8 @@ def test_record_round_trip_and_parts(hands, objects):
     ov, of = objects["011_banana"]
     parts = np.arange(len(hf)) % 16
     args = (hv, hf, parts, ov, of, True, root)
-    stored, counts = build_sdf_record(*args, np.random.default_rng(9), n_hand=900, n_object=300, part_radius=0.01)
+    sampling = SdfSampling(n_hand=900, n_object=300, part_radius=0.01)
+    stored, counts = build_sdf_record(*args, np.random.default_rng(9), sampling)
     assert stored.dtype == np.int16 and stored.shape == (1200, 6) and counts.sum() == 1200
 
     points, _ = sample_query_points(hv, hf, ov, of, root, np.random.default_rng(9), n_hand=900, n_object=300)

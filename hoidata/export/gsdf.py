@@ -116,9 +116,9 @@ def _store_fits(record: dict | None, frame, key: str) -> bool:
     return meta.get("key") == key and not meta.get("mirrored") and all(same)
 
 
-def sdf_arrays(frame, key: str) -> tuple[dict, str]:
-    """The three SDF files of one frame and where their rows came from ('store' or 'sampled')."""
-    from hoidata.export import worker
+def sdf_arrays(worker, frame, key: str) -> tuple[dict, str]:
+    """The three SDF files of one frame and where their rows came from ('store' or 'sampled'); ``worker``: the
+    process's :class:`~hoidata.export.worker.ExportWorker` (MANO layers, objects, the store's rows)."""
     from hoidata.pipeline.records import frame_seed, posed_hand, posed_object
 
     mano = worker.mano(frame.side, frame.fix_left_shapedirs)
@@ -147,9 +147,9 @@ def sdf_arrays(frame, key: str) -> tuple[dict, str]:
     return sdf_files.frame_files(pts_h, pts_o, d_h, d_o, labels[0], labels[1], offset, scale), source
 
 
-def frame_entry(frame, ident: int, key: str, out: Path, opts: dict) -> dict:
-    """One frame's annotation, and its files: the SDF files for train, the ground-truth meshes otherwise."""
-    from hoidata.export import worker
+def frame_entry(worker, frame, ident: int, key: str, out: Path, opts: dict) -> dict:
+    """One frame's annotation, and its files: the SDF files for train, the ground-truth meshes otherwise
+    (``worker``: the process's :class:`~hoidata.export.worker.ExportWorker`)."""
     from hoidata.pipeline.records import posed_hand
 
     if frame.side != "right" or frame.mirror:
@@ -159,7 +159,7 @@ def frame_entry(frame, ident: int, key: str, out: Path, opts: dict) -> dict:
     ann = annotation(frame, ident, raw_v)
     entry = {"split": frame.split, "image": {"id": ident, "file_name": name}, "annotation": ann, "files": []}
     if frame.split == "train":
-        arrays, entry["sdf_source"] = sdf_arrays(frame, key)
+        arrays, entry["sdf_source"] = sdf_arrays(worker, frame, key)
         for branch in ("sdf_hand", "sdf_obj"):
             problem = sdf_files.loader_problem(arrays[branch])
             if problem:

@@ -36,10 +36,9 @@ def cam_param(K: np.ndarray) -> dict:
     return {"focal": [float(K[0, 0]), float(K[1, 1])], "princpt": [float(K[0, 2]), float(K[1, 2])]}
 
 
-def frame_entry(frame, ident: int) -> dict:
-    """The image and annotation entries of one frame (see the module docstring)."""
-    from hoidata.export.worker import hands_mean
-
+def frame_entry(worker, frame, ident: int) -> dict:
+    """The image and annotation entries of one frame (see the module docstring); ``worker``: the process's
+    :class:`~hoidata.export.worker.ExportWorker` (its MANO layers give ``hands_mean``)."""
     width, height = (int(v) for v in frame.image_size)
     if frame.dataset == "ho3d":
         rel = f"{frame.source['sequence']}/rgb/{Path(frame.image_path).name}"
@@ -52,7 +51,7 @@ def frame_entry(frame, ident: int) -> dict:
         x1, y1, x2, y2 = (float(v) for v in frame.hand_box)
         ann.update(root_joint_cam=np.asarray(frame.root_3d, float).tolist(), bbox=[x1, y1, x2 - x1, y2 - y1])
     else:
-        pose = flat_to_mean_relative(np.asarray(frame.mano_pose, float), hands_mean(frame.side))
+        pose = flat_to_mean_relative(np.asarray(frame.mano_pose, float), worker.hands_mean(frame.side))
         ann.update(joints_coord_cam=np.asarray(frame.joints_3d, float).tolist(),
                    mano_param={"pose": pose.tolist(), "shape": np.asarray(frame.mano_betas, float).tolist()})
         if frame.dataset != "ho3d":  # HandOccNet's HO-3D file has neither (its loader projects the joints)

@@ -1,6 +1,7 @@
 """``hoidata export``: a dataset (read through our readers and a pipeline setting) -> another codebase's files.
 
-The work is cut like ``build-sdf``'s (:func:`hoidata.pipeline.runner.run_shards` runs it): chunk k holds the
+The work is cut like ``build-sdf``'s (:func:`hoidata.pipeline.engine.run_task` runs :class:`ExportTask`, each
+worker process one :class:`~hoidata.export.worker.ExportWorker`): chunk k holds the
 frames k*R .. (k+1)*R-1 of the reader's order; a chunk writes its per-frame files (each to a temporary name,
 then renamed) and then its manifest ``.hoidata-export/<format>-<splits>/chunk-%06d.json`` with the annotation
 entries and the files it wrote. A chunk whose manifest and files exist is done, so a killed export resumes,
@@ -22,8 +23,10 @@ from pathlib import Path
 from hoidata import schema
 from hoidata.datasets.open import read_splits
 from hoidata.errors import DataError, read_json
-from hoidata.export import gsdf, handoccnet, worker
+from hoidata.export import gsdf, handoccnet
 from hoidata.export.files import write_json
+from hoidata.export.worker import ExportWorkerSpec, chunk_path
+from hoidata.pipeline.engine import Plan, run_task
 from hoidata.pipeline.settings import BuildConfig, stated_count_warnings
 
 WORK_DIR = ".hoidata-export"
@@ -97,10 +100,6 @@ def work_dir(out: Path, fmt: str, splits) -> Path:
     return Path(out) / WORK_DIR / f"{fmt}-{'-'.join(splits)}"
 
 
-def chunk_path(work: Path, number: int) -> Path:
-    return work / f"chunk-{number:06d}.json"
-
-
 def read_manifest(work: Path, number: int) -> dict:
     """Chunk ``number``'s manifest, checked: {"entries": [{..., "files": [...]}], "skipped": [...]}; a missing,
     damaged or malformed one is a DataError naming it."""
@@ -130,23 +129,32 @@ def read_chunks(work: Path, numbers: list[int]):
         yield from read_manifest(work, n)["entries"]
 
 
-def _export_chunk(job) -> tuple[int, int, list]:
-    """Worker: one chunk's entries and files, then its manifest; returns (number, exported, skips)."""
-    number, fmt, frames, ids, keys, out, opts = job
-    entries, skips = [], []
-    for frame, ident, key in zip(frames, ids, keys):
-        try:
-            entries.append(entry(fmt, frame, ident, key, Path(out), opts))
-        except (DataError, ValueError) as e:  # a frame that cannot be exported is skipped with its reason
-            skips.append({"frame_id": frame.frame_id, "reason": str(e), "path": str(frame.image_path),
-                          "sample_index": int(frame.sample_index)})
-    write_json(chunk_path(Path(opts["work"]), number), {"entries": entries, "skipped": skips})
-    return number, len(entries), skips
+@dataclass
+class ExportTask:
+    """An export's task for :func:`hoidata.pipeline.engine.run_task`: chunk n holds frames n*R .. (n+1)*R-1."""
+
+    fmt: str
+    frames: list
+    ids: list
+    keys: list[str]
+    out: Path
+    work: Path
+    opts: dict  # picklable options every chunk job carries (recorded in export.json)
+    worker: ExportWorkerSpec
+    plan: Plan
+    desc: str = "export"
+
+    def job(self, number: int) -> tuple:
+        cut = slice(number * self.plan.per, (number + 1) * self.plan.per)
+        return number, self.fmt, self.frames[cut], self.ids[cut], self.keys[cut], str(self.out), self.opts
+
+    def done(self, numbers: list[int], starting: bool) -> set[int]:
+        return {n for n in numbers if chunk_done(self.out, self.work, n)}
 
 
 def export_dataset(fmt: str, cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path, out: Path,
                    splits=None, store: Path | None = None, workers: int = 1, part: tuple[int, int] = (0, 1),
-                   chunk_size: int = 64, progress: bool = True, engine=None) -> ExportSummary:
+                   chunk_size: int = 64, progress: bool = True, executor=None) -> ExportSummary:
     """Export (or resume exporting) the frames of ``cfg``'s setting into ``out`` in format ``fmt``.
 
     Args:
@@ -161,9 +169,9 @@ def export_dataset(fmt: str, cfg: BuildConfig, root: Path, mano_dir: Path, model
         workers: worker processes.
         part: ``(i, N)`` of ``--part i/N``: this run does the i-th of N equal slices of the work.
         chunk_size: frames per unit of work (and of resume).
-        engine: what runs the chunk jobs (see :func:`hoidata.pipeline.runner.run_shards`).
+        executor: what runs the chunk jobs (see :func:`hoidata.pipeline.engine.run_task`).
     """
-    from hoidata.pipeline.runner import build_inputs, run_shards
+    from hoidata.pipeline.runner import build_inputs
 
     if fmt not in FORMATS:
         raise ValueError(f"unknown export format {fmt!r}; expected one of {FORMATS}")
@@ -190,17 +198,14 @@ def export_dataset(fmt: str, cfg: BuildConfig, root: Path, mano_dir: Path, model
     _check_spec(work, _spec(fmt, cfg, splits, keys, {k: str(v) for k, v in opts.items()}, inputs))
     opts["work"] = str(work)
 
-    def make_job(n):
-        cut = slice(n * chunk_size, (n + 1) * chunk_size)
-        return n, fmt, frames[cut], ids[cut], keys[cut], str(out), opts
-
-    run, numbers, done = run_shards(out, len(frames), chunk_size, make_job, _export_chunk, worker.init,
-                                    (Path(mano_dir), Path(models_dir), opts.get("store")), workers, part,
-                                    progress, f"export {fmt}", done=lambda n: chunk_done(out, work, n), engine=engine)
-    summary = ExportSummary(out, fmt, frames=len(frames), exported=run.records, chunks_written=run.shards_written,
-                            chunks_kept=run.shards_kept)
+    spec = ExportWorkerSpec(Path(mano_dir), Path(models_dir), opts.get("store"))
+    task = ExportTask(fmt, frames, ids, keys, out, work, opts, spec, Plan(len(frames), chunk_size), f"export {fmt}")
+    run = run_task(task, workers, part, progress, executor)
+    numbers = run.units
+    summary = ExportSummary(out, fmt, frames=len(frames), exported=run.written, chunks_written=run.units_written,
+                            chunks_kept=run.units_kept)
     summary.skipped = [{"frame_id": s.frame_id, "reason": s.reason, "path": s.path} for s in reader_skips]
-    if done:
+    if run.all_done:
         summary.skipped += [s for n in numbers for s in read_manifest(work, n)["skipped"]]
         summary.exported = sum(1 for _ in read_chunks(work, numbers))
         finish = finish_function(fmt)
@@ -226,15 +231,6 @@ def options(fmt: str, cfg, root: Path, mano_dir: Path, models_dir: Path, store) 
     if fmt == "gsdf":
         out["store"] = str(Path(store).resolve()) if store else ""
     return out
-
-
-def entry(fmt: str, frame, ident: int, key: str, out: Path, opts: dict) -> dict:
-    """One frame's manifest entry: {'split', 'image', 'annotation', 'files', ...} (files relative to ``out``)."""
-    if ident is None or int(ident) < 0:
-        raise ValueError("the consumer's image id (the toolkit's sample index) is unknown for this frame")
-    if fmt == "handoccnet":
-        return handoccnet.frame_entry(frame, int(ident))
-    return gsdf.frame_entry(frame, int(ident), key, out, opts)
 
 
 def finish_function(fmt: str):

@@ -1,87 +1,120 @@
-"""Per-process state of an export: MANO layers and object meshes loaded once per worker, and the store whose
-SDF rows a gsdf export re-uses (the formats, :mod:`~hoidata.export.handoccnet` and :mod:`~hoidata.export.gsdf`,
-ask here)."""
+"""The per-process side of an export: :class:`ExportWorker`, the engine's worker context, writes one chunk of
+frames (each frame's entry and files from its format, :mod:`~hoidata.export.handoccnet` or
+:mod:`~hoidata.export.gsdf`, then the chunk's manifest). It holds what a process loads once: the MANO layers and
+repaired objects (a :class:`~hoidata.pipeline.worker.RecordWorker`: what the store's SDF rows were computed on),
+the raw object files, and the store whose SDF rows a gsdf export re-uses."""
 
 from __future__ import annotations
 
 import io
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-_STATE: dict = {}
+from hoidata.errors import DataError
+from hoidata.export import gsdf, handoccnet
+from hoidata.export.files import write_json
+from hoidata.pipeline.worker import RecordWorker
 
 
-def init(mano_dir: Path, models_dir: Path, store: str | None = None) -> None:
-    """Worker set-up: one thread for torch, empty caches, the store's key -> shard map (if a store is given)."""
-    import torch
-
-    torch.set_num_threads(1)
-    _STATE.clear()
-    _STATE.update(mano_dir=Path(mano_dir), models_dir=Path(models_dir), manos={}, assets={}, raw={}, shards={},
-                  store=Path(store) if store else None, store_keys=None)
+def chunk_path(work: Path, number: int) -> Path:
+    """Chunk ``number``'s manifest in the export's work folder."""
+    return Path(work) / f"chunk-{number:06d}.json"
 
 
-def mano(side: str, fix_left_shapedirs: bool = False):
-    """The MANO layer (float64) of a side and left-hand shape convention, loaded once per worker."""
-    import torch
+@dataclass(frozen=True)
+class ExportWorkerSpec:
+    """What a worker process needs to export chunks (picklable: the engine sends it to every worker)."""
 
-    from hoidata.hand import load_mano
+    mano_dir: Path
+    models_dir: Path
+    store: str | None = None  # gsdf: the store whose SDF rows are re-used
 
-    key = (side, fix_left_shapedirs or side == "right")
-    if key not in _STATE["manos"]:
-        _STATE["manos"][key] = load_mano(_STATE["mano_dir"], side=side, fix_left_shapedirs=key[1], dtype=torch.float64)
-    return _STATE["manos"][key]
-
-
-def hands_mean(side: str) -> np.ndarray:
-    """MANO's ``hands_mean`` (45,) of a side (the relaxed mean pose the mean-relative convention is offset from)."""
-    return mano(side).hands_mean.double().numpy()
+    def open(self) -> ExportWorker:
+        return ExportWorker(self.mano_dir, self.models_dir, self.store)
 
 
-def object_asset(name: str):
-    """The repaired full-resolution object (runner.object_asset: what the store's SDF rows were computed on)."""
-    from hoidata.pipeline.runner import object_asset as load
+class ExportWorker:
+    """One process's export state (see the module docstring)."""
 
-    if name not in _STATE["assets"]:
-        _STATE["assets"][name] = load(_STATE["models_dir"], name)
-    return _STATE["assets"][name]
+    def __init__(self, mano_dir: Path, models_dir: Path, store: str | None = None):
+        self.records = RecordWorker(mano_dir, models_dir)  # no renderer: exports draw no masks
+        self.store = Path(store) if store else None
+        self._raw: dict = {}
+        self._store_keys: dict | None = None
+        self._shards: dict = {}
 
+    def mano(self, side: str, fix_left_shapedirs: bool = False):
+        """The MANO layer (float64) of a side and left-hand shape convention, loaded once per worker."""
+        return self.records.hand_model(side, fix_left_shapedirs)
 
-def raw_object(name: str) -> tuple[np.ndarray, np.ndarray]:
-    """The object's ``textured_simple.obj`` as the file holds it: vertices (V, 3) m and faces (F, 3)."""
-    from hoidata.objects import load_object_mesh, object_mesh_path
+    def hands_mean(self, side: str) -> np.ndarray:
+        """MANO's ``hands_mean`` (45,) of a side (the relaxed mean pose the mean-relative convention is offset from)."""
+        return self.mano(side).hands_mean.double().numpy()
 
-    if name not in _STATE["raw"]:
-        mesh = load_object_mesh(object_mesh_path(_STATE["models_dir"], name))
-        _STATE["raw"][name] = (np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64))
-    return _STATE["raw"][name]
+    def object_asset(self, name: str):
+        """The repaired full-resolution object (what the store's SDF rows were computed on)."""
+        return self.records.object_asset(name)
 
+    def raw_object(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """The object's ``textured_simple.obj`` as the file holds it: vertices (V, 3) m and faces (F, 3)."""
+        from hoidata.objects import load_object_mesh, object_mesh_path
 
-def store_record(key: str) -> dict | None:
-    """The decoded ``sdf.npy`` and ``meta.json`` of a store record (None: no store, or the key is not in it).
+        if name not in self._raw:
+            mesh = load_object_mesh(object_mesh_path(self.records.models_dir, name))
+            self._raw[name] = (np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64))
+        return self._raw[name]
 
-    The store's index maps keys to shards; a shard is read once and its records kept for the chunk's frames.
-    """
-    from hoidata import schema, store
+    def store_record(self, key: str) -> dict | None:
+        """The decoded ``sdf.npy`` and ``meta.json`` of a store record (None: no store, or the key is not in it).
 
-    if _STATE["store"] is None:
-        return None
-    if _STATE["store_keys"] is None:
-        index = store.read_index(_STATE["store"])
-        names = {info.number: info.name for info in index.shards}
-        _STATE["store_keys"] = {str(k): names[int(s)] for k, s in zip(index.labels["key"], index.labels["shard"])}
-    name = _STATE["store_keys"].get(key)
-    if name is None:
-        return None
-    if name not in _STATE["shards"]:
-        _STATE["shards"] = {name: {}}  # chunks follow the reader's order, so one shard at a time suffices
-        for members in store.read_shard_members(_STATE["store"] / name):  # checks the tar and member names
-            if schema.SDF not in members:  # an 'eval' record: no SDF rows to re-use
-                continue
-            meta = json.loads(members[schema.META])
-            sdf = np.load(io.BytesIO(members[schema.SDF]), allow_pickle=False)
-            schema.dequantize_sdf(sdf)  # raises ValueError unless int16 (N, 6)
-            _STATE["shards"][name][meta["key"]] = {"sdf": sdf, "meta": meta}
-    return _STATE["shards"][name].get(key)
+        The store's index maps keys to shards; a shard is read once and its records kept for the chunk's frames.
+        """
+        from hoidata import schema, store
+
+        if self.store is None:
+            return None
+        if self._store_keys is None:
+            index = store.read_index(self.store)
+            names = {info.number: info.name for info in index.shards}
+            self._store_keys = {str(k): names[int(s)] for k, s in zip(index.labels["key"], index.labels["shard"])}
+        name = self._store_keys.get(key)
+        if name is None:
+            return None
+        if name not in self._shards:
+            self._shards = {name: {}}  # chunks follow the reader's order, so one shard at a time suffices
+            for members in store.read_shard_members(self.store / name):  # checks the tar and member names
+                if schema.SDF not in members:  # an 'eval' record: no SDF rows to re-use
+                    continue
+                meta = json.loads(members[schema.META])
+                sdf = np.load(io.BytesIO(members[schema.SDF]), allow_pickle=False)
+                schema.dequantize_sdf(sdf)  # raises ValueError unless int16 (N, 6)
+                self._shards[name][meta["key"]] = {"sdf": sdf, "meta": meta}
+        return self._shards[name].get(key)
+
+    def entry(self, fmt: str, frame, ident: int, key: str, out: Path, opts: dict) -> dict:
+        """One frame's manifest entry: {'split', 'image', 'annotation', 'files', ...} (files relative to ``out``)."""
+        if ident is None or int(ident) < 0:
+            raise ValueError("the consumer's image id (the toolkit's sample index) is unknown for this frame")
+        if fmt == "handoccnet":
+            return handoccnet.frame_entry(self, frame, int(ident))
+        return gsdf.frame_entry(self, frame, int(ident), key, out, opts)
+
+    def run(self, job) -> tuple[int, int, list]:
+        """One chunk's entries and files, then its manifest; returns (number, exported, skips)."""
+        number, fmt, frames, ids, keys, out, opts = job
+        entries, skips = [], []
+        for frame, ident, key in zip(frames, ids, keys):
+            try:
+                entries.append(self.entry(fmt, frame, ident, key, Path(out), opts))
+            except (DataError, ValueError) as e:  # a frame that cannot be exported is skipped with its reason
+                skips.append({"frame_id": frame.frame_id, "reason": str(e), "path": str(frame.image_path),
+                              "sample_index": int(frame.sample_index)})
+        write_json(chunk_path(Path(opts["work"]), number), {"entries": entries, "skipped": skips})
+        return number, len(entries), skips
+
+    def close(self) -> None:
+        self.records.close()
+        self._shards, self._raw = {}, {}

@@ -14,6 +14,8 @@ detail is). All positions are camera frame, metres; signed distances are negativ
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from hoidata.geometry.sdf import signed_distance, validate_mesh
@@ -168,22 +170,39 @@ def compute_sdf_samples(points, hand_vertices, hand_faces, hand_face_parts, obj_
     return sdf_hand, sdf_object, part
 
 
+@dataclass(frozen=True)
+class SdfSampling:
+    """How one frame's SDF samples are drawn and computed (the SDF part of the record settings,
+    :meth:`hoidata.pipeline.records.RecordSettings.sdf_sampling`); the fields are the arguments of
+    :func:`sample_query_points` and :func:`compute_sdf_samples` of the same names (counts, metres)."""
+
+    n_hand: int = 4096
+    n_object: int = 2048
+    uniform_fraction: float = 0.1
+    cube: float = 0.64
+    sigmas: tuple[float, ...] = DEFAULT_SIGMAS
+    part_radius: float = 0.05
+    hand_pseudonormal: bool = False
+    backend: str = "bvh"
+
+
 def build_sdf_record(hand_vertices, hand_faces, hand_face_parts, obj_vertices, obj_faces, obj_watertight: bool,
-                     hand_root, rng: np.random.Generator, n_hand: int = 4096, n_object: int = 2048,
-                     uniform_fraction: float = 0.1, cube: float = 0.64, sigmas=DEFAULT_SIGMAS,
-                     part_radius: float = 0.05, hand_pseudonormal: bool = False, backend: str = "bvh"
+                     hand_root, rng: np.random.Generator, sampling: SdfSampling = SdfSampling()
                      ) -> tuple[np.ndarray, np.ndarray]:
     """The ``sdf.npy`` array of one frame: sample, compute exact SDFs and quantize.
 
-    Arguments as in :func:`sample_query_points` and :func:`compute_sdf_samples` (camera frame,
-    metres). Returns the stored int16 (N, 6) array (xyz relative to ``hand_root``, both SDFs,
-    part; see :func:`hoidata.schema.quantize_sdf`) and the (3,) int64 set counts for
-    ``meta.json``'s ``sdf_counts``.
+    Geometry as in :func:`sample_query_points` and :func:`compute_sdf_samples` (camera frame, metres): the
+    closed hand mesh (vertices, faces, per-face part labels), the posed object mesh (vertices, faces, whether its
+    repair report says watertight) and the hand root (3,); ``rng`` the only source of randomness; ``sampling``
+    the counts, offsets, cube, part radius and distance backend. Returns the stored int16 (N, 6) array (xyz
+    relative to ``hand_root``, both SDFs, part; see :func:`hoidata.schema.quantize_sdf`) and the (3,) int64 set
+    counts for ``meta.json``'s ``sdf_counts``.
     """
+    s = sampling
     points, counts = sample_query_points(hand_vertices, hand_faces, obj_vertices, obj_faces, hand_root, rng,
-                                         n_hand, n_object, uniform_fraction, cube, sigmas)
+                                         s.n_hand, s.n_object, s.uniform_fraction, s.cube, s.sigmas)
     sdf_hand, sdf_object, part = compute_sdf_samples(points, hand_vertices, hand_faces, hand_face_parts,
-                                                     obj_vertices, obj_faces, obj_watertight, part_radius,
-                                                     hand_pseudonormal, backend)
+                                                     obj_vertices, obj_faces, obj_watertight, s.part_radius,
+                                                     s.hand_pseudonormal, s.backend)
     xyz = points - np.asarray(hand_root, dtype=np.float64)
     return quantize_sdf(xyz, sdf_hand, sdf_object, part), counts

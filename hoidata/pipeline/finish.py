@@ -15,14 +15,15 @@ from hoidata.errors import DataError
 from hoidata.provenance import git_commit  # the runner also names it from here
 
 
-def _extra_name(number: int) -> str:
+def extra_name(number: int) -> str:
+    """The name of shard ``number``'s skips file (beside its tar and sidecar)."""
     return f"shard-{number:06d}.skips.json"
 
 
 
 def read_shard_skips(out: Path, number: int) -> dict:
     """Shard ``number``'s skips file, checked: {"skipped": [...], "records": n, "inputs": {...}, ...}."""
-    path = Path(out) / _extra_name(number)
+    path = Path(out) / extra_name(number)
     try:
         value = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:  # RecursionError: nested too deeply
@@ -34,7 +35,7 @@ def read_shard_skips(out: Path, number: int) -> dict:
     return value
 
 
-def _skip_dict(skip) -> dict:
+def skip_dict(skip) -> dict:
     """A Skip as a plain dict (its toolkit sample_index kept when it has one)."""
     if isinstance(skip, dict):
         return skip
@@ -46,7 +47,7 @@ def _skip_dict(skip) -> dict:
 def skip_groups(skips) -> list[tuple[str, int, str]]:
     """(reason without its file path, count, an example path) of a skips list, most frequent first."""
     groups: dict[str, list] = {}
-    for skip in map(_skip_dict, skips):
+    for skip in map(skip_dict, skips):
         reason, path = str(skip["reason"]), str(skip.get("path") or "")
         head, sep, tail = reason.partition(": ")
         kind = tail if sep and (head == path or Path(head).suffix or "/" in head) else reason

@@ -7,7 +7,7 @@
 - ``ray``: every shard job a Ray task on the cluster at ``--ray-address`` (a local Ray instance of ``--workers``
   CPUs without it); ``--part`` works as with ``local``.
 
-The commands give :func:`launch` a ``task(workers=, part=, progress=, engine=)``; the shards do not depend on the
+The commands give :func:`launch` a ``task(workers=, part=, progress=, executor=)``; the shards do not depend on the
 launcher, and every launcher resumes the same way.
 """
 
@@ -122,12 +122,12 @@ def launch(args, task: Callable, command: str, finished: Callable = lambda s: s.
     """Run ``task`` where ``args`` says; returns its summary (None after ``--dry-run``)."""
     if args.launcher != "slurm":
         part = slurm.resolve_part(args.part)
-        engine = None
+        executor = None
         if args.launcher == "ray":
             from hoidata.pipeline.ray_tasks import run_ray
 
-            engine = functools.partial(run_ray, address=args.ray_address)
-        return task(workers=args.workers, part=part, engine=engine)
+            executor = functools.partial(run_ray, address=args.ray_address)
+        return task(workers=args.workers, part=part, executor=executor)
     options = _slurm_options(args)
     if args.dry_run:
         line = task_command(args.command_parser, args, command, options.cpus)
@@ -139,7 +139,7 @@ def launch(args, task: Callable, command: str, finished: Callable = lambda s: s.
     summary = merge(slurm.submit_parts(task, options, args.out, f"hoidata-{command}"))
     if not finished(summary):  # every part ran, yet none saw the others' files (a lagging shared filesystem)
         print("every part finished; checking the store and writing the index here", flush=True)
-        final = task(workers=options.cpus, part=(0, 1), engine=None)
+        final = task(workers=options.cpus, part=(0, 1), executor=None)
         summary = dataclasses.replace(final, **{k: getattr(summary, k) for k in _SUMMED if hasattr(summary, k)})
     summary.seconds = time.perf_counter() - start
     return summary

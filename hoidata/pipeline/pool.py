@@ -22,7 +22,11 @@ from hoidata.errors import WorkerError
 _START_FAILURE: list[str] = []  # in a worker process: why its initialiser failed
 
 
-def _describe(init: Callable, exc: BaseException) -> str:
+def describe_failure(init: Callable, exc: BaseException) -> str:
+    """One line saying that a worker process could not start: the set-up that failed (``init``, by its qualified
+    name) and the error's first line; a WorkerError's own line as it is (it already says so)."""
+    if isinstance(exc, WorkerError):
+        return exc.problem
     where = f"{getattr(init, '__module__', '?')}.{getattr(init, '__qualname__', init)}"
     text = str(exc).strip().splitlines()
     return f"could not start a worker process ({where}): {type(exc).__name__}: {text[0] if text else ''}".rstrip(": ")
@@ -33,7 +37,7 @@ def _guarded_init(init: Callable, initargs: tuple) -> None:
     try:
         init(*initargs)
     except BaseException as exc:  # noqa: BLE001 - any failure, SystemExit from a C library included
-        _START_FAILURE.append(_describe(init, exc))
+        _START_FAILURE.append(describe_failure(init, exc))
 
 
 def _guarded_call(fn: Callable, job):
@@ -62,7 +66,7 @@ def run_pool(fn: Callable, jobs: Iterable, workers: int, init: Callable, initarg
         try:
             init(*initargs)
         except Exception as exc:  # noqa: BLE001 - the same one line as from a worker process
-            raise WorkerError(None, None, _describe(init, exc)) from exc
+            raise WorkerError(None, None, describe_failure(init, exc)) from exc
         for job in jobs:
             yield fn(job)
         return

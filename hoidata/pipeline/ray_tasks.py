@@ -1,11 +1,12 @@
-"""Ray as the engine of a build: every shard job a Ray task, on an existing cluster or a local Ray instance.
+"""Ray as the executor of a build: every shard job a Ray task, on an existing cluster or a local Ray instance.
 
 :func:`run_ray` has :func:`hoidata.pipeline.pool.run_pool`'s signature and contract, so
-:func:`hoidata.pipeline.runner.run_shards` hands it the same jobs: a shard's bytes depend only on its job, so a
+:func:`hoidata.pipeline.engine.run_task` hands it the same jobs: a shard's bytes depend only on its job, so a
 Ray build writes the same shards as a local one, and resume (which shards to build) is decided before any task
-is submitted, the same way. Each task takes one CPU; a Ray worker process runs the job's initialiser (MANO,
-objects, renderer) once, before its first job. Ray is an optional dependency (the ``cluster`` extra); the package
-must be importable on every node of the cluster (installed there, or on a shared filesystem).
+is submitted, the same way. Each task takes one CPU; a Ray worker process runs the job's initialiser (the engine
+opens the task's worker context: MANO, objects, renderer) once, before its first job. Ray is an optional
+dependency (the ``cluster`` extra); the package must be importable on every node of the cluster (installed
+there, or on a shared filesystem).
 
 Errors are the pool's: the first failing job's exception (a DataError as it was raised), after cancelling the
 tasks not yet finished; an initialiser that fails is a WorkerError naming it; a worker or node that dies is
@@ -17,7 +18,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable, Iterator
 
 from hoidata.errors import WorkerError
-from hoidata.pipeline.pool import _describe
+from hoidata.pipeline.pool import describe_failure
 
 _STARTED: set[str] = set()  # in a Ray worker process: the initialisers already run here
 TASKS_PER_CPU = 2  # tasks kept in flight per cluster CPU (jobs carry their frames: not all at once)
@@ -31,7 +32,7 @@ def _call(fn: Callable, init: Callable, initargs: tuple, job):
         try:
             init(*initargs)
         except Exception as exc:  # noqa: BLE001 - the pool's one line, whatever the failure
-            raise WorkerError(None, None, _describe(init, exc)) from None
+            raise WorkerError(None, None, describe_failure(init, exc)) from None
         _STARTED.add(key)
     return fn(job)
 

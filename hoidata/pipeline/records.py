@@ -18,6 +18,7 @@ from hoidata import schema
 from hoidata.datasets.frame import Frame, project
 from hoidata.errors import DataError
 from hoidata.geometry import crop as crop_ops
+from hoidata.geometry.sampling import SdfSampling
 from hoidata.geometry.upstream_crop import pixel_affine
 from hoidata.geometry.mirror import (
     mirror_axis_angle,
@@ -53,6 +54,12 @@ class RecordSettings:
     LIMITS: ClassVar[dict] = {"crop_size": (">= 32", "<= 4096"), "context": ("> 0",), "n_hand": (">= 1",),
                               "n_object": (">= 1",), "uniform_fraction": (">= 0", "<= 1"), "cube": ("> 0",),
                               "sigmas": ("> 0",), "part_radius": ("> 0",), "heatmap_sigma": ("> 0",)}
+
+    def sdf_sampling(self) -> SdfSampling:
+        """The SDF sampling settings of these record settings (the one place they are mapped)."""
+        return SdfSampling(n_hand=self.n_hand, n_object=self.n_object, uniform_fraction=self.uniform_fraction,
+                           cube=self.cube, sigmas=tuple(self.sigmas), part_radius=self.part_radius,
+                           backend=self.sdf_backend)
 
 
 @dataclass
@@ -152,9 +159,7 @@ def build_record(frame: Frame, mano, obj: ObjectAsset, renderer, key: str, setti
     meshes = [RenderMesh(vertices=hand, faces=faces, label=1), RenderMesh(vertices=obj_verts, faces=obj_faces, label=2)]
     labels, amodal = renderer.masks(K_mask, meshes)
     sdf, counts = build_sdf_record(hand, faces, mano.closed_face_parts, obj_verts, obj_faces, obj.watertight,
-                                   frame.root_3d, np.random.default_rng(frame_seed(key)), settings.n_hand,
-                                   settings.n_object, settings.uniform_fraction, settings.cube, settings.sigmas,
-                                   settings.part_radius, backend=settings.sdf_backend)
+                                   frame.root_3d, np.random.default_rng(frame_seed(key)), settings.sdf_sampling())
     meta = {**record_meta(frame, key, view["box"], K_crop, hand, obj_verts, counts), **view["meta"]}
     meta["seg_iou"] = dataset_mask_iou(frame, labels, to_mask)
     return {

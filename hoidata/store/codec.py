@@ -54,7 +54,7 @@ FLOAT32_MAX = float(np.finfo(np.float32).max)
 # records
 
 
-def _check_key(key, where) -> None:
+def check_record_key(key, where) -> None:
     """schema.check_key, as a DataError naming ``where`` and the field "key"."""
     try:
         check_key(key)
@@ -62,7 +62,7 @@ def _check_key(key, where) -> None:
         raise DataError(where, "key", str(exc)) from None
 
 
-def _is_key(key) -> bool:
+def is_record_key(key) -> bool:
     """Whether ``key`` passes schema.check_key."""
     try:
         check_key(key)
@@ -184,7 +184,7 @@ def encode_record(key: str, img: np.ndarray, seg: np.ndarray | None, heatmap: np
     allowed); seg, heatmap and sdf are None exactly for a kind without those members. It is checked as a reader
     would check it, so a record that encodes also decodes.
     """
-    _check_key(key, None)
+    check_record_key(key, None)
     kind = meta.get("kind") if isinstance(meta, dict) else None
     members_of_kind = RECORD_KINDS[kind][0] if kind in RECORD_KINDS else ()
     arrays = {SEG: seg, HEATMAP: heatmap, SDF: sdf}

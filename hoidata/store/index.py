@@ -327,7 +327,7 @@ class StoreIndex:
         return slice(start, start + self.shards[number].count)
 
 
-def _open_index(store_dir):
+def open_index(store_dir):
     """Open index.zarr and check its attributes; returns (group, attrs, shards, path)."""
     import zarr
 
@@ -413,7 +413,7 @@ def _read_meshes(group, names: list, path, attrs: dict) -> dict[str, tuple[np.nd
 
 def read_index(store_dir) -> StoreIndex:
     """Load and check ``store_dir/index.zarr``; a missing or damaged index is a DataError naming it."""
-    group, attrs, shards, path = _open_index(store_dir)
+    group, attrs, shards, path = open_index(store_dir)
     labels = _read_labels(group, attrs, shards, path)
     objects = _read_meshes(group, attrs["objects"], path, attrs)
     return StoreIndex(path, labels["key"].tolist(), labels, shards, objects, attrs["skipped"], attrs["config"],

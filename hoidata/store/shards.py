@@ -32,11 +32,11 @@ from hoidata.schema import MEMBERS, WRITE_ORDER, kind_of_members
 from hoidata.store.codec import (
     KEY,
     MAX_MEMBER_BYTES,
-    _check_key,
-    _is_key,
+    check_record_key,
     decode_record,
+    is_record_key,
 )
-from hoidata.store.index import ShardInfo, _open_index, shard_name
+from hoidata.store.index import ShardInfo, open_index, shard_name
 from hoidata.store.paths import INDEX_NAME, local_store, resolve_store, writer_token
 from hoidata.store.remote import UNKNOWN_SIZE, RemoteFile, RemoteStore, open_stream, remote_sizes
 
@@ -119,7 +119,7 @@ class _OpenShard:
 
 def _check_members_to_write(key: str, members: dict[str, bytes]) -> None:
     """A record to write: a valid key and bytes for exactly the members of a record kind (schema.RECORD_KINDS)."""
-    _check_key(key, None)
+    check_record_key(key, None)
     if kind_of_members(members) is None or not all(isinstance(v, (bytes, bytearray, memoryview))
                                                   for v in members.values()):
         raise DataError(None, key, f"expected bytes for exactly {list(MEMBERS)} (or another record kind's members), "
@@ -245,7 +245,7 @@ def _members(data: _ShardBytes, path) -> Iterator[dict[str, bytes]]:
     try:
         for info in tar:
             key, _, member = info.name.partition(".")
-            if not info.isreg() or not _is_key(key) or not member or info.size > MAX_MEMBER_BYTES:
+            if not info.isreg() or not is_record_key(key) or not member or info.size > MAX_MEMBER_BYTES:
                 raise DataError(path, info.name, f"not a <key>.<member> file of at most {MAX_MEMBER_BYTES} bytes")
             if record is None or key != record[KEY]:
                 if record is not None:
@@ -342,7 +342,7 @@ def _shard_paths(source) -> list[Path]:
         if not source.is_dir():
             return [source]
         if (source / INDEX_NAME).exists():
-            return [source / s.name for s in _open_index(source)[2]]
+            return [source / s.name for s in open_index(source)[2]]
         return sorted(source.glob("shard-*.tar"))  # zero-padded numbers: name order is shard order
     return [Path(p) for p in source]
 

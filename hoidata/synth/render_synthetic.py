@@ -6,8 +6,9 @@ penetration <= 2 mm and some hand vertex within 5 mm of the object, checked with
 signed distances), a view over the sphere at 0.45-0.55 m with HO-3D-like intrinsics, skin tone,
 lights, background, blur and noise. Each sample then becomes a record exactly as ``build-sdf`` makes
 them (crop, masks, heatmap, SDF samples, labels; ``dataset: synthetic`` with the source grasp in
-``source``), written through the same shard runner: parallel, byte-identical whatever the number of
-workers, resumable, splittable with ``--part``.
+``source``), written by the same shard engine (:mod:`hoidata.pipeline.engine`, with :class:`SynthTask` and a
+:class:`SynthWorker` per process): parallel, byte-identical whatever the number of workers, resumable,
+splittable with ``--part``.
 """
 
 from __future__ import annotations
@@ -23,8 +24,12 @@ from hoidata import schema
 from hoidata.datasets.frame import Frame, Skip, project
 from hoidata.errors import DataError
 from hoidata.hand.pose import change_frame
-from hoidata.pipeline import runner
+from hoidata.pipeline.engine import Plan, run_task
+from hoidata.pipeline.finish import extra_name, finish_store, read_shard_skips
 from hoidata.pipeline.records import RecordSettings
+from hoidata.pipeline.runner import BuildSummary
+from hoidata.pipeline.store_shards import check_build_file, shards_done
+from hoidata.pipeline.worker import RecordWorker, ShardJob
 from hoidata.synth import views
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp")
@@ -47,49 +52,91 @@ class Rejected(Exception):
     """No perturbation of the drawn grasp passed the physical check."""
 
 
-_W: dict = {}
+@dataclass(frozen=True)
+class SynthWorkerSpec:
+    """What a worker process needs to render samples (picklable: the engine sends it to every worker)."""
+
+    mano_dir: Path
+    models_dir: Path
+    source: Path  # the store or dataset the grasps come from
+    backgrounds: tuple[str, ...]  # background image files, sorted (none: procedural backgrounds)
+    crop_size: int  # px of the records
+
+    def open(self) -> SynthWorker:
+        return SynthWorker(self)
 
 
-def _init(mano_dir: Path, models_dir: Path, source: Path, backgrounds: list[str], crop_size: int) -> None:
-    from hoidata.hand import load_mano
-    from hoidata.render import Renderer
-    from hoidata.synth.source import load_grasps
+class SynthWorker:
+    """One process's renderer, right MANO layer (HO-3D tips), grasps and per-object caches, and the
+    :class:`RecordWorker` that turns the rendered samples into records; the engine's worker context."""
 
-    runner._init_worker(mano_dir, models_dir, crop_size)
-    _W.update(mano=load_mano(mano_dir, side="right", tips="ho3d", dtype=torch.float64), textured={}, collision={},
-              backgrounds=backgrounds, rgb=Renderer(*views.HO3D_SIZE))
-    _W["grasps"] = load_grasps(source, _W["mano"])
+    def __init__(self, spec: SynthWorkerSpec):
+        from hoidata.hand import load_mano
+        from hoidata.render import Renderer
+        from hoidata.synth.source import load_grasps
+
+        self.records = RecordWorker(spec.mano_dir, spec.models_dir, spec.crop_size)
+        self.rgb = None
+        try:
+            self.mano = load_mano(spec.mano_dir, side="right", tips="ho3d", dtype=torch.float64)
+            self.backgrounds = list(spec.backgrounds)
+            self.textured, self.collision = {}, {}
+            self.rgb = Renderer(*views.HO3D_SIZE)
+            self.grasps = load_grasps(spec.source, self.mano)
+        except BaseException:
+            self.close()
+            raise
+
+    def object(self, name: str):
+        """Repaired geometry (SDF, physics), textured mesh (render) and an fcl collision model, cached."""
+        from hoidata.objects import load_object_mesh, object_mesh_path
+        from hoidata.synth.contact import HandObjectCollision
+
+        asset = self.records.object_asset(name)
+        if name not in self.textured:
+            self.textured[name] = load_object_mesh(object_mesh_path(self.records.models_dir, name))
+            self.collision[name] = HandObjectCollision(asset.vertices, asset.faces)
+        return asset, self.textured[name], self.collision[name]
+
+    def hand(self, pose, betas, transl):
+        """MANO's output and the closed hand vertices (779, 3) of a pose, betas and translation (metres)."""
+        with torch.no_grad():
+            out = self.mano(torch.as_tensor(pose)[None], torch.as_tensor(betas)[None], torch.as_tensor(transl)[None])
+        return out, self.mano.close(out.vertices)[0].double().numpy()
+
+    def run(self, job) -> tuple[int, int, list]:
+        """Render one shard's samples and write them as records; returns (number, records, skips)."""
+        number, indices, keys, seed, s, record, out = job
+        frames, kept, rejected, attempts = [], [], [], 0
+        for index, key in zip(indices, keys):
+            try:
+                frame, n = make_sample(self, index, seed, s)
+                frames.append(frame)
+                kept.append(key)
+                attempts += n
+            except Rejected as e:
+                attempts += s.max_tries
+                rejected.append({"frame_id": f"{seed}_{index:08d}", "reason": str(e), "path": ""})
+        stats = {"attempts": attempts, "accepted": len(frames), "rejected_samples": rejected}
+        result = self.records.run(ShardJob(number, frames, kept, record, out, extra={"synthetic": stats}))
+        return result[0], result[1], result[2] + rejected
+
+    def close(self) -> None:
+        if self.rgb is not None:
+            self.rgb.close()
+            self.rgb = None
+        self.records.close()
 
 
-def _object(name: str):
-    """Repaired geometry (SDF, physics), textured mesh (render) and an fcl collision model, cached."""
-    from hoidata.objects import load_object_mesh, object_mesh_path
-    from hoidata.synth.contact import HandObjectCollision
-
-    objects = runner._WORKER["objects"]
-    if name not in objects:
-        objects[name] = runner.object_asset(runner._WORKER["models_dir"], name)
-        _W["textured"][name] = load_object_mesh(object_mesh_path(runner._WORKER["models_dir"], name))
-        _W["collision"][name] = HandObjectCollision(objects[name].vertices, objects[name].faces)
-    return objects[name], _W["textured"][name], _W["collision"][name]
-
-
-def _hand(pose, betas, transl):
-    mano = _W["mano"]
-    with torch.no_grad():
-        out = mano(torch.as_tensor(pose)[None], torch.as_tensor(betas)[None], torch.as_tensor(transl)[None])
-    return out, mano.close(out.vertices)[0].double().numpy()
-
-
-def perturbed_grasp(grasp, asset, collision, rng, s: SynthSettings):
+def perturbed_grasp(worker: SynthWorker, grasp, asset, collision, rng, s: SynthSettings):
     """(pose, transl, hand output, attempts) of the first perturbation that passes the physical check."""
     from hoidata.synth.contact import penetration_depth
 
     for attempt in range(1, s.max_tries + 1):
         pose = views.perturb_pose(grasp.pose, rng, s.angle_sigma)
         transl = grasp.transl + rng.normal(0.0, s.transl_sigma, 3)
-        out, closed = _hand(pose, grasp.betas, transl)
-        depth = penetration_depth(closed, asset.vertices, asset.faces, hand_faces=_W["mano"].closed_faces)
+        out, closed = worker.hand(pose, grasp.betas, transl)
+        depth = penetration_depth(closed, asset.vertices, asset.faces, hand_faces=worker.mano.closed_faces)
         touching = len(collision.contact_vertices(closed[:-1], within=s.contact_distance)) > 0
         if depth <= s.max_penetration and touching:
             return pose, transl, out, attempt
@@ -105,8 +152,9 @@ def _finish_image(rgb: np.ndarray, rng, s: SynthSettings) -> np.ndarray:
     return np.clip(np.round(noisy), 0, 255).astype(np.uint8)
 
 
-def make_sample(index: int, seed: int, s: SynthSettings) -> tuple[Frame, int]:
-    """Sample `index` of run `seed` as a Frame holding its rendered image, and the attempts it took."""
+def make_sample(worker: SynthWorker, index: int, seed: int, s: SynthSettings) -> tuple[Frame, int]:
+    """Sample `index` of run `seed` as a Frame holding its rendered image, and the attempts it took (``worker``:
+    the process's renderer, hand model, grasps and objects)."""
     from hoidata.render import (
         RenderMesh,
         load_background,
@@ -116,25 +164,25 @@ def make_sample(index: int, seed: int, s: SynthSettings) -> tuple[Frame, int]:
     )
 
     rng = np.random.default_rng([seed, index])
-    grasp = _W["grasps"][int(rng.integers(len(_W["grasps"])))]
-    asset, textured, collision = _object(grasp.object_name)
-    pose, transl, out, attempts = perturbed_grasp(grasp, asset, collision, rng, s)
+    grasp = worker.grasps[int(rng.integers(len(worker.grasps)))]
+    asset, textured, collision = worker.object(grasp.object_name)
+    pose, transl, out, attempts = perturbed_grasp(worker, grasp, asset, collision, rng, s)
     rot = views.sample_view_rotation(rng)
     box_centre = 0.5 * (asset.vertices.min(0) + asset.vertices.max(0))
     centre = 0.5 * (box_centre + out.joints[0, 9].double().numpy())  # object centre and middle knuckle
     trans = views.place_on_axis(rot, centre, rng.uniform(*s.distance))
     obj_pose = np.eye(4)
     obj_pose[:3, :3], obj_pose[:3, 3] = rot, trans
-    wrist = _W["mano"].rest_wrist(grasp.betas)
+    wrist = worker.mano.rest_wrist(grasp.betas)
     pose_c, transl_c = change_frame(pose, transl, wrist, rot, trans)
-    out_c, closed_c = _hand(pose_c, grasp.betas, transl_c)
+    out_c, closed_c = worker.hand(pose_c, grasp.betas, transl_c)
     K = views.ho3d_intrinsics(rng)
     w, h = views.HO3D_SIZE
-    files = _W["backgrounds"]
+    files = worker.backgrounds
     background = load_background(files[int(rng.integers(len(files)))], w, h, rng) if files else procedural_background(rng, w, h)
-    meshes = [RenderMesh(vertices=closed_c, faces=_W["mano"].closed_faces, color=skin_tone(rng), label=1),
+    meshes = [RenderMesh(vertices=closed_c, faces=worker.mano.closed_faces, color=skin_tone(rng), label=1),
               RenderMesh.from_trimesh(textured, transform=obj_pose, label=2)]
-    result = _W["rgb"].render(K, meshes, background=background, lighting=random_lighting(rng, scene_depth=trans[2]))
+    result = worker.rgb.render(K, meshes, background=background, lighting=random_lighting(rng, scene_depth=trans[2]))
     joints = out_c.joints[0].double().numpy()
     frame = Frame(dataset="synthetic", split="train", frame_id=f"{seed}_{index:08d}", image_path=Path(f"render-{index}"),
                   image_size=(w, h), K=K, side="right", root_3d=joints[0], object_name=grasp.object_name,
@@ -143,23 +191,6 @@ def make_sample(index: int, seed: int, s: SynthSettings) -> tuple[Frame, int]:
                   source={"synthetic": True, "source_grasp": grasp.key, "seed": seed, "index": index,
                           "attempts": attempts}, image=_finish_image(result.rgb, rng, s), labels=result.labels)
     return frame, attempts
-
-
-def _synth_shard(job):
-    number, indices, keys, seed, s, record, out = job
-    frames, kept, rejected, attempts = [], [], [], 0
-    for index, key in zip(indices, keys):
-        try:
-            frame, n = make_sample(index, seed, s)
-            frames.append(frame)
-            kept.append(key)
-            attempts += n
-        except Rejected as e:
-            attempts += s.max_tries
-            rejected.append({"frame_id": f"{seed}_{index:08d}", "reason": str(e), "path": ""})
-    stats = {"attempts": attempts, "accepted": len(frames), "rejected_samples": rejected}
-    result = runner._build_shard(runner.ShardJob(number, frames, kept, record, out, extra={"synthetic": stats}))
-    return result[0], result[1], result[2] + rejected
 
 
 def list_backgrounds(folder: Path | None) -> list[str]:
@@ -182,12 +213,33 @@ def check_count(count: int) -> None:
                          "stores (another --seed each) and train on all of them (--shards A B)")
 
 
+@dataclass
+class SynthTask:
+    """render-synthetic's task for :func:`hoidata.pipeline.engine.run_task`: shard n holds samples n*R .. (n+1)*R-1."""
+
+    keys: list[str]
+    seed: int
+    settings: SynthSettings
+    record: RecordSettings
+    out: Path
+    worker: SynthWorkerSpec
+    plan: Plan
+    desc: str = "render-synthetic"
+
+    def job(self, number: int) -> tuple:
+        indices = list(range(number * self.plan.per, number * self.plan.per + self.plan.size(number)))
+        return number, indices, [self.keys[i] for i in indices], self.seed, self.settings, self.record, self.out
+
+    def done(self, numbers: list[int], starting: bool) -> set[int]:
+        return shards_done(self.out, numbers, starting)
+
+
 def render_synthetic(source: Path, out: Path, count: int, mano_dir: Path, models_dir: Path, seed: int = 0,
                      backgrounds: Path | None = None, workers: int = 1, part: tuple[int, int] = (0, 1),
                      settings: SynthSettings = SynthSettings(), record: RecordSettings = RecordSettings(),
-                     records_per_shard: int = 256, progress: bool = True, engine=None) -> runner.BuildSummary:
-    """Render `count` synthetic samples from the grasps of `source` into the store `out` (``engine``: what runs the
-    shard jobs, see :func:`hoidata.pipeline.runner.run_shards`)."""
+                     records_per_shard: int = 256, progress: bool = True, executor=None) -> BuildSummary:
+    """Render `count` synthetic samples from the grasps of `source` into the store `out` (``executor``: what runs
+    the shard jobs, see :func:`hoidata.pipeline.engine.run_task`)."""
     import time
 
     from hoidata.hand import load_mano
@@ -204,39 +256,29 @@ def render_synthetic(source: Path, out: Path, count: int, mano_dir: Path, models
     # the source resolved: a resume with --source spelled another way (relative, absolute, a link) is the same run
     config = {"synthetic": asdict(settings), "record": asdict(record), "source": str(source.resolve()), "count": count,
               "seed": seed, "backgrounds": [Path(f).name for f in files], "records_per_shard": records_per_shard}
-    runner._check_build_file(out, json.loads(json.dumps(config)), keys, _inputs(grasps, mano_dir, models_dir, files))
-    per = records_per_shard
-
-    def make_job(n):
-        idx = list(range(n * per, min(count, (n + 1) * per)))
-        return n, idx, [keys[i] for i in idx], seed, settings, record, out
-
-    init = (Path(mano_dir), Path(models_dir), source, files, record.crop_size)
-    try:
-        summary, numbers, done = runner.run_shards(out, count, per, make_job, _synth_shard, _init, init, workers,
-                                                     part, progress, "render-synthetic", engine=engine)
-    finally:
-        rgb = _W.pop("rgb", None)  # a serial run's own renderer: closed now, not whenever it is garbage-collected
-        if rgb is not None:
-            rgb.close()
-    if done:
-        stats = [_shard_stats(out, n) for n in numbers]
+    check_build_file(out, json.loads(json.dumps(config)), keys, _inputs(grasps, mano_dir, models_dir, files))
+    spec = SynthWorkerSpec(Path(mano_dir), Path(models_dir), source, tuple(files), record.crop_size)
+    run = run_task(SynthTask(keys, seed, settings, record, out, spec, Plan(count, records_per_shard)), workers, part,
+                   progress, executor)
+    summary = BuildSummary.of_run(out, run)
+    if run.all_done:
+        stats = [_shard_stats(out, n) for n in run.units]
         attempts = sum(st["attempts"] for st in stats)
         accepted = sum(st["accepted"] for st in stats)
         synth = {"source_grasps": len(grasps), "attempts": attempts, "accepted": accepted,
                  "rejection_rate": round(1.0 - accepted / attempts, 4) if attempts else 0.0}
         rejected = [Skip(r["frame_id"], r["reason"], r["path"]) for st in stats for r in st["rejected_samples"]]
-        summary.skipped = runner.finish_store(out, config, Path(models_dir), numbers, rejected, summary,
-                                              provenance={"synthetic": synth})
+        summary.skipped = finish_store(out, config, Path(models_dir), run.units, rejected, summary,
+                                       provenance={"synthetic": synth})
     summary.seconds = time.perf_counter() - start
     return summary
 
 
 def _shard_stats(out: Path, number: int) -> dict:
     """The physical-check statistics a shard's skips file holds."""
-    stats = runner.read_shard_skips(out, number).get("synthetic")
+    stats = read_shard_skips(out, number).get("synthetic")
     if not isinstance(stats, dict) or not {"attempts", "accepted", "rejected_samples"} <= set(stats):
-        raise DataError(out / runner._extra_name(number), "synthetic", "missing; rerun render-synthetic to rebuild it")
+        raise DataError(out / extra_name(number), "synthetic", "missing; rerun render-synthetic to rebuild it")
     return stats
 
 

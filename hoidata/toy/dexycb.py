@@ -21,11 +21,11 @@ import numpy as np
 import torch
 import yaml
 from scipy.spatial.transform import Rotation
-from tqdm import tqdm
 
 from hoidata.datasets.dexycb_layout import SERIALS, SUBJECTS
 from hoidata.datasets.frame import project
 from hoidata.hand.pose import axis_angle_to_pca
+from hoidata.pipeline.engine import Plan, run_task
 from hoidata.render import skin_tone
 from hoidata.toy import scenes as toy_scenes
 
@@ -87,8 +87,8 @@ def write_sequence(root, renderer, manos, objects, subject_pos, s, seq, size, ca
     calib_name, b = betas[(s, side)]
     mano = manos[side]
     sequence = toy_scenes.make_sequence(mano, grasped, b, size.frames, rng)
-    other_pose = toy_scenes._rigid(Rotation.from_euler("z", rng.uniform(0, 6.28)).as_matrix(),
-                                   np.array([rng.uniform(0.18, 0.25) * rng.choice([-1, 1]), rng.uniform(-0.25, 0.25), 0.05]))
+    other_pose = toy_scenes.rigid(Rotation.from_euler("z", rng.uniform(0, 6.28)).as_matrix(),
+                                  np.array([rng.uniform(0.18, 0.25) * rng.choice([-1, 1]), rng.uniform(-0.25, 0.25), 0.05]))
     seq_dir = root / SUBJECTS[s] / _seq_name(SUBJECTS[s], seq)
     serials = [SERIALS[c] for c in size.serials]
     _write_yaml(seq_dir / "meta.yml", {
@@ -141,25 +141,52 @@ def _write_pose_npz(seq_dir: Path, mano, seq, other_pose) -> None:
     np.savez_compressed(seq_dir / "pose.npz", pose_y=pose_y, pose_m=pose_m)
 
 
-_WORKER: dict = {}
+@dataclass(frozen=True)
+class ToyWorkerSpec:
+    """What a worker process needs to render toy sequences (picklable: the engine sends it to every worker)."""
+
+    mano_dir: Path
+    models_dir: Path
+
+    def open(self) -> ToyWorker:
+        return ToyWorker(self.mano_dir, self.models_dir)
 
 
-def _init_worker(mano_dir: Path, models_dir: Path) -> None:
-    """Per-process state: MANO layers, objects and one offscreen renderer (GL contexts do not fork)."""
-    from hoidata.hand import load_mano
-    from hoidata.render import Renderer
+class ToyWorker:
+    """One process's MANO layers, toy objects and offscreen renderer (GL contexts do not fork); writes sequences."""
 
-    torch.set_num_threads(1)
-    # Left labels are made with MANO_LEFT as shipped (no shapedirs fix), as DexYCB's were.
-    _WORKER["manos"] = {side: load_mano(mano_dir, side=side, fix_left_shapedirs=False, dtype=torch.float64)
-                        for side in ("right", "left")}
-    _WORKER["objects"] = toy_scenes.load_toy_objects(models_dir)
-    _WORKER["renderer"] = Renderer(640, 480)
+    def __init__(self, mano_dir: Path, models_dir: Path):
+        from hoidata.hand import load_mano
+        from hoidata.render import Renderer
+
+        torch.set_num_threads(1)
+        # Left labels are made with MANO_LEFT as shipped (no shapedirs fix), as DexYCB's were.
+        self.manos = {side: load_mano(mano_dir, side=side, fix_left_shapedirs=False, dtype=torch.float64)
+                      for side in ("right", "left")}
+        self.objects = toy_scenes.load_toy_objects(models_dir)
+        self.renderer = Renderer(640, 480)
+
+    def run(self, job) -> tuple[int, int, list]:
+        """Write one sequence; returns (its number, images written, no skips)."""
+        number, root, pos, s, q, size, calib, seed = job
+        return number, write_sequence(root, self.renderer, self.manos, self.objects, pos, s, q, size, calib, seed), []
+
+    def close(self) -> None:
+        self.renderer.close()
 
 
-def _run_job(job) -> int:
-    root, pos, s, q, size, calib, seed = job
-    return write_sequence(root, _WORKER["renderer"], _WORKER["manos"], _WORKER["objects"], pos, s, q, size, calib, seed)
+@dataclass
+class ToyTask:
+    """The toy writer's task for :func:`hoidata.pipeline.engine.run_task`: one unit per sequence (no resume: a
+    toy tree is written whole)."""
+
+    jobs: list  # (root, subject position, subject, sequence, size, calibration, seed) per sequence
+    worker: ToyWorkerSpec
+    plan: Plan
+    desc: str = "toy dexycb sequences"
+
+    def job(self, number: int) -> tuple:
+        return (number, *self.jobs[number])
 
 
 def write_toy_dexycb(root: str | Path, mano_dir: Path, models_dir: Path, size: ToyDexYCBSize = ToyDexYCBSize(),
@@ -169,20 +196,9 @@ def write_toy_dexycb(root: str | Path, mano_dir: Path, models_dir: Path, size: T
     Sequences are independent (each seeds its own generator), so the files are the same whatever the
     number of worker processes.
     """
-    from hoidata.pipeline.pool import run_pool
-
     root = Path(root)
     calib = write_calibration(root, size, np.random.default_rng(seed))
     jobs = [(root, pos, s, q, size, calib, seed) for pos, s in enumerate(size.subjects) for q in range(size.sequences)]
-    bar = tqdm(total=len(jobs), desc="toy dexycb sequences", disable=not progress)
-    images = 0
-    try:
-        for n in run_pool(_run_job, jobs, workers, _init_worker, (mano_dir, models_dir)):
-            images += n
-            bar.update()
-    finally:
-        bar.close()
-        renderer = _WORKER.pop("renderer", None)  # the serial run's own renderer
-        if renderer is not None:
-            renderer.close()
-    return {"subjects": len(size.subjects), "sequences": len(jobs), "images": images}
+    run = run_task(ToyTask(jobs, ToyWorkerSpec(Path(mano_dir), Path(models_dir)), Plan(len(jobs), 1)), workers,
+                   progress=progress)
+    return {"subjects": len(size.subjects), "sequences": len(jobs), "images": run.written}

@@ -57,7 +57,8 @@ class Sequence:
     hand_transl: np.ndarray
     rest_wrist: np.ndarray  # (3,) MANO rest wrist for these betas: the pivot of every frame change
 
-def _rigid(rot: np.ndarray, trans: np.ndarray) -> np.ndarray:
+def rigid(rot: np.ndarray, trans: np.ndarray) -> np.ndarray:
+    """The (4, 4) transform [rot | trans] of a (3, 3) rotation and a (3,) translation (metres)."""
     t = np.eye(4)
     t[:3, :3], t[:3, 3] = rot, trans
     return t
@@ -98,7 +99,7 @@ def make_sequence(mano, obj: ToyObject, betas: np.ndarray, n_frames: int, rng: n
     for f in range(n_frames):
         s = max(0, f - approach_frames) / max(1, n_frames - approach_frames - 1)
         rot = Rotation.from_rotvec(turn * s).as_matrix() @ base_rot
-        obj_pose = _rigid(rot, np.array([0.0, 0.0, 0.05 + lift * s]))
+        obj_pose = rigid(rot, np.array([0.0, 0.0, 0.05 + lift * s]))
         retreat = max(0, approach_frames - f) * approach_step * away if away is not None else np.zeros(3)
         pose, transl = change_frame(grasp.pose, grasp.transl + retreat, wrist, obj_pose[:3, :3], obj_pose[:3, 3])
         poses.append(obj_pose)
@@ -114,7 +115,7 @@ def look_at(eye: np.ndarray, target: np.ndarray, up=np.array([0.0, 0.0, 1.0])) -
     x = np.cross(z, up)
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
-    return _rigid(np.stack([x, y, z], axis=1), eye)
+    return rigid(np.stack([x, y, z], axis=1), eye)
 
 
 def ring_cameras(n: int, rng: np.random.Generator, radius=(0.55, 0.8), elevation_deg=(25.0, 55.0)) -> list[np.ndarray]:
@@ -182,7 +183,7 @@ def render_view(renderer, mano, seq: Sequence, frame: int, K: np.ndarray, cam_to
     with torch.no_grad():
         out = mano(torch.as_tensor(pose)[None], torch.as_tensor(seq.betas)[None], torch.as_tensor(transl)[None])
     verts = out.vertices[0].double().numpy()
-    w2c = _rigid(rot, trans)
+    w2c = rigid(rot, trans)
     obj_pose = w2c @ seq.object_poses[frame]
     meshes = [RenderMesh(vertices=mano.close(out.vertices)[0].double().numpy(), faces=mano.closed_faces,
                          color=look.skin, label=hand_label),
