@@ -160,6 +160,11 @@ def test_the_grasp_source_reads_the_models_folder_it_is_given(tiny_dexycb, tmp_p
     half = _scaled_models(tiny_dexycb / "models", tmp_path / "half", {CAN: 0.5})
     with pytest.raises(DataError, match="no right-hand grasps"):
         load_grasps(tiny_dexycb, mano, tiny_dexycb / "mano", half)
+    # the command passes its --models on: nothing is rendered from grasps the models it renders would refuse
+    out = tmp_path / "synthetic"
+    code = hoidata(["render-synthetic", "--source", str(tiny_dexycb), "--models", str(half), "--out", str(out),
+                    "--count", "1"])
+    assert code == 2 and not (out / "build.json").exists()
 
 
 @pytest.mark.parametrize("name", ["ho4d", "DexYCB", ""])

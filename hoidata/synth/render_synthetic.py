@@ -82,7 +82,7 @@ class SynthWorker:
             self.backgrounds = list(spec.backgrounds)
             self.textured, self.collision = {}, {}
             self.rgb = Renderer(*views.HO3D_SIZE)
-            self.grasps = load_grasps(spec.source, self.mano)
+            self.grasps = load_grasps(spec.source, self.mano, spec.mano_dir, spec.models_dir)  # as the parent's
         except BaseException:
             self.close()
             raise
@@ -251,7 +251,8 @@ def render_synthetic(source: Path, out: Path, count: int, mano_dir: Path, models
     files = list_backgrounds(backgrounds)
     if records_per_shard < 1:
         raise ValueError(f"--records-per-shard must be at least 1, got {records_per_shard}")
-    grasps = load_grasps(source, load_mano(mano_dir, dtype=torch.float64))  # fail early, in the parent
+    # fail early, in the parent; the grasps are picked with the MANO and models that render them (as in the workers)
+    grasps = load_grasps(source, load_mano(mano_dir, dtype=torch.float64), Path(mano_dir), Path(models_dir))
     keys = [schema.record_key("synthetic", "train", f"{seed}_{i:08d}") for i in range(count)]
     # the source resolved: a resume with --source spelled another way (relative, absolute, a link) is the same run
     config = {"synthetic": asdict(settings), "record": asdict(record), "source": str(source.resolve()), "count": count,
