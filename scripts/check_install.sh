@@ -45,7 +45,7 @@ cd "$WORK/outside"
 export PATH="$WORK/venv/bin:$PATH" PYTHONPATH= PYTHONNOUSERSITE=1
 python - "$NEW_SITE" <<'EOF'
 import sys, hoidata, hoisdf
-from hoidata.pipeline.settings import pipelines_dir
+from hoidata.sections import pipelines_dir
 for module in (hoidata, hoisdf):
     assert module.__file__.startswith(sys.argv[1]), f"{module.__name__} imported from {module.__file__}, not the wheel"
 print(f"check_install: hoidata from {hoidata.__file__}; presets {pipelines_dir()}")

@@ -48,3 +48,22 @@ def test_installed_wheel_runs_a_chain_outside_the_checkout():
                           cwd=REPO)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     assert "check_install: ok" in proc.stdout and "/venv/" in proc.stdout
+
+
+def test_the_scripts_import_only_names_the_package_has():
+    """Fast tier: every ``from hoidata|hoisdf... import`` line in scripts/*.sh (their Python heredocs) names a module
+    and names that exist. CI runs scripts/check_install.sh after the suite, so a moved name would otherwise fail only
+    there (it did once: pipelines_dir after the move to hoidata.sections)."""
+    import importlib
+    import re
+
+    found = 0
+    for script in sorted((Path(__file__).resolve().parents[1] / "scripts").glob("*.sh")):
+        for line in script.read_text().splitlines():
+            match = re.match(r"\s*from\s+((?:hoidata|hoisdf)[\w.]*)\s+import\s+([\w, ]+)", line)
+            if match:
+                module = importlib.import_module(match[1])
+                missing = [n.strip() for n in match[2].split(",") if not hasattr(module, n.strip())]
+                assert not missing, f"{script.name}: {match[1]} has no {missing}"
+                found += 1
+    assert found  # the check reads the heredocs at all
