@@ -1,6 +1,7 @@
 """``python -m hoisdf.toy --out toy_run``: the main job on the embedded toy data, end to end.
 
-1. ``python -m hoidata toy-pipeline`` (a child process): procedural MANO, objects and toy DexYCB / HO-3D; verified train and test stores;
+1. ``python -m hoidata toy-pipeline`` (a child process): procedural MANO, objects and toy DexYCB / HO-3D;
+   verified train and test stores;
 2. ``python -m hoisdf.train --config toy`` on the train store (a small model, CPU minutes);
 3. ``python -m hoisdf.evaluate`` on the test store, against a mean-pose baseline from the train store;
 4. a report folder: metrics.json, training_curve.png, result pictures, and a verdict line.
