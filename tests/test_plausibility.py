@@ -256,7 +256,7 @@ def test_the_evaluator_report_and_the_scorer_share_one_budget(mano_right, monkey
 
     monkeypatch.setattr(plausibility, "frame_metrics", record)
     box = trimesh.creation.box(extents=(0.02, 0.02, 0.02))
-    plausibility_of(np.zeros((2, 778, 3)), np.tile(np.eye(4), (2, 1, 1)), [(box.vertices, box.faces)] * 2,
+    plausibility_of({"model": (np.zeros((2, 778, 3)), np.tile(np.eye(4), (2, 1, 1)), [(box.vertices, box.faces)] * 2)},
                     mano_right, progress=False)
     assert len(seen) == 2
     assert {s["max_cells"] for s in seen} == {score_contact.MAX_CELLS} == {plausibility.BUDGET}

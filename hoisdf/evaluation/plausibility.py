@@ -21,6 +21,7 @@ vertex 779 and its faces (``MANO.close`` / ``closed_faces``). Per frame, with H 
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Iterable
 
 import numpy as np
@@ -203,19 +204,15 @@ def frame_metrics_many(samples: Iterable[tuple], workers: int = 1, progress=None
     Frames cost from milliseconds (no overlap) to tens of seconds (a deep overlap to 5 %), so the pool takes one
     frame at a time; the processes are spawned (no copy of a parent holding CUDA or loader threads)."""
     jobs = [(tuple(s), settings) for s in samples]
-    if workers <= 1 or len(jobs) <= 1:
-        out = []
-        for i, job in enumerate(jobs):
-            out.append(_frame(job))
-            if progress is not None:
-                progress(i)
-        return out
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
+    pool = None
+    if workers > 1 and len(jobs) > 1:
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
 
-    with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=mp.get_context("spawn")) as pool:
+        pool = ProcessPoolExecutor(min(workers, len(jobs)), mp_context=mp.get_context("spawn"))
+    with pool or contextlib.nullcontext():
         out = []
-        for i, frame in enumerate(pool.map(_frame, jobs, chunksize=1)):
+        for i, frame in enumerate(pool.map(_frame, jobs, chunksize=1) if pool else map(_frame, jobs)):
             out.append(frame)
             if progress is not None:
                 progress(i)

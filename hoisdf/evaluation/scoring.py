@@ -11,7 +11,13 @@ from hoidata.geometry.mirror import mirror_mesh
 from hoidata.store import read_index
 from hoisdf.evaluation import metrics as M
 from hoisdf.evaluation.inference import Collected, _np
-from hoisdf.evaluation.plausibility import REL_TOLERANCE, plausibility_report
+from hoisdf.evaluation.plausibility import (
+    BUDGET,
+    REL_TOLERANCE,
+    TOLERANCE,
+    frame_metrics_many,
+    summarize,
+)
 from hoisdf.training.losses import hand_targets, mirrored_shape_mano
 
 BASELINE_ROWS = 10000  # at most this many label rows (evenly spaced) make the mean pose
@@ -73,19 +79,31 @@ def sample_meshes(objects: dict, names: list[str], mirrored) -> list[tuple[np.nd
     return out
 
 
-def plausibility_of(verts, poses, meshes: list, mano, progress: bool = True, workers: int = 1) -> dict:
-    """Penetration depth, intersection volume, contact ratio, IVU and self-penetration of closed hands (N, 778, 3)
-    against the object meshes (N (vertices, faces), see :func:`sample_meshes`) posed by ``poses`` (N, 4, 4), on
-    ``workers`` processes; see :func:`hoisdf.evaluation.plausibility.plausibility_report` (volumes to 0.1 cm^3 or
-    5 %, whichever is larger)."""
-    if len(verts) == 0:
-        return plausibility_report([])
-    closed = mano.close(torch.as_tensor(verts, dtype=torch.float32)).cpu().numpy().astype(np.float64)
+def plausibility_of(groups: dict, mano, progress: bool = True, workers: int = 1) -> dict:
+    """Penetration depth, intersection volume, contact ratio, IVU and self-penetration of closed hands, per group:
+    ``groups`` maps a name to (verts (N, 778, 3), poses (N, 4, 4), meshes: N object (vertices, faces), see
+    :func:`sample_meshes`, posed by ``poses``). Every group's frames run on one pool of ``workers`` processes
+    (:func:`hoisdf.evaluation.plausibility.frame_metrics_many`; volumes to 0.1 cm^3 or 5 %, whichever is larger,
+    within the scorer's budget). Returns {name: :func:`~hoisdf.evaluation.plausibility.summarize` of its frames}."""
     faces = np.asarray(mano.closed_faces)
-    samples = [(closed[i], faces, v @ poses[i][:3, :3].T + poses[i][:3, 3], f) for i, (v, f) in enumerate(meshes)]
+    samples, sizes, n_points = [], {}, {v.shape[1] for v, _, _ in groups.values()}
+    for name, (verts, poses, meshes) in groups.items():
+        if not len(verts):
+            sizes[name] = 0
+            continue
+        closed = mano.close(torch.as_tensor(verts, dtype=torch.float32)).cpu().numpy().astype(np.float64)
+        samples += [(closed[i], faces, v @ poses[i][:3, :3].T + poses[i][:3, 3], f) for i, (v, f) in enumerate(meshes)]
+        sizes[name] = len(meshes)
+    if len(n_points) > 1:
+        raise ValueError(f"every group's hands need the same vertex count, got {sorted(n_points)}")
     with tqdm(total=len(samples), desc="plausibility", disable=not progress, leave=False) as bar:
-        return plausibility_report(samples, n_points=verts.shape[1], rel_tolerance=REL_TOLERANCE, workers=workers,
-                                   progress=lambda _: bar.update())
+        frames = frame_metrics_many(samples, workers, lambda _: bar.update(), tolerance=TOLERANCE,
+                                    n_points=n_points.pop() if n_points else None, rel_tolerance=REL_TOLERANCE,
+                                    max_cells=BUDGET)
+    out, start = {}, 0
+    for name, size in sizes.items():
+        out[name], start = summarize(frames[start:start + size], TOLERANCE), start + size
+    return out
 
 
 def baseline_scores(col: Collected, mano, store, obj_verts: list, obj_valid, index=None) -> dict[str, np.ndarray]:
@@ -104,12 +122,13 @@ def plausibility_summary(col: Collected, meshes: list, mano, count: int, progres
     verts, k = col.get("verts"), min(count, len(col.keys))
     if verts is None or k == 0:
         return {"skipped": "no predicted hand mesh" if verts is None else "--plausibility 0"}
-    out = {}
+    out, groups = {}, {}
     for name, v, p in (("model", "verts", "obj_pose"), ("ground_truth", "gt_verts", "gt_obj_pose")):
         hands, poses = col.get(v)[:k], col.get(p)[:k]
         known = np.flatnonzero(np.isfinite(hands).all((1, 2)) & np.isfinite(poses).all((1, 2)))  # eval records: no GT
-        out[name] = (plausibility_of(hands[known], poses[known], [meshes[i] for i in known], mano, progress,
-                                     workers)
-                     if len(known) else {"skipped": "no ground-truth hand mesh (evaluation records)"})
-    return out
-
+        if len(known):
+            groups[name] = (hands[known], poses[known], [meshes[i] for i in known])
+        else:
+            out[name] = {"skipped": "no ground-truth hand mesh (evaluation records)"}
+    reports = plausibility_of(groups, mano, progress, workers)  # one pool for the model's frames and the GT's
+    return {name: reports[name] if name in reports else out[name] for name in ("model", "ground_truth")}
