@@ -60,10 +60,8 @@ class ExportWorker:
 
     def raw_object(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         """The object's ``textured_simple.obj`` as the file holds it: vertices (V, 3) m and faces (F, 3)."""
-        from hoidata.objects import load_object_mesh, object_mesh_path
-
         if name not in self._raw:
-            mesh = load_object_mesh(object_mesh_path(self.records.models_dir, name))
+            mesh = self.records.object_mesh(name)
             self._raw[name] = (np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64))
         return self._raw[name]
 

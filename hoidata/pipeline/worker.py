@@ -72,6 +72,7 @@ class RecordWorker:
         self.mano_dir, self.models_dir = Path(mano_dir), Path(models_dir)
         self._manos: dict = {}
         self._objects: dict = {}
+        self._meshes: dict = {}
         self._renderers: dict = {}
         if crop_size is not None:
             self.renderer(crop_size)
@@ -92,6 +93,15 @@ class RecordWorker:
         if (name, upstream) not in self._objects:
             self._objects[name, upstream] = load_object_asset(self.models_dir, name, upstream)
         return self._objects[name, upstream]
+
+    def object_mesh(self, name: str):
+        """The object's ``textured_simple.obj`` as the file holds it (a trimesh, not repaired), loaded once: what
+        render-synthetic draws and export writes."""
+        from hoidata.objects import load_object_mesh, object_mesh_path
+
+        if name not in self._meshes:
+            self._meshes[name] = load_object_mesh(object_mesh_path(self.models_dir, name))
+        return self._meshes[name]
 
     def renderer(self, size: int):
         """The mask renderer of records of ``size`` px (masks at half of it), made on first use."""
@@ -144,7 +154,7 @@ class RecordWorker:
         renderers, self._renderers = self._renderers, {}
         for renderer in renderers.values():
             renderer.close()
-        self._manos, self._objects = {}, {}
+        self._manos, self._objects, self._meshes = {}, {}, {}
 
 
 @dataclass(frozen=True)

@@ -80,7 +80,7 @@ class SynthWorker:
         try:
             self.mano = load_mano(spec.mano_dir, side="right", tips="ho3d", dtype=torch.float64)
             self.backgrounds = list(spec.backgrounds)
-            self.textured, self.collision = {}, {}
+            self.collision = {}
             self.rgb = Renderer(*views.HO3D_SIZE)
             self.grasps = load_grasps(spec.source, self.mano, spec.mano_dir, spec.models_dir)  # as the parent's
         except BaseException:
@@ -89,14 +89,12 @@ class SynthWorker:
 
     def object(self, name: str):
         """Repaired geometry (SDF, physics), textured mesh (render) and an fcl collision model, cached."""
-        from hoidata.objects import load_object_mesh, object_mesh_path
         from hoidata.synth.contact import HandObjectCollision
 
         asset = self.records.object_asset(name)
-        if name not in self.textured:
-            self.textured[name] = load_object_mesh(object_mesh_path(self.records.models_dir, name))
+        if name not in self.collision:
             self.collision[name] = HandObjectCollision(asset.vertices, asset.faces)
-        return asset, self.textured[name], self.collision[name]
+        return asset, self.records.object_mesh(name), self.collision[name]
 
     def hand(self, pose, betas, transl):
         """MANO's output and the closed hand vertices (779, 3) of a pose, betas and translation (metres)."""
