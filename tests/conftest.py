@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 
 import pytest
 
@@ -23,7 +24,54 @@ def pytest_report_header(config):
         except PackageNotFoundError:
             return "not installed"
 
-    return "packages: " + ", ".join(f"{name} {found(name)}" for name in REPORTED_PACKAGES)
+    lines = ["packages: " + ", ".join(f"{name} {found(name)}" for name in REPORTED_PACKAGES)]
+    base = _basetemp(config)
+    if base is not None:
+        free = shutil.disk_usage(base).free / 2**30
+        lines.append(f"disk: {free:.1f} GiB free in {base} (the slow tier needs about {NEEDED_GIB} GiB at once)")
+    return lines
+
+
+# Disk. The whole suite writes several GiB of toy datasets, stores and checkpoints (7.5 GiB at d951849, all of it
+# kept to the end, which filled a CI machine's disk). A test's tmp_path is removed when the test passes (pyproject:
+# tmp_path_retention_policy = "failed"), and the folders a module- or session-scoped fixture made under the base
+# temporary folder are removed when that fixture is torn down: the disk holds only the live fixtures and the test
+# running. `-o tmp_path_retention_policy=all` keeps everything, as pytest does by default.
+NEEDED_GIB = 3
+_MADE = pytest.StashKey()
+
+
+def _basetemp(config):
+    """The session's base temporary folder, or None when pytest's tmp_path plugin is off."""
+    factory = getattr(config, "_tmp_path_factory", None)
+    return None if factory is None else factory.getbasetemp()
+
+
+def _cleaning(config) -> bool:
+    return config.getini("tmp_path_retention_policy") != "all" and _basetemp(config) is not None
+
+
+@pytest.hookimpl(wrapper=True, specname="pytest_fixture_setup")
+def pytest_fixture_setup_tracking(fixturedef, request):  # pytest reads only pytest_* names
+    """Remember which new folders under the base temporary folder a non-function fixture's set-up made."""
+    if fixturedef.scope == "function" or not _cleaning(request.config):
+        return (yield)
+    base = _basetemp(request.config)
+    before = set(base.iterdir())
+    try:
+        return (yield)
+    finally:
+        made = request.config.stash.setdefault(_MADE, {})
+        claimed = set().union(*made.values())  # made by the fixtures this one set up first
+        made[fixturedef] = made.get(fixturedef, set()) | (set(base.iterdir()) - before - claimed)
+
+
+def pytest_fixture_post_finalizer(fixturedef, request):
+    for path in request.config.stash.get(_MADE, {}).pop(fixturedef, ()):
+        if path.is_symlink():  # mktemp's "<name>current" link
+            path.unlink(missing_ok=True)
+        else:
+            shutil.rmtree(path, ignore_errors=True)
 
 
 # The fixtures that write a toy dataset or build a store (seconds each, and every fixture built on them): a test
