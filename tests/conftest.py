@@ -25,11 +25,15 @@ def pytest_report_header(config):
             return "not installed"
 
     lines = ["packages: " + ", ".join(f"{name} {found(name)}" for name in REPORTED_PACKAGES)]
-    base = _basetemp(config)
-    if base is not None:
-        free = shutil.disk_usage(base).free / 2**30
-        lines.append(f"disk: {free:.1f} GiB free in {base} (the slow tier needs about {NEEDED_GIB} GiB at once)")
-    return lines
+    return lines + ([line] if (line := _disk_line(config)) else [])
+
+
+def pytest_sessionstart(session):
+    # -q (as CI runs the suite) prints no header: a disk short of room still gets its line
+    line = _disk_line(session.config) or ""
+    reporter = session.config.pluginmanager.get_plugin("terminalreporter")
+    if reporter is not None and line.startswith("disk: only") and session.config.get_verbosity() < 0:
+        reporter.write_line(line)
 
 
 # Disk. The whole suite writes several GiB of toy datasets, stores and checkpoints (7.5 GiB at d951849, all of it
@@ -45,6 +49,16 @@ def _basetemp(config):
     """The session's base temporary folder, or None when pytest's tmp_path plugin is off."""
     factory = getattr(config, "_tmp_path_factory", None)
     return None if factory is None else factory.getbasetemp()
+
+
+def _disk_line(config) -> str | None:
+    """How much room the base temporary folder has, and a warning when it is less than the slow tier needs."""
+    base = _basetemp(config)
+    if base is None:
+        return None
+    free = shutil.disk_usage(base).free / 2**30
+    return (f"disk: {'only ' if free < NEEDED_GIB else ''}{free:.1f} GiB free in {base} (the slow tier needs about "
+            f"{NEEDED_GIB} GiB at once)")
 
 
 def _cleaning(config) -> bool:

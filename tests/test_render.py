@@ -195,6 +195,41 @@ def test_deterministic_for_same_rng(renderer, box, hand):
     assert not np.array_equal(first.rgb, other.rgb)
 
 
+def _quad(color, label, z=0.5, half=0.05) -> RenderMesh:
+    """A square facing the camera at depth ``z``, wound toward it."""
+    vertices = np.array([[-half, -half, z], [half, -half, z], [half, half, z], [-half, half, z]])
+    return RenderMesh(vertices, np.array([[0, 2, 1], [0, 3, 2]]), color=color, label=label)
+
+
+def test_surfaces_at_equal_depth_show_the_first_mesh_every_time(renderer):
+    # pyrender draws a set of nodes in address order; the renderer draws ``meshes`` in order, so at equal depth
+    # the first mesh wins (depth test "less"), in the colours and in the labels, render after render
+    red, blue = (1.0, 0.0, 0.0), (0.0, 0.0, 1.0)
+    centre = (slice(H // 2 - 10, H // 2 + 10), slice(W // 2 - 10, W // 2 + 10))
+    for _ in range(6):  # new meshes, new nodes at other addresses each time
+        for first, second, channel in [((red, 1), (blue, 2), 0), ((blue, 2), (red, 1), 2)]:
+            out = renderer.render(K, [_quad(*first), _quad(*second)], lighting=FLAT_LIGHT)
+            assert (out.labels[centre] == first[1]).all()
+            assert (out.rgb[centre][..., channel] > 200).all() and (out.rgb[centre][..., 2 - channel] < 30).all()
+
+
+def test_scene_nodes_keep_the_order_they_were_added():
+    import pyrender
+
+    from hoidata.render.renderer import ordered_scene
+
+    scene = ordered_scene()
+    meshes = [scene.add(pyrender.Mesh.from_trimesh(trimesh.creation.box())) for _ in range(30)]
+    lights = [scene.add(kind(intensity=1.0)) for _ in range(10)
+              for kind in (pyrender.DirectionalLight, pyrender.PointLight, pyrender.SpotLight)]
+    assert list(scene.mesh_nodes) == meshes
+    assert list(scene.light_nodes) == [n for n in lights if isinstance(n.light, pyrender.PointLight)] + \
+        [n for n in lights if isinstance(n.light, pyrender.SpotLight)] + \
+        [n for n in lights if isinstance(n.light, pyrender.DirectionalLight)]
+    scene.remove_node(meshes[3])
+    assert list(scene.mesh_nodes) == meshes[:3] + meshes[4:] and meshes[3] not in scene.mesh_nodes
+
+
 def test_procedural_backgrounds_vary():
     images = [procedural_background(np.random.default_rng(seed), 160, 120) for seed in range(12)]
     assert all(img.shape == (120, 160, 3) and img.dtype == np.uint8 for img in images)

@@ -47,8 +47,8 @@ def test_after(shared, tmp_path_factory):
 '''
 
 
-def _run(pytester, *args):
-    pytester.makeconftest(CONFTEST + SHARED)
+def _run(pytester, *args, conftest=CONFTEST):
+    pytester.makeconftest(conftest + SHARED)
     pytester.makeini("[pytest]\ntmp_path_retention_policy = failed\n")
     pytester.makepyfile(test_a=FIRST_MODULE, test_b=SECOND_MODULE)
     base = pytester.path / "base"
@@ -72,3 +72,11 @@ def test_retention_all_keeps_everything(pytester):
 def test_the_header_says_how_much_disk_is_free(pytester):
     result, _ = _run(pytester)
     result.stdout.fnmatch_lines(["disk: * GiB free in *base (the slow tier needs about * GiB at once)"])
+
+
+def test_a_short_disk_is_said_also_under_q(pytester):
+    assert "\nNEEDED_GIB = 3\n" in CONFTEST
+    result, _ = _run(pytester, "-q", conftest=CONFTEST.replace("\nNEEDED_GIB = 3\n", "\nNEEDED_GIB = 10**9\n"))
+    result.stdout.fnmatch_lines(["disk: only * GiB free in *base (the slow tier needs about 1000000000 GiB at once)"])
+    result, _ = _run(pytester, "-q")
+    assert "disk:" not in result.stdout.str()

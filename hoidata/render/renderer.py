@@ -15,6 +15,13 @@ Exact labels. Labels and depth come from pyrender's SEG pass, which turns multis
 pixel is covered by the triangle under its centre, so it gets label L only where a mesh labelled
 L is the front surface, and depth is that surface's z. The RGB pass is multisampled (anti-aliased
 edges); its coverage is returned as ``alpha`` and used to composite the background.
+
+Same input, same pixels. pyrender keeps a scene's mesh and light nodes in sets and draws the meshes and sums the
+lights in the sets' order, which follows the nodes' memory addresses. Our meshes all sit at the identity pose, so
+pyrender's sort by distance ties and that order decides which of two surfaces at equal depth shows (the first drawn
+wins) and the order of the float sums over the lights: the same frame came out different by one level at a few
+pixels from run to run, even twice in one process. Scenes here keep their nodes in insertion order: meshes are
+drawn in ``meshes`` order and lights summed in ``lighting``'s order.
 """
 
 from __future__ import annotations
@@ -36,6 +43,29 @@ CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])  # camera pose: OpenCV camera axes ->
 
 
 # ---------------------------------------------------------------- pure helpers
+
+
+class _InsertionOrdered(dict):
+    """The part of ``set`` a pyrender Scene uses for its node groups (add, remove, in, len, iteration, |), in
+    insertion order."""
+
+    def add(self, node) -> None:
+        self[node] = None
+
+    def remove(self, node) -> None:
+        del self[node]
+
+
+def ordered_scene(**kwargs):
+    """A pyrender Scene whose mesh and light nodes are drawn and summed in the order they were added."""
+    import pyrender
+
+    scene = pyrender.Scene(**kwargs)
+    for group in ("_mesh_nodes", "_point_light_nodes", "_spot_light_nodes", "_directional_light_nodes"):
+        _require(isinstance(getattr(scene, group, None), set) and not getattr(scene, group),
+                 f"pyrender.Scene has no empty {group} set: this pyrender version is not supported")
+        setattr(scene, group, _InsertionOrdered())
+    return scene
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(N, 3) unit area-weighted vertex normals of (N, 3) vertices and (F, 3) outward faces."""
@@ -254,7 +284,7 @@ class Renderer:
 
         fx, fy, cx, cy = pyrender_intrinsics(K)
         ambient = (0.0, 0.0, 0.0) if lighting is None else lighting.ambient
-        scene = pyrender.Scene(bg_color=(0.0, 0.0, 0.0, 0.0), ambient_light=np.asarray(ambient, np.float64))
+        scene = ordered_scene(bg_color=(0.0, 0.0, 0.0, 0.0), ambient_light=np.asarray(ambient, np.float64))
         camera = pyrender.IntrinsicsCamera(fx, fy, cx, cy, znear=self.znear, zfar=self.zfar)
         scene.add(camera, pose=CV_TO_GL)
         nodes = [scene.add(_pyrender_mesh(mesh, normals)) for mesh in meshes]
