@@ -22,7 +22,9 @@ from hoidata.objects import load_object_mesh, object_mesh_path, repair_mesh
 from hoidata.toy.dexycb import (
     INVALID_FRAME,
     ToyDexYCBSize,
+    ToyWorkerSpec,
     sequence_side,
+    write_calibration,
     write_toy_dexycb,
 )
 from hoidata.toy.ho3d import (
@@ -84,6 +86,23 @@ def test_dexycb_split_counts_match_the_layout(dex_root, split):
     assert len(subset) + len(far) == _implied_count(split, 5, ("right",))
     assert len(subset) > 0 and all(f.side == "right" and not f.mirror for f in subset)
     assert all(int(f.source["frame"]) % 5 == 0 for f in subset)
+
+
+@pytest.mark.slow
+def test_a_sequence_written_again_elsewhere_is_byte_identical(dex_root, tmp_path):
+    # the tree was written by a pool of 2 processes; here one sequence of each hand again, in this process: the
+    # colour images too (pyrender's draw and light order once followed memory addresses, 1 level at a few pixels)
+    calib = write_calibration(tmp_path, DEX_SIZE, np.random.default_rng(0))
+    worker = ToyWorkerSpec(dex_root / "mano", dex_root / "models").open()
+    try:
+        for number, (pos, subject, sequence) in enumerate([(0, DEX_SIZE.subjects[0], 0), (1, DEX_SIZE.subjects[1], 1)]):
+            worker.run((number, tmp_path, pos, subject, sequence, DEX_SIZE, calib, 0))
+    finally:
+        worker.close()
+    again = sorted(p for p in tmp_path.rglob("*") if p.is_file() and "calibration" not in p.parts)
+    assert len([p for p in again if p.suffix == ".jpg"]) == 2 * len(DEX_SIZE.serials) * DEX_SIZE.frames
+    for path in again:
+        assert path.read_bytes() == (dex_root / path.relative_to(tmp_path)).read_bytes(), path.relative_to(tmp_path)
 
 
 @pytest.mark.slow
