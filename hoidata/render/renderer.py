@@ -45,28 +45,6 @@ CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])  # camera pose: OpenCV camera axes ->
 # ---------------------------------------------------------------- pure helpers
 
 
-class _InsertionOrdered(dict):
-    """The part of ``set`` a pyrender Scene uses for its node groups (add, remove, in, len, iteration, |), in
-    insertion order."""
-
-    def add(self, node) -> None:
-        self[node] = None
-
-    def remove(self, node) -> None:
-        del self[node]
-
-
-def ordered_scene(**kwargs):
-    """A pyrender Scene whose mesh and light nodes are drawn and summed in the order they were added."""
-    import pyrender
-
-    scene = pyrender.Scene(**kwargs)
-    for group in ("_mesh_nodes", "_point_light_nodes", "_spot_light_nodes", "_directional_light_nodes"):
-        _require(isinstance(getattr(scene, group, None), set) and not getattr(scene, group),
-                 f"pyrender.Scene has no empty {group} set: this pyrender version is not supported")
-        setattr(scene, group, _InsertionOrdered())
-    return scene
-
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(N, 3) unit area-weighted vertex normals of (N, 3) vertices and (F, 3) outward faces."""
     p = vertices[faces]
@@ -330,3 +308,26 @@ def _pyrender_mesh(mesh: RenderMesh, with_normals: bool = True):
                                    texcoord_0=None if mesh.uv is None else mesh.uv.astype(np.float32),
                                    indices=mesh.faces.astype(np.uint32), material=material)
     return pyrender.Mesh(primitives=[primitive])
+
+
+class _InsertionOrdered(dict):
+    """The part of ``set`` a pyrender Scene uses for its node groups (add, remove, in, len, iteration, |), in
+    insertion order."""
+
+    def add(self, node) -> None:
+        self[node] = None
+
+    def remove(self, node) -> None:
+        del self[node]
+
+
+def ordered_scene(**kwargs):
+    """A pyrender Scene whose mesh and light nodes are drawn and summed in the order they were added."""
+    import pyrender
+
+    scene = pyrender.Scene(**kwargs)
+    for group in ("_mesh_nodes", "_point_light_nodes", "_spot_light_nodes", "_directional_light_nodes"):
+        _require(isinstance(getattr(scene, group, None), set) and not getattr(scene, group),
+                 f"pyrender.Scene has no empty {group} set: this pyrender version is not supported")
+        setattr(scene, group, _InsertionOrdered())
+    return scene
