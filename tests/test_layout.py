@@ -320,3 +320,35 @@ def test_the_private_name_check_finds_imports_and_attributes(tmp_path):
                               "import pkg.sub.a\nx = a._STATE, m._helper, pkg.sub.a._STATE, a.__name__\n")
     assert _private_uses(pkg) == ["pkg.b imports pkg.sub.a._helper", "pkg.b uses pkg.sub.a._STATE",
                                   "pkg.b uses pkg.sub.a._helper"]
+
+
+def _scene_calls(root: Path) -> list[str]:
+    """``file:line`` of every pyrender Scene built under ``root`` (``pyrender.Scene(...)`` or an imported
+    ``Scene(...)``), relative to ``root``."""
+    found = []
+    for path in sorted(root.rglob("*.py")):
+        tree = ast.parse(path.read_text(), str(path))
+        names = {alias.asname or alias.name for node in ast.walk(tree)
+                 if isinstance(node, ast.ImportFrom) and node.module == "pyrender"
+                 for alias in node.names if alias.name == "Scene"}
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Call) and (
+                    (isinstance(node.func, ast.Attribute) and node.func.attr == "Scene")
+                    or (isinstance(node.func, ast.Name) and node.func.id in names)):
+                found.append(f"{path.relative_to(root).as_posix()}:{node.lineno}")
+    return found
+
+
+def test_every_pyrender_scene_is_built_by_ordered_scene():
+    # a plain pyrender Scene draws meshes and sums lights in memory-address order: the same input gave other pixels
+    # (hoidata/render/renderer.py, "Same input, same pixels"); only ordered_scene builds one
+    calls = [call for top in ("hoidata", "hoisdf", "bench") for call in
+             (f"{top}/{c}" for c in _scene_calls(ROOT / top))]
+    assert len(calls) == 1 and calls[0].startswith("hoidata/render/renderer.py:"), calls
+
+
+def test_the_scene_check_finds_both_spellings(tmp_path):
+    (tmp_path / "a.py").write_text("import pyrender\ns = pyrender.Scene(bg_color=(0, 0, 0))\n")
+    (tmp_path / "b.py").write_text("from pyrender import Scene as S\n\n\ndef f():\n    return S()\n")
+    (tmp_path / "c.py").write_text("from hoidata.render.renderer import ordered_scene\ns = ordered_scene()\n")
+    assert _scene_calls(tmp_path) == ["a.py:2", "b.py:5"]
