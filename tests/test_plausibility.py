@@ -243,8 +243,7 @@ def test_frames_on_worker_processes_equal_frames_here(bench):
 
 def test_the_evaluator_report_and_the_scorer_share_one_budget(mano_right, monkeypatch):
     """The evaluator's report (scoring.plausibility_of) spends at most the scorer's cell budget per volume, with the
-    same tolerances (docs/plausibility.md, "How exact"):
-    one constant, not two that drift apart."""
+    same tolerances (docs/plausibility.md, "How exact"): one constant, not two that drift apart."""
     from hoisdf.evaluation import plausibility, score_contact
     from hoisdf.evaluation.scoring import plausibility_of
 
