@@ -109,8 +109,8 @@ def test_an_epoch_is_saved_before_its_validation_runs(tiny_store, mano_dir, tmp_
 
 def test_ddp_resume_is_exact(tiny_store_two_shards, mano_dir, tmp_path):
     """torchrun 2 processes (gloo): 2 steps + --resume 2 steps == 4 steps, bit for bit, weights and optimizer."""
-    def torchrun(out, *extra, port, resume=False):
-        cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", str(port),
+    def torchrun(out, *extra, resume=False):
+        cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--standalone",
                "-m", "hoisdf.train", *(["--resume"] if resume else []),
                *_args(tiny_store_two_shards, mano_dir, out, "train.epoch_samples=12", "train.point_sampling_epoch=0",
                       "train.field_prob=0.5", *extra)]
@@ -118,9 +118,9 @@ def test_ddp_resume_is_exact(tiny_store_two_shards, mano_dir, tmp_path):
         result = subprocess.run(cmd, capture_output=True, text=True, timeout=400, env=env, check=False)
         assert result.returncode == 0, result.stderr[-3000:]
 
-    torchrun(tmp_path / "four", "train.max_steps=4", port=29531)
-    torchrun(tmp_path / "split", "train.max_steps=2", port=29532)
-    torchrun(tmp_path / "split", "train.max_steps=4", port=29533, resume=True)
+    torchrun(tmp_path / "four", "train.max_steps=4")
+    torchrun(tmp_path / "split", "train.max_steps=2")
+    torchrun(tmp_path / "split", "train.max_steps=4", resume=True)
     a, b = (torch.load(tmp_path / run / "checkpoints" / "last.pt", weights_only=True) for run in ("four", "split"))
     assert a["progress"] == b["progress"] == {"epoch": 1, "step": 1, "global_step": 4}
     assert all(torch.equal(a["model"][k], b["model"][k]) for k in a["model"])

@@ -231,7 +231,7 @@ def test_mixed_real_and_synthetic_training_reads_the_requested_ratio(tiny_store,
 def test_ddp_two_processes_gloo_see_disjoint_samples(tiny_store_two_shards, mano_dir, tmp_path):
     store = tiny_store_two_shards
     run = tmp_path / "run"
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", "29517",
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--standalone",
            "-m", "hoisdf.train", "--shards", str(store), "--mano", str(mano_dir), "--out", str(run), "--device", "cpu",
            "--no-progress", *TINY, "train.record_keys=true", "train.epochs=1", "train.epoch_samples=16"]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
