@@ -39,10 +39,10 @@ def pytest_sessionstart(session):
 # Disk. The whole suite writes several GiB of toy datasets, stores and checkpoints (7.5 GiB at d951849, all of it
 # kept to the end, which filled a CI machine's disk). A test's tmp_path is removed when the test passes (pyproject:
 # tmp_path_retention_policy = "failed"), and the folders a module- or session-scoped fixture made under the base
-# temporary folder are removed when that fixture is torn down: the disk holds only the live fixtures and the test
-# running. `-o tmp_path_retention_policy=all` keeps everything, as pytest does by default.
+# temporary folder during its set-up are removed when that fixture is torn down (FixtureFolders): the disk holds only
+# the live fixtures and the test running. A fixture that hands out folders later (a factory) makes their parent
+# folder in its set-up. `-o tmp_path_retention_policy=all` keeps everything, as pytest does by default.
 NEEDED_GIB = 3
-_MADE = pytest.StashKey()
 
 
 def _basetemp(config):
@@ -65,27 +65,36 @@ def _cleaning(config) -> bool:
     return config.getini("tmp_path_retention_policy") != "all" and _basetemp(config) is not None
 
 
-@pytest.hookimpl(wrapper=True, specname="pytest_fixture_setup")
-def pytest_fixture_setup_tracking(fixturedef, request):  # pytest reads only pytest_* names
-    """Remember which new folders under the base temporary folder a non-function fixture's set-up made."""
-    if fixturedef.scope == "function" or not _cleaning(request.config):
-        return (yield)
-    base = _basetemp(request.config)
-    before = set(base.iterdir())
-    try:
-        return (yield)
-    finally:
-        made = request.config.stash.setdefault(_MADE, {})
-        claimed = set().union(*made.values())  # made by the fixtures this one set up first
-        made[fixturedef] = made.get(fixturedef, set()) | (set(base.iterdir()) - before - claimed)
+class FixtureFolders:
+    """Removes the folders a module- or session-scoped fixture made under the base temporary folder when that
+    fixture is torn down. A plugin of its own (registered below), not hooks of this conftest: pytest hands a
+    conftest's hooks only the nodes under its folder, and a session-scoped fixture is torn down by the session."""
+
+    def __init__(self):
+        self.made: dict = {}  # fixturedef -> the folders its set-up made
+
+    @pytest.hookimpl(wrapper=True)
+    def pytest_fixture_setup(self, fixturedef, request):
+        if fixturedef.scope == "function" or not _cleaning(request.config):
+            return (yield)
+        base = _basetemp(request.config)
+        before = set(base.iterdir())
+        try:
+            return (yield)
+        finally:
+            claimed = set().union(*self.made.values())  # made by the fixtures this one set up first
+            self.made[fixturedef] = self.made.get(fixturedef, set()) | (set(base.iterdir()) - before - claimed)
+
+    def pytest_fixture_post_finalizer(self, fixturedef, request):
+        for path in self.made.pop(fixturedef, ()):
+            if path.is_symlink():  # mktemp's "<name>current" link
+                path.unlink(missing_ok=True)
+            else:
+                shutil.rmtree(path, ignore_errors=True)
 
 
-def pytest_fixture_post_finalizer(fixturedef, request):
-    for path in request.config.stash.get(_MADE, {}).pop(fixturedef, ()):
-        if path.is_symlink():  # mktemp's "<name>current" link
-            path.unlink(missing_ok=True)
-        else:
-            shutil.rmtree(path, ignore_errors=True)
+def pytest_configure(config):
+    config.pluginmanager.register(FixtureFolders(), "fixture-folders")
 
 
 # The fixtures that write a toy dataset or build a store (seconds each, and every fixture built on them): a test

@@ -114,11 +114,12 @@ def parity(run: Path, setting: str, mano_dir) -> dict[str, float]:
 @pytest.fixture(scope="module")
 def imported(tmp_path_factory, mano_dir):
     """setting -> run folder imported from the rebuilt snapshot (built lazily, once per setting)."""
-    cache = {}
+    cache, root = {}, tmp_path_factory.mktemp("upstream")  # made in the set-up: removed when the module ends
 
     def get(setting):
         if setting not in cache:
-            tmp = tmp_path_factory.mktemp(f"up_{setting}")
+            tmp = root / setting
+            tmp.mkdir()
             snap = write_snapshot(tmp / "snapshot_69_1.pth.tar", rebuild_network(setting, mano_dir))
             U_info = CLI.import_snapshot(snap, setting, mano_dir, tmp / "run")
             cache[setting] = (tmp / "run", snap, U_info)

@@ -48,9 +48,13 @@ def test_after(shared, tmp_path_factory):
 
 
 def _run(pytester, *args, conftest=CONFTEST):
-    pytester.makeconftest(conftest + SHARED)
-    pytester.makeini("[pytest]\ntmp_path_retention_policy = failed\n")
-    pytester.makepyfile(test_a=FIRST_MODULE, test_b=SECOND_MODULE)
+    # the project's layout: the ini at the root, conftest.py beside the tests in tests/ (a conftest's own hooks see
+    # only the nodes under its folder, and the session, which tears down session fixtures, is not one of them)
+    tests = pytester.path / "tests"
+    tests.mkdir(exist_ok=True)
+    for name, text in {"conftest.py": conftest + SHARED, "test_a.py": FIRST_MODULE, "test_b.py": SECOND_MODULE}.items():
+        (tests / name).write_text(text)
+    pytester.makeini("[pytest]\ntmp_path_retention_policy = failed\ntestpaths = tests\n")
     base = pytester.path / "base"
     result = pytester.runpytest_inprocess("-p", "no:cacheprovider", f"--basetemp={base}", *args)
     left = {p.name.rstrip("0123456789") for p in base.iterdir() if p.is_dir() and not p.is_symlink()}
@@ -60,7 +64,7 @@ def _run(pytester, *args, conftest=CONFTEST):
 def test_fixture_folders_go_when_the_fixture_ends_and_a_failed_tests_folder_stays(pytester):
     result, left = _run(pytester)
     result.assert_outcomes(passed=2, failed=1)
-    assert left == {"test_fails"}  # the session fixture's folder went at the end too
+    assert left == {"test_fails"}  # the session fixture's folder went when the session tore it down
 
 
 def test_retention_all_keeps_everything(pytester):
