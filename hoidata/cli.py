@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 
 from hoidata import __version__
-from hoidata.cli_types import count_type, non_negative_int, positive_int
+from hoidata.cli_types import ArgumentParser, count_type, non_negative_int, positive_int
 from hoidata.errors import run_cli
 from hoidata.pipeline.launch import add_launcher_flags, launch
 
@@ -207,9 +207,9 @@ def cmd_toy_pipeline(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="hoidata", description="Hand-object datasets -> training-ready stores.")
+    parser = ArgumentParser(prog="hoidata", description="Hand-object datasets -> training-ready stores.")
     parser.add_argument("--version", action="version", version=f"hoidata {__version__}")
-    common = argparse.ArgumentParser(add_help=False)
+    common = ArgumentParser(add_help=False)
     common.add_argument("--debug", action="store_true", help="on an error, show the traceback instead of one line")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     parser.commands = sub.choices  # name -> subcommand parser (main parses the subcommand's own arguments)

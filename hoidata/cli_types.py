@@ -1,13 +1,24 @@
 """argparse types shared by every command line of the project (``hoidata``, ``python -m hoisdf.train`` /
 ``evaluate`` / ``toy``, ``hoisdf score``), beside :func:`hoidata.errors.run_cli` which reports their errors.
 
-A bad value is argparse's own one-line error naming the flag (exit 2), before anything is read or written.
+A bad value is argparse's own one-line error naming the flag (exit 2), before anything is read or written. Every
+command line's parser is an :class:`ArgumentParser`, whose error line masks a URL's secrets as every other error
+line does (argparse quotes the value it refused: a store URL with a password).
 """
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
+
+
+class ArgumentParser(argparse.ArgumentParser):
+    """argparse's parser with :func:`hoidata.errors.redact_urls` on its error line (its sub-parsers are one too)."""
+
+    def error(self, message: str):
+        from hoidata.errors import redact_urls
+
+        super().error(redact_urls(message))
 
 
 def count_type(low: int):
@@ -37,7 +48,7 @@ def local_path(text: str) -> Path:
     try:
         return local_folder(text, "this option")
     except DataError as exc:
-        raise argparse.ArgumentTypeError(f"{text!r}: {exc.problem}") from None
+        raise argparse.ArgumentTypeError(f"{text!r}: {exc.problem}") from None  # the parser's error() masks it
 
 
 local_path.__name__ = "local path"

@@ -14,15 +14,22 @@ import re
 import sys
 from collections.abc import Iterator
 
-# a URL's user info (``scheme://user:password@``) and its query's values (presigned signatures, tokens): secrets
-_USERINFO = re.compile(r"(?i)\b([a-z][a-z0-9+.-]*://)[^/?#@\s]+@")
-_QUERY = re.compile(r"(?i)(\b[a-z][a-z0-9+.-]*://[^\s?#]*\?)([^\s#]*?)(?=[\s#'\"]|: |:$|$)")
+# a URL's user info (``scheme://user:password@``, up to the authority's last '@': a password may hold a raw one) and
+# its query's values (presigned signatures, tokens): secrets. ``scheme:/`` too: a URL squashed by Path() into a
+# folder name (``--mano http://u:pw@h/x`` reads as the folder ``http:/u:pw@h/x``) still carries them.
+_USERINFO = re.compile(r"(?i)\b([a-z][a-z0-9+.-]*:/{1,3})[^/?#\s]+@")
+_QUERY = re.compile(r"(?i)(\b[a-z][a-z0-9+.-]*:/{1,3}[^\s?#]*\?)([^\s#]*?)(?=[\s#'\"]|: |:$|$)")
 _VALUE = re.compile(r"=[^&;]*")
 
 
 def redact_urls(text: str) -> str:
     """``text`` with the secrets of every URL in it masked: its user info (``http://alice:pw@host`` ->
-    ``http://***@host``) and each query value (``?X-Amz-Signature=abc`` -> ``?X-Amz-Signature=***``).
+    ``http://***@host``) and the value of every query parameter (``?X-Amz-Signature=abc`` ->
+    ``?X-Amz-Signature=***``). Every value, not a list of known names: presigned and shared-access URLs spread
+    their secret over parameters whose names vary by provider (``X-Amz-Signature``, ``X-Amz-Credential``,
+    ``X-Amz-Security-Token``, ``X-Goog-Signature``, ``X-Goog-Credential``, ``sig``, ``se``, ``token``, ``key``,
+    ``access_token``, ``Signature``, ``Policy``, ``Key-Pair-Id``, ...), and a store URL has no other use for a query;
+    the names stay, so a line still says what was sent.
 
     The one redaction of the project: error lines (every :class:`DataError` and :func:`run_cli`'s line), and
     whatever records a store (a run's ``config.json``, evaluation results) go through it.

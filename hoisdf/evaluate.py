@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from hoidata.atomic import write_atomic
-from hoidata.cli_types import local_path, non_negative_int, positive_int
+from hoidata.cli_types import ArgumentParser, local_path, non_negative_int, positive_int
 from hoidata.errors import DataError, run_cli
 from hoidata.schema import FULL
 from hoidata.store import RemoteStore, read_index, resolve_store
@@ -157,7 +157,7 @@ def crop_note(model_settings, flags, n: int) -> str | None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m hoisdf.evaluate", description=__doc__,
+    p = ArgumentParser(prog="python -m hoisdf.evaluate", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--ckpt", required=True, type=Path, help="run folder (its checkpoints/last.pt) or a .pt file")
     p.add_argument("--shards", nargs="+", required=True, type=str, metavar="STORE",

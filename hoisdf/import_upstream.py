@@ -23,6 +23,7 @@ from pathlib import Path
 import torch
 
 from hoidata.atomic import write_atomic
+from hoidata.cli_types import ArgumentParser
 from hoidata.errors import DataError, run_cli
 from hoisdf.training import upstream as U
 from hoisdf.training.checkpoint import CHECKPOINTS, LAST, load_weights, save_checkpoint
@@ -69,7 +70,7 @@ def import_snapshot(snapshot: Path, setting: str, mano_dir: Path, out: Path) -> 
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m hoisdf.import_upstream", description=__doc__,
+    p = ArgumentParser(prog="python -m hoisdf.import_upstream", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("snapshot", type=Path, help="the authors' snapshot_*.pth.tar")
     p.add_argument("--setting", required=True, choices=sorted(U.SETTINGS),

@@ -24,7 +24,7 @@ import json
 import sys
 
 from hoidata.atomic import write_atomic
-from hoidata.cli_types import local_path
+from hoidata.cli_types import ArgumentParser, local_path
 from hoidata.errors import run_cli
 
 SUBCOMMANDS = {
@@ -35,7 +35,7 @@ SUBCOMMANDS = {
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="hoisdf score", description="Score result files of any method offline, with "
+    p = ArgumentParser(prog="hoisdf score", description="Score result files of any method offline, with "
                                 "no model and no store (docs/scoring.md).")
     sub = p.add_subparsers(dest="command", required=True, metavar="{" + ",".join(SUBCOMMANDS) + "}")
     for name, module_name in SUBCOMMANDS.items():

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import hoidata
 from hoidata.atomic import write_atomic
-from hoidata.cli_types import local_path, non_negative_int, positive_int
+from hoidata.cli_types import ArgumentParser, local_path, non_negative_int, positive_int
 from hoidata.errors import run_cli
 from hoisdf.ablation import TABLES, run_table
 from hoisdf.evaluate import evaluate
@@ -124,7 +124,7 @@ def run(out: Path, steps: int, workers: int, seed: int, sequences: int | None, f
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m hoisdf.toy", description=__doc__,
+    p = ArgumentParser(prog="python -m hoisdf.toy", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=local_path, default=Path("toy_run"), help="output folder")
     p.add_argument("--steps", type=positive_int, default=700, help="training steps (batch 8)")

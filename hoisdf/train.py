@@ -21,7 +21,7 @@ from pathlib import Path
 import torch
 
 from hoidata.atomic import write_atomic
-from hoidata.cli_types import local_path
+from hoidata.cli_types import ArgumentParser, local_path
 from hoidata.errors import DataError, redact_urls, run_cli
 from hoidata.provenance import git_commit
 from hoidata.store import resolve_store
@@ -105,7 +105,7 @@ def write_run_info(run_dir: Path, config: TrainConfig, stores, val_stores, world
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m hoisdf.train", description=__doc__,
+    p = ArgumentParser(prog="python -m hoisdf.train", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--shards", nargs="+", required=True, metavar="STORE[:WEIGHT]",
                    help="training stores: folders or http(s)://, s3://, gs:// URLs")

@@ -5,10 +5,13 @@ when the consumer is slow (aiohttp's default 300 s *total* timeout, or the serve
 minutes when the server stalls. Here every request reads one block (:data:`BLOCK_SIZE`) with an HTTP range
 request, as fast as the server sends it; a dropped or stalled connection is resumed at the byte offset where it
 broke off; a failure without any progress is retried a bounded number of times with backoff. There is no cap on
-the total time of a read that makes progress.
+the total time of a read that makes progress, only a minimum throughput while a request is being read
+(:class:`~hoidata.store.remoteopts.Throughput`): a server that trickles fails like one that stalls.
 
 Servers that ignore ``Range`` (200 with the whole body) or encode the body (``Content-Encoding``) are read as one
-stream from the start instead, which is also resumed (the bytes before the offset are read again and dropped).
+stream from the start instead, which is also resumed (the bytes before the offset are read again and dropped). An
+encoded range answer (an object store holding gzip-encoded files ranges over the encoded bytes) is dropped and the
+file asked for whole from then on: the ranges of an encoded body cannot be decoded one by one.
 A size the server does not state (no ``Content-Length``, chunked, or encoded) is :data:`UNKNOWN_SIZE`, never
 "missing"; the shard reader then checks the byte count against the index.
 
@@ -20,80 +23,18 @@ from __future__ import annotations
 
 import asyncio
 import math
-import os
 import re
 from collections import deque
-from dataclasses import dataclass
 
 from hoidata.errors import DataError
+from hoidata.store.remoteopts import RemoteOptions, Throughput, TooSlow, storage_options
+
+__all__ = ["BLOCK_SIZE", "UNKNOWN_SIZE", "HttpReader", "RemoteOptions", "http_sizes", "storage_options"]
 
 UNKNOWN_SIZE = -1  # a served file whose size the server does not state (missing files are None)
 BLOCK_SIZE = 8 << 20  # bytes per range request: one request never waits on the consumer
 RETRY_STATUS = (408, 429, 502, 503, 504)  # a busy or restarting server: worth another try
 CONCURRENT_SIZES = 16  # HEAD requests in flight at once
-
-
-@dataclass(frozen=True)
-class RemoteOptions:
-    """How long a remote read waits and how often it tries again (environment variables, see docs/stores.md).
-
-    connect_timeout: seconds to open a connection. read_timeout: seconds without a single byte from the server
-    (before the headers or within a body) after which a request counts as stalled. retries: further attempts of a
-    request that failed without delivering a byte (a request that delivers bytes resets the count); between
-    attempts the reader waits 0.5 s, 1 s, 2 s ... but never longer than ``read_timeout``. Defaults: a server that
-    stalls is reported 3 x 15 s + 1.5 s after it stopped, or one idle timeout more (61.5 s) when the request it
-    stalled in had delivered bytes: about a minute.
-    """
-
-    connect_timeout: float = 10.0
-    read_timeout: float = 15.0
-    retries: int = 2
-
-    ENV = {"connect_timeout": "HOIDATA_REMOTE_CONNECT_TIMEOUT", "read_timeout": "HOIDATA_REMOTE_READ_TIMEOUT",
-           "retries": "HOIDATA_REMOTE_RETRIES"}
-
-    @classmethod
-    def from_env(cls) -> RemoteOptions:
-        """The options set by ``HOIDATA_REMOTE_CONNECT_TIMEOUT``, ``HOIDATA_REMOTE_READ_TIMEOUT`` (seconds, > 0)
-        and ``HOIDATA_REMOTE_RETRIES`` (>= 0); unset ones keep their defaults. A bad value is one DataError naming
-        the variable. Environment variables reach every DataLoader worker, torchrun rank and Slurm task."""
-        values = {}
-        for field, name in cls.ENV.items():
-            text = os.environ.get(name, "").strip()
-            if not text:
-                continue
-            try:
-                value = int(text) if field == "retries" else float(text)
-            except ValueError:
-                value = None
-            if value is None or not math.isfinite(value) or value < 0 or (field != "retries" and value == 0):
-                want = "a whole number >= 0" if field == "retries" else "a number of seconds > 0"
-                raise DataError(name, None, f"expected {want}, got {text!r}")
-            values[field] = value
-        return cls(**values)
-
-    def backoff(self, failures: int) -> float:
-        """Seconds to wait before attempt ``failures + 1``."""
-        return min(0.5 * 2 ** (failures - 1), self.read_timeout)
-
-
-def storage_options(scheme: str, options: RemoteOptions, query: str = "") -> dict:
-    """fsspec keyword arguments for ``scheme`` with ``options`` as its timeouts. http(s): aiohttp's timeouts with
-    no total cap (aiohttp's default is 300 s for the whole request, reading included), a connect timeout and an
-    idle-read timeout; ``query`` (a store URL's query) is sent with every request, since zarr joins names onto the
-    URL's path. s3://: botocore's connect/read timeouts and attempts (s3fs's ``config_kwargs``); gs://: aiohttp's
-    timeouts for each request (gcsfs's ``requests_timeout``: gcsfs passes it to every request, so a session-wide
-    timeout would be replaced by its default of none at all)."""
-    import aiohttp
-
-    timeout = aiohttp.ClientTimeout(total=None, connect=None, sock_connect=options.connect_timeout,
-                                    sock_read=options.read_timeout)
-    if scheme == "s3":
-        return {"config_kwargs": {"connect_timeout": options.connect_timeout, "read_timeout": options.read_timeout,
-                                  "retries": {"max_attempts": options.retries + 1}}}
-    if scheme == "gs":
-        return {"requests_timeout": timeout}
-    return {"client_kwargs": {"timeout": timeout}, **({"params": _query_pairs(query)} if query else {})}
 
 
 def http_filesystem(options: RemoteOptions):
@@ -103,17 +44,11 @@ def http_filesystem(options: RemoteOptions):
     return fsspec.filesystem("http", **storage_options("http", options))
 
 
-def _query_pairs(query: str) -> list[tuple[str, str]]:
-    from urllib.parse import parse_qsl
-
-    return parse_qsl(query, keep_blank_values=True)
-
-
 def _retryable(exc: BaseException) -> bool:
     import aiohttp
 
     return isinstance(exc, (asyncio.TimeoutError, aiohttp.ClientPayloadError, aiohttp.ServerDisconnectedError,
-                            aiohttp.ClientOSError, ConnectionError, _Busy))
+                            aiohttp.ClientOSError, ConnectionError, _Busy, TooSlow))
 
 
 class _Busy(Exception):
@@ -125,7 +60,7 @@ def _describe(exc: BaseException, options: RemoteOptions) -> str:
     import aiohttp
 
     name = type(exc).__name__
-    if isinstance(exc, _Busy):
+    if isinstance(exc, (_Busy, TooSlow)):
         return str(exc)
     if isinstance(exc, aiohttp.TooManyRedirects):
         return f"more than {len(exc.history)} redirects (a redirect loop?)"
@@ -141,10 +76,15 @@ def _describe(exc: BaseException, options: RemoteOptions) -> str:
     return f"{name}: {text[0]}" if text and text[0] else name
 
 
+def _encoded(headers) -> bool:
+    """Whether a response's body is encoded (gzip, br, ...): its lengths and ranges count encoded bytes."""
+    return headers.get("Content-Encoding", "identity").strip().lower() not in ("identity", "")
+
+
 def stated_size(status: int, headers) -> int:
     """The size of a file from a 200 / 206 response's headers, or UNKNOWN_SIZE where the server does not state
     it (no Content-Length, chunked, or a Content-Encoding: the length then counts encoded bytes)."""
-    if headers.get("Content-Encoding", "identity").strip().lower() not in ("identity", ""):
+    if _encoded(headers):
         return UNKNOWN_SIZE
     if status == 206:
         total = headers.get("Content-Range", "").rpartition("/")[2].strip()
@@ -246,6 +186,9 @@ class HttpReader:
         self._chunks, self._pos = deque(), 0  # received, not yet read (a block at most); position in the first
         self._stream, self._skip = None, 0  # the open 200 response of a server that ignores Range; bytes to drop
         self._end = False  # the end of the file was seen
+        self._whole = False  # ask for the whole file, not a range (the server encodes its ranges)
+        self._slow = 0  # requests in a row that ended under the minimum throughput
+        self._pace = Throughput(self.options)
 
     def read(self, n: int = -1) -> bytes:
         want = math.inf if n is None or n < 0 else n
@@ -276,35 +219,49 @@ class HttpReader:
             got = _Chunks()
             try:
                 sync(self.fs.loop, self._fetch, got)
+                self._slow = 0
                 if got or self._end:
                     break
                 raise DataError(self.url, None, f"cannot read: an empty response{self._where()}")
             except DataError:
                 raise
             except Exception as exc:  # noqa: BLE001 - aiohttp's and the OS's errors: sorted right here
-                if got:  # progress: hand it on; the next block resumes at the new offset
+                slow = isinstance(exc, TooSlow)  # a failed attempt even though it delivered bytes
+                if got and not slow:  # progress: hand it on; the next block resumes at the new offset
                     break
-                failures += 1
+                if slow:
+                    self._slow += 1
+                failures = self._slow if slow else failures + 1
                 if not _retryable(exc) or failures > self.options.retries:
                     tries = f" ({failures} attempts)" if failures > 1 else ""
-                    raise DataError(self.url, None, f"cannot read: {_describe(exc, self.options)}{self._where()}"
-                                                    f"{tries}") from None
+                    raise DataError(self.url, None, f"cannot read: {_describe(exc, self.options)}"
+                                                    f"{self._where(got.size)}{tries}") from None
                 time.sleep(self.options.backoff(failures))
+                if got:  # what arrived is kept; the next request resumes after it
+                    break
         self.offset += got.size
         return got
 
-    def _where(self) -> str:
-        """`` at byte N of SIZE``: where the read stands, for messages."""
-        return f" at byte {self.offset}" + (f" of {self.size}" if self.size is not None and self.size >= 0 else "")
+    def _where(self, more: int = 0) -> str:
+        """`` at byte N of SIZE``: where the read stands (``more`` bytes past the offset), for messages."""
+        return f" at byte {self.offset + more}" + (f" of {self.size}" if self.size is not None and self.size >= 0
+                                                   else "")
 
     async def _fetch(self, got: _Chunks) -> None:
         """Append the next block to ``got`` (a range request, or the open stream of a server without ranges)."""
+        self._pace.resume()
         try:
             if self._stream is None:
                 session = await self.fs.set_session()
-                headers = {"Range": f"bytes={self.offset}-{self.offset + BLOCK_SIZE - 1}",
-                           "Accept-Encoding": "identity"}
+                headers = {"Accept-Encoding": "identity"}
+                if not self._whole:
+                    headers["Range"] = f"bytes={self.offset}-{self.offset + BLOCK_SIZE - 1}"
                 resp = await session.get(self.fs.encode_url(self.url), headers=headers)
+                if resp.status == 206 and _encoded(resp.headers):  # a range of encoded bytes: ask for the whole
+                    resp.close()
+                    self._whole = True
+                    del headers["Range"]
+                    resp = await session.get(self.fs.encode_url(self.url), headers=headers)
                 if resp.status != 206:
                     self._stream, self._skip = resp, self.offset  # closed below on any error
                     if resp.status == 416:  # nothing at or past the offset: the file ends there
@@ -321,6 +278,8 @@ class HttpReader:
         except BaseException:
             await self._close_stream()
             raise
+        finally:
+            self._pace.pause()
 
     async def _read_range(self, resp, got: _Chunks) -> None:
         match = _RANGE_RE.match(resp.headers.get("Content-Range", ""))
@@ -330,6 +289,7 @@ class HttpReader:
         asked = min(BLOCK_SIZE, int(match.group(2)) - self.offset + 1)
         async for chunk in resp.content.iter_any():
             got.append(chunk)
+            self._pace.feed(len(chunk))
             if got.size > asked:  # a body without a length that goes on: memory stays bounded by the block
                 raise DataError(self.url, None, f"cannot read: the server sent more than the {asked} bytes of "
                                                 f"its Content-Range{self._where()}")
@@ -344,6 +304,7 @@ class HttpReader:
             if not chunk:
                 break
             self._skip -= len(chunk)
+            self._pace.feed(len(chunk))
         while got.size < BLOCK_SIZE:
             chunk = await content.read(BLOCK_SIZE - got.size)
             if not chunk:
@@ -351,6 +312,7 @@ class HttpReader:
                 await self._close_stream()
                 return
             got.append(chunk)
+            self._pace.feed(len(chunk))
 
     async def _close_stream(self) -> None:
         if self._stream is not None:

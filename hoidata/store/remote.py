@@ -50,7 +50,7 @@ def _is_http(url: str) -> bool:
     return _scheme(url) in ("http", "https")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, repr=False)  # repr too masks the URL's secrets (a list of them prints by repr)
 class RemoteFile:
     """One file of a remote store, named by its URL (what errors print)."""
 
@@ -59,12 +59,15 @@ class RemoteFile:
     def __str__(self) -> str:
         return redact_urls(self.url)
 
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({str(self)!r})"
+
     @property
     def name(self) -> str:
         return self.url.partition("?")[0].rstrip("/").rpartition("/")[2]
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, repr=False)  # repr too masks the URL's secrets (a list of them prints by repr)
 class RemoteStore:
     """A store at a URL: ``RemoteStore("https://host/stores/dexycb")``; files are ``store.file("shard-000000.tar")``."""
 
@@ -90,6 +93,9 @@ class RemoteStore:
 
     def __str__(self) -> str:
         return redact_urls(self.url)
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({str(self)!r})"
 
     @property
     def base(self) -> str:

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hoidata.errors import DataError
+from hoidata.errors import DataError, redact_urls
 from hoidata.schema import META, META_FIELDS
 from hoidata.store.codec import KEY
 from hoidata.store.index import ShardInfo, StoreIndex, read_index
@@ -104,7 +104,7 @@ def _verify_records(path: Path, info: ShardInfo, index: StoreIndex, report: Veri
 def verify_store(store_dir) -> VerifyReport:
     """Check a whole store: every shard's size, sha256 and record count against the index, every record
     decoded and its key and labels matching the index, in order; shard files the index does not list."""
-    report = VerifyReport(str(store_dir))
+    report = VerifyReport(redact_urls(str(store_dir)))  # a URL (refused below) prints without its password
     try:
         store_dir = local_store(store_dir, "hoidata verify")
     except DataError as exc:
