@@ -10,6 +10,7 @@ import base64
 import gzip
 import http.server
 import os
+import re
 import shutil
 import socket
 import sys
@@ -67,11 +68,14 @@ class _Handler(http.server.BaseHTTPRequestHandler):
         if not file.is_file():
             return self._plain(404)
         data = file.read_bytes()
-        kind = mode if rest.endswith(".tar") else "stallhead" if mode == "stallindex" and "/c/" in rest else "ok"
+        if mode == "gziprange":  # an object store holding every file gzip-encoded: ranges count encoded bytes
+            data = gzip.compress(data, mtime=0)
+        kind = (mode if rest.endswith(".tar") or mode == "gziprange"
+                else "stallhead" if mode == "stallindex" and "/c/" in rest else "ok")
         if kind == "stallhead":
             self.stop.wait(60)
             return None
-        if kind in ("nolen", "chunked", "gzip", "norange", "cutnorange"):
+        if kind in ("nolen", "chunked", "gzip", "norange", "cutnorange", "trickleall"):
             return self._whole(kind, data, head)
         status, body, first = 200, data, 0
         ranged = self.headers.get("Range", "").removeprefix("bytes=").split("-")
@@ -85,6 +89,8 @@ class _Handler(http.server.BaseHTTPRequestHandler):
         if kind == "flood":  # a chunked range answer that sends far more than its Content-Range says
             return self._chunked(body * 4, head, f"bytes {first}-{last}/{len(data)}")
         self.send_header("Content-Length", str(len(body)))
+        if kind == "gziprange":
+            self.send_header("Content-Encoding", "gzip")
         if status == 206:
             self.send_header("Content-Range", f"bytes {first}-{last}/{len(data)}")
         self.end_headers()
@@ -97,6 +103,8 @@ class _Handler(http.server.BaseHTTPRequestHandler):
         elif kind == "drop":  # the connection breaks after DROP_AFTER bytes of every response
             self.wfile.write(body[:DROP_AFTER])
             self.close_connection = True
+        elif kind == "trickle":
+            self._trickle(body)
         elif kind == "slow":  # steady, 1 KiB every 20 ms: far longer in all than the idle timeout
             for start in range(0, len(body), 1024):
                 self.wfile.write(body[start:start + 1024])
@@ -131,16 +139,26 @@ class _Handler(http.server.BaseHTTPRequestHandler):
         body = gzip.compress(data) if kind == "gzip" else data
         if kind == "gzip":
             self.send_header("Content-Encoding", "gzip")
-        if kind in ("gzip", "norange", "cutnorange"):
+        if kind in ("gzip", "norange", "cutnorange", "trickleall"):
             self.send_header("Content-Length", str(len(body)))
         self.send_header("Connection", "close")
         self.close_connection = True
         if kind == "chunked":
             return self._chunked(body, head)
         self.end_headers()
-        if not head:
+        if kind == "trickleall" and not head:
+            self._trickle(body)
+        elif not head:
             self.wfile.write(body[: len(body) // 2] if kind == "cutnorange" else body)
         return None
+
+    def _trickle(self, body: bytes) -> None:
+        """``body`` at 1 byte per 50 ms (20 B/s): never idle long enough for the 0.4 s read timeout."""
+        for start in range(len(body)):
+            if self.stop.wait(0.05):
+                return
+            self.wfile.write(body[start:start + 1])
+            self.wfile.flush()
 
     def _chunked(self, body: bytes, head: bool, content_range: str | None = None) -> None:
         """The rest of a response (status sent) with ``body`` in chunked transfer encoding: no Content-Length."""
@@ -180,8 +198,10 @@ def server(tmp_path_factory):
 
 @pytest.fixture
 def quick(monkeypatch):
-    """Sub-second timeouts, one retry, and small blocks, so every stall and resume here takes a moment."""
+    """Sub-second timeouts, a 1 s throughput window, one retry, and small blocks, so every stall, trickle and
+    resume here takes a moment (and every healthy read shows the guard does not fire on it)."""
     monkeypatch.setenv("HOIDATA_REMOTE_CONNECT_TIMEOUT", "2")
+    monkeypatch.setenv("HOIDATA_REMOTE_RATE_WINDOW", "1")
     monkeypatch.setenv("HOIDATA_REMOTE_READ_TIMEOUT", "0.4")
     monkeypatch.setenv("HOIDATA_REMOTE_RETRIES", "1")
     monkeypatch.setattr("hoidata.store.httpread.BLOCK_SIZE", 16 << 10)
@@ -236,19 +256,27 @@ def test_no_total_time_cap_only_connect_and_idle_read_timeouts(monkeypatch):
     monkeypatch.setenv("HOIDATA_REMOTE_READ_TIMEOUT", "7.5")
     monkeypatch.setenv("HOIDATA_REMOTE_RETRIES", "0")
     assert RemoteOptions.from_env() == RemoteOptions(read_timeout=7.5, retries=0)
+    monkeypatch.setenv("HOIDATA_REMOTE_MIN_RATE", "0")  # 0: the throughput guard is off
+    monkeypatch.setenv("HOIDATA_REMOTE_RATE_WINDOW", "2.5")
+    assert RemoteOptions.from_env() == RemoteOptions(read_timeout=7.5, retries=0, min_rate=0, rate_window=2.5)
+    assert (RemoteOptions.min_rate, RemoteOptions.rate_window) == (1024, 60)  # the defaults: under 1 KiB/s for 60 s
     for name, bad in (("HOIDATA_REMOTE_READ_TIMEOUT", "0"), ("HOIDATA_REMOTE_CONNECT_TIMEOUT", "soon"),
-                      ("HOIDATA_REMOTE_RETRIES", "1.5"), ("HOIDATA_REMOTE_READ_TIMEOUT", "inf")):
+                      ("HOIDATA_REMOTE_RETRIES", "1.5"), ("HOIDATA_REMOTE_READ_TIMEOUT", "inf"),
+                      ("HOIDATA_REMOTE_MIN_RATE", "-1"), ("HOIDATA_REMOTE_RATE_WINDOW", "0")):
         monkeypatch.setenv(name, bad)
         with pytest.raises(DataError, match=f"^{name}: expected"):
             RemoteOptions.from_env()
         monkeypatch.delenv(name)
 
 
-@pytest.mark.parametrize("mode", ["ok", "slow", "drop", "busyonce", "moved", "norange", "nolen", "chunked", "gzip"])
+@pytest.mark.parametrize("mode", ["ok", "slow", "drop", "busyonce", "moved", "norange", "nolen", "chunked", "gzip",
+                                  "gziprange"])
 def test_a_healthy_server_is_read_whole_whatever_its_pace_and_framing(server, blob, quick, mode):
     """Slow: 100 kB at 1 KiB per 20 ms takes ~2 s, five times the 0.4 s idle timeout; drop: every response breaks
     after 3000 bytes, so the read resumes ~34 times; busyonce: 503 on the first request, then served; moved: a 302
-    to the file in "ok" mode; the others answer 200 with the whole body, whatever the Range."""
+    to the file in "ok" mode; gziprange: every answer gzip-encoded, ranges over the encoded bytes (an object store
+    holding gzip files), so the file is asked for whole; the others answer 200 with the whole body, whatever the
+    Range."""
     _, base, log = server
     data, name = blob
     start = len(log)
@@ -304,6 +332,52 @@ def test_a_stalled_or_breaking_server_is_one_line_naming_the_url(server, blob, q
     assert line.endswith(f"at byte {arrived} of {len(data)}{tries}"), line
 
 
+@pytest.mark.parametrize("mode", ["trickle", "trickleall"])
+def test_a_trickling_server_is_one_line_naming_the_url_and_its_rate(server, blob, quick, mode):
+    """1 byte per 50 ms, in range answers (trickle) or one whole answer (trickleall): the 0.4 s idle timeout never
+    fires and the 100 kB would take 83 minutes. Under the minimum throughput (1024 B/s over the 1 s window set here)
+    a request fails like a stall: the bytes it brought are kept, it is tried once more, then one line."""
+    _, base, log = server
+    data, name = blob
+    url = f"{base}/{mode}/{name}"
+    start = len(log)
+    with pytest.raises(DataError) as err:
+        _read_all(url, len(data))
+    line = str(err.value)
+    rate = (r"the server sent \d+ bytes in [\d.]+ s \([\d.]+ B/s, under the 1024 B/s of HOIDATA_REMOTE_MIN_RATE over "
+            r"HOIDATA_REMOTE_RATE_WINDOW=1 s\)")
+    where = rf" at byte [1-9]\d* of {len(data)} \(2 attempts\)"  # the bytes that arrived were kept
+    assert re.fullmatch(rf"{re.escape(url)}: cannot read: {rate}{where}", line), line
+    assert len([entry for entry in log[start:] if entry[0] == "GET"]) == 2
+
+
+def test_the_throughput_guard_counts_only_the_time_requests_are_read(monkeypatch):
+    from hoidata.store.remoteopts import Throughput, TooSlow
+
+    clock = [0.0]
+    monkeypatch.setattr("hoidata.store.remoteopts.time.monotonic", lambda: clock[0])
+    pace = Throughput(RemoteOptions(min_rate=100, rate_window=1))
+    pace.resume()
+    clock[0] = 0.6
+    pace.feed(10)
+    pace.pause()
+    clock[0] = 500.0  # the consumer's pause between two requests: not the server's pace
+    pace.resume()
+    clock[0] = 500.3
+    pace.feed(10)  # 20 bytes in 0.9 s of reading: the window is not over yet
+    clock[0] = 500.5
+    with pytest.raises(TooSlow, match=r"^the server sent 30 bytes in 1.1 s \(27.3 B/s, under the 100 B/s"):
+        pace.feed(10)
+    clock[0] = 501.0
+    pace.feed(200)  # a new window: 200 bytes in 0.5 s, not over yet
+    clock[0] = 501.6
+    pace.feed(0)  # 200 bytes in 1.1 s: fast enough, the next window starts
+    off = Throughput(RemoteOptions(min_rate=0, rate_window=1))
+    off.resume()
+    clock[0] = 1e6
+    off.feed(1)  # min_rate 0: never too slow
+
+
 def test_a_stalled_head_is_one_line_naming_the_url(server, blob, quick):
     _, base, _ = server
     url = f"{base}/stallhead/{blob[1]}"
@@ -345,9 +419,9 @@ def test_a_server_that_never_accepts_is_one_line_within_the_connect_timeout(quic
 def test_sizes_the_server_does_not_state_are_unknown_not_missing(server, blob, quick):
     _, base, _ = server
     data, name = blob
-    modes = ["ok", "norange", "nolen", "chunked", "gzip"]
+    modes = ["ok", "norange", "nolen", "chunked", "gzip", "gziprange"]
     sizes = http_sizes([f"{base}/{m}/{name}" for m in modes] + [f"{base}/ok/no-such.tar"])
-    assert sizes == [len(data), len(data), UNKNOWN_SIZE, UNKNOWN_SIZE, UNKNOWN_SIZE, None]
+    assert sizes == [len(data), len(data), UNKNOWN_SIZE, UNKNOWN_SIZE, UNKNOWN_SIZE, UNKNOWN_SIZE, None]
 
 
 def _publish(server, source: Path, name: str) -> Path:
@@ -355,7 +429,7 @@ def _publish(server, source: Path, name: str) -> Path:
     return server[0] / name
 
 
-@pytest.mark.parametrize("mode", ["nolen", "chunked", "gzip", "drop"])
+@pytest.mark.parametrize("mode", ["nolen", "chunked", "gzip", "gziprange", "drop"])
 def test_a_store_served_without_sizes_or_with_drops_reads_as_its_folder(server, tiny_store_two_shards, quick, mode):
     from hoisdf.data.shards import store_shards
 
@@ -371,18 +445,23 @@ def test_a_store_served_without_sizes_or_with_drops_reads_as_its_folder(server, 
         assert [r["__key__"] for r in store.read_shard_members(source)] == list(keys)  # no size given: to the end
 
 
-@pytest.mark.parametrize("change, match", [(lambda b: b[:-2048], "truncated"),
-                                           (lambda b: b + bytes(4096), "longer than the")])
-def test_an_unsized_shard_is_counted_against_the_index(server, tiny_store_two_shards, quick, change, match,
+@pytest.mark.parametrize("mode", ["chunked", "gziprange"])
+@pytest.mark.parametrize("change, problem", [(lambda b: b[:-2048], ": {} bytes read, expected exactly {}"),
+                                             (lambda b: b + bytes(4096), ": longer than the {1} bytes expected")],
+                         ids=["cut", "lengthened"])
+def test_an_unsized_shard_is_counted_against_the_index(server, tiny_store_two_shards, quick, change, problem, mode,
                                                        request):
-    """Served chunked (no Content-Length), a cut or lengthened shard is still an error naming its URL."""
+    """Served chunked (no Content-Length) or gzip-encoded (its sizes count encoded bytes), a cut or lengthened shard
+    is still one error line naming its URL: the decoded bytes are counted against the index."""
     name = f"resized-{request.node.callspec.id}"
     folder = _publish(server, tiny_store_two_shards, name)
     shard = folder / "shard-000001.tar"
     shard.write_bytes(change(shard.read_bytes()))  # the index keeps the old size
     index = store.read_index(tiny_store_two_shards)
     info = index.shards[1]
-    source = store.shard_source(f"{server[1]}/chunked/{name}", info.name)
-    with pytest.raises(DataError, match=match) as err:
-        list(store.read_checked_shard(source, index.keys[index.shard_rows(1)], info.size))
-    assert str(err.value).startswith(f"{server[1]}/chunked/{name}/shard-000001.tar")
+    source = store.shard_source(f"{server[1]}/{mode}/{name}", info.name)
+    with pytest.raises(DataError) as err:
+        _finishes(lambda: list(store.read_checked_shard(source, index.keys[index.shard_rows(1)], info.size)))
+    line = str(err.value)
+    assert line.startswith(f"{server[1]}/{mode}/{name}/shard-000001.tar") and "\n" not in line, line
+    assert problem.format(info.size - 2048, info.size) in line, line
