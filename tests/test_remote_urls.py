@@ -96,32 +96,76 @@ def test_redaction_masks_user_info_and_query_values_only():
     assert redact_urls(line) == masked
     error = DataError("https://tok@h/s", None, "http://u:pw@h/s: HTTP 401")  # the path and the problem
     assert str(error) == "https://***@h/s: http://***@h/s: HTTP 401"
+    # a URL that Path() squashed into a folder name, a raw '@' in a password, a store's and a file's repr
+    assert redact_urls("http:/u:pw@h/x?sig=1: not found") == "http:/***@h/x?sig=***: not found"
+    assert redact_urls("see https://u:p@ss@h/x and C:/data/a@b") == "see https://***@h/x and C:/data/a@b"
+    where = store.resolve_store("http://u:pw@h/s?sig=1")
+    assert repr([where, where.file("a.tar")]) == ("[RemoteStore('http://***@h/s?sig=***'), "
+                                                  "RemoteFile('http://***@h/s/a.tar?sig=***')]")
+
+
+def test_every_command_line_parser_masks_urls_in_its_error_line(capsys):
+    """argparse quotes the value it refuses: every parser of the project is cli_types.ArgumentParser, masking it."""
+    import re
+
+    from hoidata.cli_types import ArgumentParser
+
+    root = Path(__file__).resolve().parents[1]
+    files = [f for package in ("hoidata", "hoisdf") for f in sorted((root / package).rglob("*.py"))]
+    plain = [str(f.relative_to(root)) for f in files if re.search(r"\bargparse\.ArgumentParser\(", f.read_text())]
+    assert plain == [], f"parsers that print a refused URL as it is: {plain}"
+    parser = ArgumentParser(prog="p")
+    parser.add_argument("--n", type=int)
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--n", "http://u:pw@h/x?sig=abc"])
+    last = capsys.readouterr().err.splitlines()[-1]
+    assert last == "p: error: argument --n: invalid int value: 'http://***@h/x?sig=***'"
 
 
 def _every_file_text(folder: Path) -> str:
     return "\n".join(p.read_bytes().decode("latin-1") for p in sorted(folder.rglob("*")) if p.is_file())
 
 
+SECRETS = ("s3cr3t", "alice", "SIGSECRET", "TOKSECRET")
+
+
 @pytest.mark.slow
-def test_a_url_password_never_reaches_config_results_or_error_lines(served, mano_dir, tmp_path, capsys):
+def test_a_url_password_never_reaches_config_results_or_error_lines(served, mano_dir, tmp_path, capfd, monkeypatch):
+    """Every output of every command given a URL with a password and a signed query: stdout and stderr (progress
+    bars on, captured at the file descriptors), every file under the folder the commands run in (a run's
+    config.json, metrics.csv, tensorboard events, checkpoints; metrics.json and result files; verify's report,
+    argparse's error lines, a URL squashed into a folder name by Path)."""
     from test_faults_train import TINY
 
+    from hoidata.cli import main as hoidata
     from hoisdf.evaluate import main as evaluate
+    from hoisdf.score import main as score
     from hoisdf.train import main as train
 
+    monkeypatch.chdir(tmp_path)  # a file written to the working folder is grepped too
     base, log = served
-    url = base.replace("://", "://alice:s3cr3t@") + "/auth/store"
+    url = base.replace("://", "://alice:s3cr3t@") + "/auth/store?X-Amz-Signature=SIGSECRET&token=TOKSECRET"
     run = tmp_path / "run"
-    assert train(["--shards", f"{url}:1.0", "--val-shards", url, "--mano", str(mano_dir), "--out", str(run),
-                  "--no-progress", "--device", "cpu", *TINY, "train.max_steps=1"]) == 0
+    assert train(["--shards", url, "--val-shards", url, "--mano", str(mano_dir), "--out", str(run),
+                  "--device", "cpu", *TINY, "train.max_steps=2", "train.val_every=1"]) == 0
     assert evaluate(["--ckpt", str(run), "--shards", url, "--mano", str(mano_dir), "--out", str(run / "eval"),
-                     "--workers", "1", "--no-progress", "--plausibility", "0"]) == 0
+                     "--workers", "1", "--plausibility", "0", "--vis", "1"]) == 0
     assert any(mode == "auth" for _, mode, *_ in log)  # the password was sent (the server answers 401 without)
-    text = _every_file_text(run)
-    assert "s3cr3t" not in text and "alice" not in text and "http://***@127.0.0.1" in text
-    out = capsys.readouterr()
-    assert "s3cr3t" not in out.out + out.err
-    for bad in (url.replace("s3cr3t", "s3cr3tX"), url + "-gone"):  # a refused password, a missing store
-        assert train(["--shards", bad, "--mano", str(mano_dir), "--out", str(tmp_path / "bad"), "--device", "cpu"]) == 2
-        err = capsys.readouterr().err
-        assert "s3cr3t" not in err and "error: http://***@127.0.0.1" in err, err
+    assert "http://***@127.0.0.1" in _every_file_text(run)
+    codes = [hoidata(["verify", url]), hoidata(["inspect", url, "--out", str(tmp_path / "grid.png")])]
+    for bad in (url.replace("s3cr3t", "s3cr3tX"), url.replace("/store?", "/gone?")):  # a refused password, no store
+        codes.append(train(["--shards", bad, "--mano", str(mano_dir), "--out", str(tmp_path / "bad")]))
+    codes.append(train(["--shards", url, "--mano", url, "--out", str(tmp_path / "bad")]))  # Path squashes '//'
+    codes.append(hoidata(["make-toy", "--out", url]))
+    for argv, main in ((["--shards", url, "--mano", str(mano_dir), "--out", url], train),
+                       (["--ckpt", str(run), "--shards", url, "--mano", str(mano_dir), "--out", url], evaluate),
+                       ([url], score)):
+        with pytest.raises(SystemExit) as exit_:  # argparse quotes the value it refuses
+            main(argv)
+        codes.append(exit_.value.code)
+    assert codes == [1, 2, 2, 2, 2, 2, 2, 2, 2], codes
+    out = capfd.readouterr()
+    text = "\n".join([out.out, out.err, _every_file_text(tmp_path)])
+    assert [s for s in SECRETS if s in text] == [], [line for line in text.splitlines() if "s3cr3t" in line]
+    said = out.out + out.err  # each command named the URL, masked (verify on stdout, the others on stderr)
+    assert said.count("http://***@127.0.0.1") >= 9 and "http:/***@127.0.0.1" in out.err, said
