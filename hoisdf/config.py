@@ -22,6 +22,7 @@ from hoidata.sections import (
     section_names,
 )
 from hoisdf.data.augment import AugmentSettings
+from hoisdf.data.loader import SHUFFLES
 from hoisdf.model.encoding import PIXEL_CONVENTIONS
 from hoisdf.training.losses import LossWeights
 
@@ -156,7 +157,8 @@ class TrainSettings:
     val_batches: int = 50  # batches of each validation pass
     ckpt_every: int = 1  # epochs between checkpoints
     max_steps: int = 0  # stop after this many steps in total (0: run all epochs)
-    shuffle_buffer: int = 64  # records in each worker's shuffle buffer (beside the per-epoch shard reshuffle)
+    shuffle: str = "stream"  # stream: shards + shuffle_buffer | global: one permutation of all records (docs/training.md)
+    shuffle_buffer: int = 64  # stream: records in each worker's shuffle buffer (beside the per-epoch shard reshuffle)
     record_keys: bool = False  # write the record keys each rank trained on (for checking DDP splits)
     LIMITS: ClassVar[dict] = {
         "epochs": (">= 1",), "batch_size": (">= 1",), "lr": ("> 0",), "weight_decay": (">= 0",), "lr_drop": (">= 1",),
@@ -223,10 +225,17 @@ def with_recipe(values: dict, path: Path) -> dict:
     if recipe not in RECIPES:
         raise DataError(path, "train.recipe", f"unknown recipe {recipe!r}; expected one of {sorted(RECIPES)}")
     merged = {**RECIPES[recipe], **values}
+    check_shuffle(merged.get("shuffle", "stream"), path)
     if merged["optimizer"] not in OPTIMIZERS:
         raise DataError(path, "train.optimizer",
                         f"unknown optimizer {merged['optimizer']!r}; expected one of {OPTIMIZERS}")
     return merged
+
+
+def check_shuffle(value, path: Path) -> None:
+    """``train.shuffle`` is one of SHUFFLES, else a DataError naming ``path`` and the key."""
+    if value not in SHUFFLES:
+        raise DataError(path, "train.shuffle", f"unknown shuffle {value!r}; expected one of {SHUFFLES}")
 
 
 def config_from_dict(data: dict, path: Path | str = "<checkpoint>") -> TrainConfig:
@@ -237,6 +246,7 @@ def config_from_dict(data: dict, path: Path | str = "<checkpoint>") -> TrainConf
         raise DataError(path, "config", "expected a dict of settings sections")
     model = _model_section(data.get("model", {}), path)
     train = section(TrainSettings, data.get("train", {}), path, "train")
+    check_shuffle(train.shuffle, path)
     return TrainConfig(model, train, section(AugmentSettings, data.get("augment", {}), path, "augment"),
                        section(LossWeights, data.get("loss", {}), path, "loss"))
 

@@ -8,6 +8,8 @@
 - :mod:`hoidata.store.remote`: stores at http(s)://, s3://, gs:// URLs, read through fsspec (``RemoteStore``)
 - :mod:`hoidata.store.httpread`: http(s) files read in range-request blocks, resumed, under idle timeouts
   (``HttpReader``, ``RemoteOptions``)
+- :mod:`hoidata.store.spans`: each record's byte span in its shard, for reading records in any order
+  (``record_spans``; ``read_record`` reads one back)
 - :mod:`hoidata.store.verify`: integrity (``verify_store``) and the shards a resumed build keeps
 - :mod:`hoidata.store.inspect`: a PNG contact sheet of a store
 
@@ -37,12 +39,14 @@ from hoidata.store.shards import (
     ShardWriter,
     iter_records,
     read_checked_shard,
+    read_record,
     read_shard_members,
     shard_sizes,
     shard_source,
     sidecar_name,
     write_shard,
 )
+from hoidata.store.spans import record_spans
 from hoidata.store.verify import (
     VerifyReport,
     completed_shards,
@@ -55,6 +59,6 @@ __all__ = [
     "INDEX_NAME", "KEY", "MAX_IMAGE_SIDE", "MAX_MEMBER_BYTES", "RemoteFile", "RemoteStore", "ShardInfo",
     "ShardWriter", "StoreIndex", "UNKNOWN_SIZE", "VerifyReport", "completed_shards", "decode_record", "encode_record", "file_digest",
     "index_labels", "index_lock", "iter_records", "local_store", "read_checked_shard", "read_index",
-    "read_shard_members", "read_sidecar", "resolve_store", "shard_name", "shard_sizes", "shard_source",
+    "read_record", "read_shard_members", "record_spans", "read_sidecar", "resolve_store", "shard_name", "shard_sizes", "shard_source",
     "sidecar_name", "stale_temps", "to_jsonable", "verify_store", "write_index", "write_shard",
 ]

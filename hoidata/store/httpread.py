@@ -175,14 +175,16 @@ class HttpReader:
     """One http(s) file read once from its start (``read(n)``, ``close()``), block by block (see the module).
 
     url: the file's URL (user info and query as given). options: timeouts and retries (default: from the
-    environment). size: the size the caller expects, for messages only. Any failure is one DataError naming the
-    URL, what happened and the byte it happened at.
+    environment). size: the size the caller expects, for messages only. start, stop: read bytes [start, stop) only
+    (one record of a shard: requests never ask past ``stop``; default the whole file). Any failure is one DataError
+    naming the URL, what happened and the byte it happened at.
     """
 
-    def __init__(self, url: str, options: RemoteOptions | None = None, size: int | None = None):
-        self.url, self.options, self.size = url, options or RemoteOptions.from_env(), size
+    def __init__(self, url: str, options: RemoteOptions | None = None, size: int | None = None, start: int = 0,
+                 stop: int | None = None):
+        self.url, self.options, self.size, self.stop = url, options or RemoteOptions.from_env(), size, stop
         self.fs = http_filesystem(self.options)
-        self.offset = 0  # bytes of the file received so far
+        self.offset = start  # the next byte of the file to receive
         self._chunks, self._pos = deque(), 0  # received, not yet read (a block at most); position in the first
         self._stream, self._skip = None, 0  # the open 200 response of a server that ignores Range; bytes to drop
         self._end = False  # the end of the file was seen
@@ -255,7 +257,7 @@ class HttpReader:
                 session = await self.fs.set_session()
                 headers = {"Accept-Encoding": "identity"}
                 if not self._whole:
-                    headers["Range"] = f"bytes={self.offset}-{self.offset + BLOCK_SIZE - 1}"
+                    headers["Range"] = f"bytes={self.offset}-{self.offset + self._room() - 1}"
                 resp = await session.get(self.fs.encode_url(self.url), headers=headers)
                 if resp.status == 206 and _encoded(resp.headers):  # a range of encoded bytes: ask for the whole
                     resp.close()
@@ -286,7 +288,7 @@ class HttpReader:
         if match is None or int(match.group(1)) != self.offset:
             raise DataError(self.url, None, f"cannot read: asked for bytes from {self.offset}, the server answered "
                                             f"Content-Range {resp.headers.get('Content-Range')!r}")
-        asked = min(BLOCK_SIZE, int(match.group(2)) - self.offset + 1)
+        asked = min(self._room(), int(match.group(2)) - self.offset + 1)
         async for chunk in resp.content.iter_any():
             got.append(chunk)
             self._pace.feed(len(chunk))
@@ -294,8 +296,12 @@ class HttpReader:
                 raise DataError(self.url, None, f"cannot read: the server sent more than the {asked} bytes of "
                                                 f"its Content-Range{self._where()}")
         total = match.group(3)
-        if total.isdigit() and self.offset + got.size >= int(total):
+        if total.isdigit() and self.offset + got.size >= int(total) or self.offset + got.size == self.stop:
             self._end = True
+
+    def _room(self) -> int:
+        """Bytes the next block may hold: BLOCK_SIZE, or fewer before ``stop``."""
+        return BLOCK_SIZE if self.stop is None else max(1, min(BLOCK_SIZE, self.stop - self.offset))
 
     async def _read_stream(self, got: _Chunks) -> None:
         content = self._stream.content
@@ -305,14 +311,16 @@ class HttpReader:
                 break
             self._skip -= len(chunk)
             self._pace.feed(len(chunk))
-        while got.size < BLOCK_SIZE:
-            chunk = await content.read(BLOCK_SIZE - got.size)
-            if not chunk:
+        room = self._room()
+        while got.size < room:
+            chunk = await content.read(room - got.size)
+            if chunk:
+                got.append(chunk)
+                self._pace.feed(len(chunk))
+            if not chunk or self.offset + got.size == self.stop:
                 self._end = True
                 await self._close_stream()
                 return
-            got.append(chunk)
-            self._pace.feed(len(chunk))
 
     async def _close_stream(self) -> None:
         if self._stream is not None:

@@ -38,7 +38,7 @@ from hoidata.store.codec import (
 )
 from hoidata.store.index import ShardInfo, open_index, shard_name
 from hoidata.store.paths import INDEX_NAME, local_store, resolve_store, writer_token
-from hoidata.store.remote import UNKNOWN_SIZE, RemoteFile, RemoteStore, open_stream, remote_sizes
+from hoidata.store.remote import UNKNOWN_SIZE, RemoteFile, RemoteStore, open_stream, read_range, remote_sizes
 
 # --------------------------------------------------------------------------------------------------
 # shards
@@ -333,6 +333,33 @@ def read_checked_shard(path, expected_keys: Sequence[str], expected_size: int | 
     if count != len(expected_keys):
         raise DataError(path, None, f"{count} records, the index says {len(expected_keys)}: the shard is "
                                     "truncated or damaged (hoidata verify checks the whole store)")
+
+
+def read_record(path, key: str, offset: int, length: int) -> dict[str, bytes]:
+    """One record's raw members ({"__key__": key, member name: bytes}), read at its byte span in a shard
+    (:func:`hoidata.store.spans.record_spans`): one ``pread`` of a local file, one range read of a RemoteFile.
+
+    The span is parsed as the shard reader parses a whole shard (member names and sizes checked before a member is
+    read); anything but exactly the record ``key`` there is a DataError naming the shard and the key.
+    """
+    if isinstance(path, RemoteFile):
+        data = read_range(path, offset, length)
+    else:
+        path = Path(path)
+        try:
+            with open(path, "rb") as file:
+                data = os.pread(file.fileno(), length, offset)
+        except OSError as exc:
+            raise DataError(path, key, f"cannot read the shard ({exc.strerror or exc})") from None
+        if len(data) != length:
+            raise DataError(path, key, f"{len(data)} bytes from byte {offset}, expected {length}: the shard is "
+                                       "truncated or replaced (hoidata verify checks the whole store)")
+    data += bytes(2 * tarfile.BLOCKSIZE)  # the end-of-archive blocks, so that the span reads as a whole tar
+    records = list(_members(_ShardBytes(io.BytesIO(data), len(data)), path))
+    if [r[KEY] for r in records] != [key]:
+        raise DataError(path, key, f"bytes {offset}-{offset + length} hold {[r[KEY] for r in records]}, not this "
+                                   "record: the shard was replaced (hoidata verify checks the whole store)")
+    return records[0]
 
 
 def _shard_paths(source) -> list[Path]:

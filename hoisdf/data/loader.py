@@ -1,7 +1,8 @@
 """Training data for HOISDF: mixed, epoch-seeded WebDataset pipelines over ``hoidata`` stores.
 
-One :class:`MixedStores` dataset reads several stores (e.g. real DexYCB with weight 1.0 and synthetic
-renders with weight 0.6) and yields dicts of batched torch tensors (see :func:`build_dataset`).
+One :class:`MixedStores` dataset reads several stores (e.g. real DexYCB with weight 1.0 and synthetic renders with
+weight 0.6) and yields dicts of batched torch tensors (see :func:`build_dataset`); ``train.shuffle = "global"``
+gives :mod:`hoisdf.data.global_shuffle`'s dataset instead, the same batches from one permutation per epoch.
 
 How the pieces fit, per store::
 
@@ -21,18 +22,16 @@ than ``world_size * num_workers`` a finite split leaves some workers with nothin
 then gives ranks different batch counts (DDP hangs on the missing all-reduce). Repeating the reshuffled
 list before splitting means worker ``w`` simply reads passes ``w, w + W, ...`` of the same shard: every
 worker has data, no sample is invented, and for large stores (many shards) it degrades to the usual
-"disjoint shards per worker". ``wds.ResampledShards`` would also never hang, but draws shards with
-replacement, so within an epoch some shards are read twice and others not at all.
+"disjoint shards per worker". (``wds.ResampledShards`` draws shards with replacement: some read twice an epoch.)
 
 Shards are read by :func:`hoidata.store.read_checked_shard`, from local files or, for a store given as an explicit
 ``http(s)://`` / ``s3://`` / ``gs://`` URL, from fsspec streams (:mod:`hoisdf.data.shards`), never through
 webdataset's URL opener (which runs ``pipe:`` names as shell commands); an error in a DataLoader worker reaches
 the caller as the same DataError (:func:`make_loader`), not as a worker traceback.
 
-Epochs and workers: :meth:`MixedStores.set_epoch` stores the epoch in a small holder object shared
-by every stage. DataLoader workers receive a pickled copy of the dataset when ``iter(loader)`` is
-called, so call ``dataset.set_epoch(e)`` *before* ``for batch in loader`` each epoch, and do not use
-``persistent_workers=True`` (persistent workers keep the copy from the first epoch).
+Epochs and workers: :meth:`MixedStores.set_epoch` stores the epoch in a holder object shared by every stage.
+DataLoader workers receive a copy of the dataset at ``iter(loader)``, so call ``dataset.set_epoch(e)`` *before*
+``for batch in loader`` each epoch; no ``persistent_workers=True`` (they keep the first epoch's copy).
 """
 
 from __future__ import annotations
@@ -50,10 +49,12 @@ from webdataset.utils import pytorch_worker_info
 from hoidata import schema
 from hoidata.errors import DataError
 from hoidata.store import KEY, decode_record
+from hoisdf.data.global_shuffle import GlobalShuffle, record_table
 from hoisdf.data.kinds import check_trainable, fill_absent_labels
 from hoisdf.data.shards import Loader, ReadShards, ShardStream, errors_as_items, store_shards
 
 _MIX_STREAM, _SHUFFLE_STREAM = 1, 2  # distinguish the RNG streams drawn from the same seed
+SHUFFLES = ("stream", "global")  # train.shuffle: this module's streams, or global_shuffle's permutation
 
 
 @dataclass(frozen=True)
@@ -284,9 +285,11 @@ class MixedStores(wds.DataPipeline):
         self.state, self.epoch_samples, self.batch_size = state, epoch_samples, batch_size
         self.num_workers = 0  # set by make_loader; only used by __len__ in the main process
 
-    def set_epoch(self, epoch: int) -> None:
-        """Select the shard order, sample shuffle, mixing and SDF draws of ``epoch`` (call before iter)."""
+    def set_epoch(self, epoch: int, start: int = 0) -> int:
+        """Select the shard order, sample shuffle, mixing and SDF draws of ``epoch`` (call before iter); returns
+        ``start``: a stream cannot seek, so a resumed epoch draws and drops its first ``start`` batches."""
         self.state.epoch = int(epoch)
+        return int(start)
 
     def batches_per_worker(self, num_workers: int, world_size: int = 1) -> int:
         """Batches each worker of each rank yields per epoch: epoch_samples // (B * workers * ranks), >= 1."""
@@ -335,7 +338,7 @@ def _check_args(stores: list[StoreSpec], batch_size: int, n_hand: int, n_object:
 
 def build_dataset(stores: list[StoreSpec], batch_size: int, epoch_samples: int | None = None, seed: int = 0,
                   n_hand: int = 600, n_object: int = 200, near: float = 0.05, shuffle_buffer: int = 64,
-                  training: bool = True) -> MixedStores:
+                  training: bool = True, shuffle: str = "stream", progress: bool = True) -> MixedStores | GlobalShuffle:
     """A batched, weight-mixed, epoch-seeded IterableDataset over ``stores``.
 
     Each element is a dict (B = batch_size, S = crop size, H = S // 2, all tensors on the CPU):
@@ -383,8 +386,12 @@ def build_dataset(stores: list[StoreSpec], batch_size: int, epoch_samples: int |
     ``training=False``: no near points, no sample shuffle, one pass over each store's shards in stored
     order (a partial last batch is kept) unless ``epoch_samples`` is given.
     Call :meth:`MixedStores.set_epoch` before iterating each epoch (see the module docstring).
+    ``shuffle="global"`` (training only): a :class:`~hoisdf.data.global_shuffle.GlobalShuffle`, one permutation per
+    epoch over every store (weights: see there; ``progress``: a bar while it maps record offsets; no shuffle_buffer).
     """
     _check_args(stores, batch_size, n_hand, n_object)
+    if shuffle not in SHUFFLES or shuffle == "global" and not training:
+        raise ValueError(f"shuffle must be one of {SHUFFLES} (global: training only), got {shuffle!r}")
     state = _EpochState()
     to_arrays = _ToArrays(seed, state, n_hand, n_object, near if training else None)
     pipes, sizes = [], []
@@ -393,14 +400,18 @@ def build_dataset(stores: list[StoreSpec], batch_size: int, epoch_samples: int |
         if training:
             check_trainable(spec.path, index)
         sizes.append(sum(len(keys) for keys, _ in expected.values()))
-        pipes.append(_store_pipeline(list(expected), expected, number, seed, state, training, shuffle_buffer, to_arrays))
+        pipes.append(record_table(expected, str(spec.path), progress) if shuffle == "global" else
+                     _store_pipeline(list(expected), expected, number, seed, state, training, shuffle_buffer, to_arrays))
     if epoch_samples is None and training:
         epoch_samples = max(1, round(sum(n * s.weight for n, s in zip(sizes, stores))))
+    if shuffle == "global":
+        return GlobalShuffle(pipes, [s.weight for s in stores], batch_size, epoch_samples, seed, state,
+                             to_arrays.convert, collate)
     mix = _Mix(pipes, [s.weight for s in stores], seed, state, per_epoch=training)
     return MixedStores([mix, _Batch(batch_size, partial=not training)], state, epoch_samples, batch_size)
 
 
-def make_loader(dataset: MixedStores, num_workers: int, pin_memory: bool = False) -> Loader:
+def make_loader(dataset: MixedStores | GlobalShuffle, num_workers: int, pin_memory: bool = False) -> Loader:
     """A :class:`Loader` (DataLoader, batch_size=None: no re-collation) over ``dataset``.
 
     Workers are not persistent, so a ``dataset.set_epoch(e)`` before each ``iter(loader)`` reaches them.

@@ -99,7 +99,7 @@ class Trainer:
         optimizer = {"adamw": torch.optim.AdamW, "adam": torch.optim.Adam}[t.optimizer]
         self.optimizer = optimizer(params, lr=t.lr, weight_decay=t.weight_decay)
         self.dataset = build_dataset(list(stores), t.batch_size, t.epoch_samples or None, t.seed, m.n_hand, m.n_object,
-                                     t.near, t.shuffle_buffer, training=True)
+                                     t.near, t.shuffle_buffer, training=True, shuffle=t.shuffle, progress=rank == 0)
         self.loader = make_loader(self.dataset, t.workers, pin_memory=device.type == "cuda")
         self.val_stores = list(val_stores)
         # opened and checked now (index, every shard file), not at the end of the first epoch
@@ -193,7 +193,7 @@ class Trainer:
         t, p = self.config.train, self.progress
         for group in self.optimizer.param_groups:
             group["lr"] = epoch_lr(p.epoch, t.lr, t.lr_drop, t.lr_gamma, t.lr_min)
-        self.dataset.set_epoch(p.epoch)
+        skip = self.dataset.set_epoch(p.epoch, start=p.step)  # resumed: a stream is read past its first p.step
         unwrap(self.model).train()
         n_batches = len(self.dataset)
         if p.step > n_batches:
@@ -204,7 +204,7 @@ class Trainer:
         if rng_after_skip is not None and p.step == 0:
             set_rng_state(rng_after_skip, self.generator)
         batches = iter(self.loader)
-        for _ in range(p.step):
+        for _ in range(skip):  # batches; the global shuffle starts at batch p.step itself
             next(batches)
         if rng_after_skip is not None and p.step > 0:
             set_rng_state(rng_after_skip, self.generator)
