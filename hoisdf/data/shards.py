@@ -101,6 +101,15 @@ def store_shards(location) -> tuple[object, dict]:
     return index, expected
 
 
+def _worker_failure(exc: RuntimeError) -> Exception:
+    """torch's report of a worker that died or failed outside our stages -> one DataError line; else ``exc``."""
+    lines = [line for line in str(exc).splitlines() if line.strip()]
+    if not lines or "worker" not in lines[0].lower():
+        return exc
+    return DataError(None, None, f"a data loader worker failed: {lines[0]}"
+                                 + (f" ({lines[-1].strip()})" if len(lines) > 1 else ""))
+
+
 class Loader:
     """A DataLoader over already-batched ``dataset`` elements that raises a worker's DataError or OSError in
     the main process as it was raised, and a worker that failed to start or died as one DataError line."""
@@ -111,18 +120,23 @@ class Loader:
                                                   pin_memory=pin_memory, persistent_workers=False)
 
     def __iter__(self):
+        # started here, not at the first batch: the DataLoader draws its seed from torch's RNG when it starts, and
+        # the trainer restores a resumed run's RNG after iter() (a global-shuffle epoch reads no batch before that)
         try:
-            for batch in self.loader:
+            return self._batches(iter(self.loader))
+        except RuntimeError as exc:
+            raise _worker_failure(exc) from None
+
+    @staticmethod
+    def _batches(batches):
+        try:
+            for batch in batches:
                 if _ERROR in batch:
                     kind, *args = batch[_ERROR]
                     raise DataError(*args) if kind == "data" else OSError(*args)
                 yield batch
-        except RuntimeError as exc:  # torch's report of a worker that died or failed outside our stages
-            lines = [line for line in str(exc).splitlines() if line.strip()]
-            if not lines or "worker" not in lines[0].lower():
-                raise
-            raise DataError(None, None, f"a data loader worker failed: {lines[0]}"
-                                        + (f" ({lines[-1].strip()})" if len(lines) > 1 else "")) from None
+        except RuntimeError as exc:
+            raise _worker_failure(exc) from None
 
     def __len__(self) -> int:
         return len(self.dataset)
