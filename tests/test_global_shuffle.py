@@ -17,6 +17,7 @@ import torch
 
 from hoidata import store
 from hoidata.errors import DataError
+from hoisdf.config import load_train_config
 from hoisdf.data import StoreSpec, build_dataset, make_loader
 from hoisdf.data.global_shuffle import epoch_plan, rank_batches, store_counts
 
@@ -101,8 +102,6 @@ def test_resume_starts_at_the_batch_it_stopped_before():
 
 
 def test_the_setting_is_checked_and_the_presets_choose_it():
-    from hoisdf.config import load_train_config
-
     assert load_train_config("toy").train.shuffle == "stream"  # the main job's figures were made so
     for name in ("dexycb", "dexycb_full", "ho3d", "ho3d_render"):
         assert load_train_config(name).train.shuffle == "global", name
@@ -110,6 +109,15 @@ def test_the_setting_is_checked_and_the_presets_choose_it():
         load_train_config("toy", ['train.shuffle="buffer"'])
     with pytest.raises(ValueError, match="training only"):
         build_dataset([StoreSpec("unused")], 2, training=False, shuffle="global")
+
+
+def test_an_epoch_without_a_batch_per_rank_is_one_line_naming_the_setting():
+    from hoisdf.data.global_shuffle import GlobalShuffle, RecordTable
+
+    table = RecordTable([], np.zeros(3, np.int32), ["a", "b", "c"], np.zeros((3, 2), np.int64))
+    data = GlobalShuffle([table], [1.0], 4, 3, 0, None, None, None)
+    with pytest.raises(DataError, match="'train.epoch_samples': an epoch of 3 records holds no batch of 4"):
+        len(data)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -186,6 +194,7 @@ class _RangeHandler(http.server.SimpleHTTPRequestHandler):
 
     protocol_version = "HTTP/1.1"
     log: list
+    ranges: bool  # False: a server that ignores Range and sends the whole file (200)
 
     def log_message(self, *args):
         pass
@@ -200,21 +209,25 @@ class _RangeHandler(http.server.SimpleHTTPRequestHandler):
         ranged = self.headers.get("Range", "").removeprefix("bytes=").split("-")
         self.log.append((self.path, self.headers.get("Range")))
         first, last = 0, len(data) - 1
-        if len(ranged) == 2 and ranged[0].isdigit():
+        ranged = self.ranges and self.headers.get("Range") and ranged
+        if ranged and len(ranged) == 2 and ranged[0].isdigit():
             first, last = int(ranged[0]), min(int(ranged[1] or last), last)
-        self.send_response(206 if self.headers.get("Range") else 200)
+        self.send_response(206 if ranged else 200)
         self.send_header("Content-Length", str(last - first + 1))
-        if self.headers.get("Range"):
+        if ranged:
             self.send_header("Content-Range", f"bytes {first}-{last}/{len(data)}")
         self.end_headers()
         self.wfile.write(data[first:last + 1])
 
 
 @pytest.mark.slow
-def test_a_remote_store_gives_the_local_batches_one_range_request_per_record(tiny_store_two_shards):
+@pytest.mark.parametrize("ranges", [True, False])
+def test_a_remote_store_gives_the_local_batches_one_range_request_per_record(tiny_store_two_shards, ranges):
+    """From a Range-capable server, each record is one request for exactly its span; from one that ignores Range,
+    the same batches (each record read from the file's start up to its end)."""
     pytest.importorskip("aiohttp")
     log = []
-    handler = type("Handler", (_RangeHandler,), {"log": log})
+    handler = type("Handler", (_RangeHandler,), {"log": log, "ranges": ranges})
     server = http.server.ThreadingHTTPServer(("127.0.0.1", 0),
                                              functools.partial(handler, directory=str(tiny_store_two_shards.parent)))
     thread = threading.Thread(target=server.serve_forever, daemon=True)
@@ -235,6 +248,8 @@ def test_a_remote_store_gives_the_local_batches_one_range_request_per_record(tin
     shard_gets = [r for p, r in log if p.endswith(".tar")]
     spans = {(int(o), int(o + n - 1)) for t in remote.tables for o, n in t.spans}
     assert len(shard_gets) == 16 and all(r is not None for r in shard_gets)  # one request per record, no more
+    if not ranges:
+        return
     assert {tuple(int(v) for v in r.removeprefix("bytes=").split("-")) for r in shard_gets} == spans
 
 
@@ -243,7 +258,6 @@ def test_the_trainer_resumes_mid_epoch_exactly(tiny_store_two_shards, mano_dir, 
     """3 + 3 steps equal 6 (8 batches an epoch): the same weights, and the resumed run trains on the batches the
     uninterrupted one trained on, starting at batch 3 of the epoch."""
     from hoidata.hand import load_mano
-    from hoisdf.config import load_train_config
     from hoisdf.training.trainer import Trainer
 
     mano = load_mano(mano_dir, side="right")

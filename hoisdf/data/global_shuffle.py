@@ -35,6 +35,7 @@ from torch.utils.data import get_worker_info
 from webdataset.utils import pytorch_worker_info
 
 from hoidata import schema
+from hoidata.errors import DataError
 from hoidata.store import RemoteFile, decode_record, read_record, record_spans
 from hoisdf.data.shards import errors_as_items
 
@@ -138,8 +139,9 @@ class GlobalShuffle(torch.utils.data.IterableDataset):
     def _count(self, world: int) -> int:
         n = self.epoch_samples // (self.batch_size * world)
         if n < 1:
-            raise ValueError(f"an epoch of {self.epoch_samples} records holds no batch of {self.batch_size} for each "
-                             f"of {world} process(es): lower train.batch_size or raise train.epoch_samples")
+            raise DataError(None, "train.epoch_samples", f"an epoch of {self.epoch_samples} records holds no batch of "
+                                                         f"{self.batch_size} for each of {world} process(es): lower "
+                                                         "train.batch_size or raise train.epoch_samples")
         return n
 
     def __len__(self) -> int:
