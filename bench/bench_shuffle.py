@@ -13,7 +13,8 @@ epochs (epoch = the store's size, as training has it), the loader the trainer bu
   a uniform permutation of the same records gives (exact: sum over groups of 1 - C(N - n_g, B) / C(N, B));
 - per epoch: records delivered, distinct records, records delivered twice or more;
 - samples/s from the second batch of an epoch to its end (worker start-up excluded), median over ``--rounds``
-  rounds that alternate the modes; the global mode's one-off start (finding the record offsets) apart.
+  rounds that alternate the modes; "start s": building the dataset (opening the store; for global also finding
+  every record's byte span, also timed alone).
 
 ``--remote`` also serves the store on 127.0.0.1 (a Range-capable static server, ``--latency-ms`` added before every
 answer to stand in for a network) and measures both modes from its URL: samples/s, requests and bytes per record.
@@ -41,6 +42,8 @@ from hoidata.pipeline.settings import load_build_config
 from hoidata.toy.dexycb import ToyDexYCBSize, write_toy_dexycb
 from hoidata.toy.make import write_assets
 from hoisdf.data import StoreSpec, build_dataset, make_loader
+from hoisdf.data.global_shuffle import record_table
+from hoisdf.data.shards import store_shards
 
 N_HAND, N_OBJECT, NEAR, SEED = 600, 200, 0.05, 0
 MODES = ("stream", "global")
@@ -146,6 +149,14 @@ def serve(folder: Path, latency: float):
     return server, f"http://127.0.0.1:{server.server_address[1]}/{folder.name}", stats
 
 
+def offsets_seconds(location) -> float:
+    """Seconds the global mode's start spends finding every record's byte span (after opening the store)."""
+    _, expected = store_shards(location)
+    tick = time.perf_counter()
+    record_table(expected, str(location), progress=False)
+    return time.perf_counter() - tick
+
+
 def dataset(location, mode: str, batch: int):
     return build_dataset([StoreSpec(location)], batch, None, SEED, N_HAND, N_OBJECT, NEAR, 64, training=True,
                          shuffle=mode, progress=False)
@@ -242,11 +253,16 @@ def main() -> None:
         print(f"store {path}: {len(groups)} records in {len({g[0] for g in groups.values()})} sequence-camera groups, "
               f"{len(index.shards)} shards; batch {args.batch}, {args.workers} workers, {args.epochs} epochs x "
               f"{args.rounds} rounds; load {load:.2f}")
+        print(f"global mode's record offsets: {offsets_seconds(path):.3f} s from the folder")
         for line in table(measure(path, groups, args), groups, args.batch):
             print(line)
         if args.remote:
             results, costs = remote_run(Path(path), groups, args)
-            print(f"\nfrom http://127.0.0.1 ({args.latency_ms:g} ms before every answer), one round:")
+            server, url, _ = serve(Path(path), args.latency_ms / 1000)
+            scan = offsets_seconds(url)
+            server.shutdown()
+            print(f"\nfrom http://127.0.0.1 ({args.latency_ms:g} ms before every answer), one round; start s: opening "
+                  f"the store (index, shard sizes), and for global also the record offsets ({scan:.3f} s alone):")
             for line in table(results, groups, args.batch, costs):
                 print(line)
     print(f"load average (1 min): {load:.2f} before, {os.getloadavg()[0]:.2f} after")
