@@ -191,8 +191,8 @@ def test_gradient_variant_steps_along_the_full_field_gradient_at_inference_only(
 
 # Golden facts of the reference's lattice: upstream amathislab/HOISDF @666e5b7, main/model.py::Model.sdf_infer,
 # lines 257-273 (voxel_origin ... samples[:, 2] = ...), executed verbatim with cfg.bins_n = 64 under torch 2.14
-# on the CPU: sha256 of the (262144, 3) float32 array's bytes, and a few rows (index: x, y, z).
-UPSTREAM_LATTICE_SHA256 = "b598ca1a8444ed905f6a4ee5e88f7509ef9b76ff4ff53c51587c41b63ba049e8"
+# on the CPU: a few rows of the (262144, 3) float32 array (index: x, y, z). (Its sha256 was b598ca1a...; the test
+# compares values, which a CPU's kernels may change in the last bits, not bytes: docs/development.md.)
 UPSTREAM_LATTICE_ROWS = {
     0: (-1.0, -1.0, -1.0),
     1: (-0.9999922513961792, -0.9995039701461792, -0.9682539701461792),
@@ -203,18 +203,20 @@ UPSTREAM_LATTICE_ROWS = {
     200003: (0.5501224994659424, 0.684027910232544, -0.9047619104385376),
     262143: (1.03173828125, 1.03125, 1.0),
 }
+LATTICE_TOLERANCE = 1e-6  # scaled units, as the upstream parity's query points (tests/test_import_upstream.py)
 
 
 def test_sheared_grid_equals_the_reference_lattice_value_by_value():
-    import hashlib
-
     grid = grid_points(64, sheared=True)
     assert grid.dtype == torch.float32 and grid.shape == (64 ** 3, 3)
     for i, row in UPSTREAM_LATTICE_ROWS.items():
-        assert grid[i].tolist() == list(row), i
-    assert hashlib.sha256(grid.numpy().tobytes()).hexdigest() == UPSTREAM_LATTICE_SHA256
+        assert (grid[i].double() - torch.tensor(row, dtype=torch.float64)).abs().max() <= LATTICE_TOLERANCE, i
+    # every point: the reference's index arithmetic (true division of i = 64^2 a + 64 b + c) in float64
+    i, n = torch.arange(64 ** 3, dtype=torch.float64), 64
+    exact = torch.stack([(i / n / n) % n, (i / n) % n, i % n], dim=1) * (2.0 / (n - 1)) - 1.0
+    assert (grid.double() - exact).abs().max() <= LATTICE_TOLERANCE
     # the whole lattice lies within the reference's cube (x, y up to 1.0317), none of it at 40 m
-    assert grid.min().item() == -1.0 and grid.max().item() == 1.03173828125
+    assert grid.min().item() == -1.0 and abs(grid.max().item() - 1.03173828125) <= LATTICE_TOLERANCE
 
 
 def test_regular_grid_is_the_integer_lattice():

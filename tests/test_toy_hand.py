@@ -141,3 +141,20 @@ def test_inward_wound_file_is_turned_outward(tmp_path):
     model = load_mano(path, side="left", dtype=torch.float64)
     closed = trimesh.Trimesh(model.close(model.v_template[None])[0].numpy(), model.closed_faces, process=False)
     assert closed.is_watertight and closed.volume > 0
+
+
+def test_pca_basis_moves_by_round_off_when_the_grasps_do(mano_dir):
+    """The toy's PCA basis is a well-posed function of its grasps, so every CPU's kernels give it to ~1e-15: the 11
+    directions the grasps span come from the SVD (with a sign rule), the 34 others are built without a
+    decomposition. An SVD's own basis of those 34 is arbitrary: OpenBLAS's Haswell and SkylakeX kernels gave rows up
+    to 1.6 apart, and here a 1e-13 nudge of the grasps turns them about as far."""
+    from hoidata.toy.hand import pca_basis
+
+    raw = load_pickle(mano_dir / "MANO_RIGHT.pkl")
+    comps, coeffs = raw["hands_components"], raw["hands_coeffs"]
+    grasps = coeffs @ comps + raw["hands_mean"]  # the 1554 synthetic grasps the file was made from
+    np.testing.assert_allclose(comps @ comps.T, np.eye(45), rtol=0, atol=1e-12)
+    assert np.abs(coeffs[:, 11:]).max() < 1e-12 < np.abs(coeffs[:, :11]).min(0).max()  # 11 spanned directions
+    again, _, _ = pca_basis(grasps)
+    nudged, _, _ = pca_basis(grasps + np.random.default_rng(0).normal(scale=1e-13, size=grasps.shape))
+    assert np.abs(again - comps).max() < 1e-9 and np.abs(nudged - comps).max() < 1e-9

@@ -14,7 +14,8 @@ Rig (all derived from the geometry in :mod:`hoidata.toy.hand_mesh`):
   influence from the knuckles and the thumb's CMC joint;
 - shape directions: size, finger length, palm width, finger and palm thickness, per-finger lengths,
   then 10 smooth low-amplitude fields; pose correctives: knuckle bulges along the normals;
-- PCA pose space: principal components of 1554 synthetic grasps (curl, spread, thumb opposition).
+- PCA pose space: principal components of 1554 synthetic grasps (curl, spread, thumb opposition), which span
+  11 directions; the other 34 rows complete the basis without a decomposition (:func:`pca_basis`).
 
 Fingers flex about ``side = back x axis`` (``+z`` for the index finger), so positive angles curl them
 toward the palm. The left file mirrors the right one through x -> -x and, like the real MANO_LEFT.pkl,
@@ -193,13 +194,44 @@ def synthetic_grasps(mesh: HandMesh, n: int = 1554) -> np.ndarray:
     return poses.reshape(n, 45)
 
 
-def pca_basis(samples: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """PCA of (n, 45) poses -> (components (45, 45) rows by decreasing variance, mean (45,), coeffs (n, 45))."""
+def complete_basis(rows: np.ndarray, floor: float = 0.1) -> np.ndarray:
+    """Orthonormal rows (r, n) -> (n, n): the given rows, then the unit vectors e_0, e_1, ... in order with the
+    span so far projected out (twice, for round-off), each kept when what is left of it is longer than ``floor``.
+
+    No decomposition: every added row is a fixed function of ``rows`` (a unit vector's residual, positive along
+    that unit vector), so it moves by round-off when ``rows`` do, whatever LAPACK kernel the CPU runs.
+    """
+    basis = [np.asarray(r, dtype=np.float64) for r in rows]
+    n = len(basis[0])
+    for i in range(n):
+        if len(basis) == n:
+            break
+        v = np.eye(n)[i]
+        for _ in range(2):
+            v = v - sum((b * v).sum() * b for b in basis)
+        if np.sqrt((v * v).sum()) > floor:
+            basis.append(v / np.sqrt((v * v).sum()))
+    if len(basis) != n:
+        raise ValueError(f"completing {len(rows)} rows to a basis of {n} found only {len(basis)}")
+    return np.stack(basis)
+
+
+def pca_basis(samples: np.ndarray, rtol: float = 1e-8) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """PCA of (n, 45) poses -> (components (45, 45) rows by decreasing variance, mean (45,), coeffs (n, 45)).
+
+    The grasps span only ``rank`` directions (11: five curls, five spreads, the thumb's opposition; the next
+    singular value is 1e-14 of the first). Those come from the SVD, well separated (gaps >= 1.5 % of the
+    values), each with its largest entry made positive. The remaining rows span the null space, where an SVD's
+    basis is arbitrary and changes with the BLAS kernel (Haswell's and SkylakeX's differed by up to 1.6 per
+    entry): :func:`complete_basis` builds them without a decomposition.
+    """
     mean = samples.mean(0)
     centred = samples - mean
-    _, _, vt = np.linalg.svd(centred, full_matrices=True)
-    signs = np.sign(vt[np.arange(45), np.abs(vt).argmax(1)])  # deterministic sign per component
-    comps = vt * signs[:, None]
+    _, sv, vt = np.linalg.svd(centred, full_matrices=False)
+    rank = int((sv > rtol * sv[0]).sum())
+    top = vt[:rank]
+    signs = np.sign(top[np.arange(rank), np.abs(top).argmax(1)])  # deterministic sign per component
+    comps = complete_basis(top * signs[:, None])
     return comps, mean, centred @ comps.T
 
 
@@ -314,7 +346,9 @@ def write_mano_pickle(path: Path, arrays: dict, protocol: int = 2) -> None:
 def write_toy_mano(out_dir: str | os.PathLike) -> dict[str, Path]:
     """Write MANO_RIGHT.pkl and MANO_LEFT.pkl of the procedural hand into `out_dir`.
 
-    Deterministic: the same bytes on every run and machine with the same numpy.
+    Deterministic: the same bytes on every run on one machine. Across CPUs the float64 values agree to round-off
+    (~1e-15: the BLAS/LAPACK kernel and numpy's SIMD paths differ in the last bits), so tests compare them with a
+    tolerance, never by their bytes (docs/development.md, "Floating-point goldens").
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
