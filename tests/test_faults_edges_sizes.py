@@ -1,6 +1,7 @@
 """Issue 30, items 7 and 9: a list that names a thing twice, and a size that leaves a later stage with nothing to do,
-are one line before anything is written (docs/reliability.md, "19. Edges: full disks in training, repeated names,
-toy sizes (issue 30)"). Item 4 (training on a full disk) is in tests/test_disk_full.py."""
+are one line before anything is written. The promises:
+docs/reliability.md, "19. Edges: full disks in training, repeated names, toy sizes (issue 30)".
+Item 4 (training on a full disk) is in tests/test_disk_full.py."""
 
 from __future__ import annotations
 
