@@ -100,6 +100,8 @@ def cmd_build_sdf(args: argparse.Namespace) -> int:
           f"{len(s.skipped)} frames while building")
     print_skips(s.reader_skipped, "reader")
     print_skips(s.skipped, "build")
+    if s.empty_splits:  # a split asked for but without a frame: say so, the store holds none of its records
+        print(f"note: no frames in split(s) {', '.join(s.empty_splits)} of {root}: the store holds none of them")
     print("index.zarr already lists every shard: nothing written" if s.index_kept else "index.zarr written"
           if s.index_written else "index not written yet: other parts still have shards to build")
     return 0

@@ -53,7 +53,7 @@ def test_a_repeat_in_a_pipeline_file_names_the_file(tmp_path):
 
 
 def test_reading_a_split_twice_is_refused_below_the_settings(tmp_path):
-    """read_splits, the one way every command reads a dataset, refuses a repeated split too (never duplicate records)."""
+    """read_splits, the one way every command reads a dataset, refuses a repeated split too: no duplicate records."""
     from hoidata.datasets.open import read_splits
 
     with pytest.raises(DataError, match="names a split more than once"):
@@ -153,3 +153,26 @@ def test_the_main_job_refuses_the_size_in_its_data_step_before_anything_is_writt
     lines = [line for line in err.splitlines() if line.strip()]
     assert rc == 2 and len(lines) == 1 and "--sequences 3" in lines[0] and "Traceback" not in err, err[-1500:]
     assert not out.exists()
+
+
+def test_empty_splits_are_the_asked_splits_without_a_frame():
+    from types import SimpleNamespace
+
+    from hoidata.pipeline.runner import empty_splits
+
+    frames = [SimpleNamespace(split="train"), SimpleNamespace(split="test")]
+    assert empty_splits(("train", "val", "test"), frames) == ("val",)
+    assert empty_splits(("train",), frames) == ()
+
+
+@pytest.mark.slow  # reads and builds the tiny toy DexYCB
+def test_a_split_asked_for_but_without_frames_is_named(tiny_dexycb, tmp_path, capsys):
+    """The toy pipeline asks for train, val and test; the tiny toy (2 sequences a subject) has train frames only. The
+    store is built from them, and the estimate and the build summary name the splits it holds none of."""
+    base = ["build-sdf", "--dataset", "toy", "--root", str(tiny_dexycb), "--out", str(tmp_path / "s"),
+            "dataset.frame_stride=8", "record.crop_size=64", "record.n_hand=64", "record.n_object=32"]
+    assert hoidata([*base, "--estimate"]) == 0
+    assert "splits_without_frames: val, test" in capsys.readouterr().out
+    assert hoidata(base) == 0
+    out = capsys.readouterr().out
+    assert f"note: no frames in split(s) val, test of {tiny_dexycb}: the store holds none of them" in out, out

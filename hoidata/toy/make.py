@@ -18,7 +18,8 @@ def check_chain_size(sequences: int | None) -> None:
     if sequences is not None and sequences < DEXYCB_SPLIT_SEQUENCES:
         raise ValueError(f"--sequences {sequences}: the toy chain builds a train and a test store, and the toolkit "
                          f"puts a subject's 5th sequence in val or test, so fewer than {DEXYCB_SPLIT_SEQUENCES} leave "
-                         f"the test split empty; give --sequences {DEXYCB_SPLIT_SEQUENCES} or more (nothing was written)")
+                         f"the test split empty; give --sequences {DEXYCB_SPLIT_SEQUENCES} or more "
+                         "(nothing was written)")
 
 
 def empty_split_notes(rows: list[dict], layout: str, sequences: int | None) -> list[str]:
