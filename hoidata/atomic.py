@@ -14,6 +14,7 @@ import os
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
+from typing import BinaryIO
 
 from hoidata.errors import naming_os_errors
 
@@ -52,14 +53,45 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         raise
 
 
+@contextlib.contextmanager
+def atomic_file(path: str | os.PathLike) -> Iterator[BinaryIO]:
+    """Yield a binary file to write; when the block ends without error it is flushed, synced to the disk and
+    renamed to ``path`` (so a full disk is found before the rename, and a file already at ``path`` stays whole
+    until then). An error removes the temporary file and names ``path``, as :func:`atomic_path` does."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        yield f
+        f.flush()
+        os.fsync(f.fileno())
+
+
 def write_atomic(path: str | os.PathLike, data: bytes) -> Path:
     """Write ``data`` to ``path`` atomically (see the module docstring); returns ``path``."""
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
+    with atomic_file(path) as f:
+        f.write(data)
     return Path(path)
+
+
+def append_whole(path: str | os.PathLike, data: bytes) -> None:
+    """Append ``data`` to ``path`` (created when missing, with the umask's permissions) whole or not at all.
+
+    For logs that grow by rows (a training run's ``metrics.csv``): a write that fails part way (a full disk, a file
+    size limit) is cut back to the file's length before it, so the log never ends in half a row, and the error
+    names ``path`` (:func:`hoidata.errors.naming_os_errors`)."""
+    path = Path(path)
+    with naming_os_errors(path):
+        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
+        try:
+            start = os.fstat(fd).st_size
+            view = memoryview(data)
+            try:
+                while view:
+                    view = view[os.write(fd, view):]
+            except OSError:
+                with contextlib.suppress(OSError):  # the write's own error is the one to report
+                    os.ftruncate(fd, start)
+                raise
+        finally:
+            os.close(fd)
 
 
 def write_json_atomic(path: str | os.PathLike, value) -> Path:

@@ -29,15 +29,21 @@ def folder(args: argparse.Namespace, name: str, default: Path | None = None) -> 
 def cmd_make_toy(args: argparse.Namespace) -> int:
     """Write the procedural hand, objects and toy datasets in the real layouts, then check them."""
     from hoidata.pipeline.inputs import format_rows, mano_rows, object_rows
-    from hoidata.toy.make import make_toy, split_rows
+    from hoidata.toy.make import HO3D_MAX_SEQUENCES, empty_split_notes, make_toy, split_rows
 
     out = folder(args, "out")
     layouts = ("dexycb", "ho3d") if args.layout == "all" else (args.layout,)
     for layout in layouts:
         root = out / layout if args.layout == "all" else out
-        made = make_toy(root, layout, sequences=args.sequences, frames=args.frames, seed=args.seed)
+        sequences = args.sequences
+        if layout != "dexycb" and args.layout == "all" and sequences and sequences > HO3D_MAX_SEQUENCES:
+            print(f"\nnote: --sequences {sequences} is DexYCB's; the toy HO-3D gets its {HO3D_MAX_SEQUENCES} training "
+                  "sequences")
+            sequences = HO3D_MAX_SEQUENCES
+        made = make_toy(root, layout, sequences=sequences, frames=args.frames, seed=args.seed)
         print(f"\n{layout}: wrote {made} ")
-        print(format_rows(split_rows(root, layout)))
+        rows = split_rows(root, layout)
+        print("\n".join([format_rows(rows), *empty_split_notes(rows, layout, args.sequences)]))
     first = out / layouts[0] if args.layout == "all" else out
     print("\n" + format_rows(mano_rows(first / "mano")) + "\n")
     print(format_rows(object_rows(first / "models", cache_dir=args.cache_dir)))
@@ -94,6 +100,8 @@ def cmd_build_sdf(args: argparse.Namespace) -> int:
           f"{len(s.skipped)} frames while building")
     print_skips(s.reader_skipped, "reader")
     print_skips(s.skipped, "build")
+    if s.empty_splits:  # a split asked for but without a frame: say so, the store holds none of its records
+        print(f"note: no frames in split(s) {', '.join(s.empty_splits)} of {root}: the store holds none of them")
     print("index.zarr already lists every shard: nothing written" if s.index_kept else "index.zarr written"
           if s.index_written else "index not written yet: other parts still have shards to build")
     return 0
@@ -182,7 +190,10 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 
 def cmd_toy_pipeline(args: argparse.Namespace) -> int:
     """The data half of the main job: toy datasets -> verified train and test stores -> inspection PNG."""
+    from hoidata.toy.make import check_chain_size
+
     out = folder(args, "out")
+    check_chain_size(args.sequences)  # a size that leaves the test store empty: refused before anything is written
     size = [*(["--sequences", str(args.sequences)] if args.sequences is not None else []),
             *(["--frames", str(args.frames)] if args.frames is not None else [])]
     root = out / "data" / "dexycb"
@@ -221,7 +232,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output folder; with --layout all it gets dexycb/ and ho3d/")
     p.add_argument("--layout", choices=("dexycb", "ho3d", "ho3d_v3", "all"), default="all",
                    help="dataset layout (default: all = dexycb and ho3d; ho3d_v3: HO-3D v3's JPEG layout)")
-    p.add_argument("--sequences", type=positive_int, default=None, help="sequences per subject (DexYCB) / training sequences (HO-3D)")
+    p.add_argument("--sequences", type=positive_int, default=None, help="sequences per subject (DexYCB; val and test need 5 or more) / training sequences (HO-3D: 1-3)")
     p.add_argument("--frames", type=positive_int, default=None, help="frames per sequence and camera")
     p.add_argument("--seed", type=non_negative_int, default=0, help="random seed; the same seed gives the same files")
     p.add_argument("--cache-dir", default=None, help="cache for simplified meshes (default $HOIDATA_CACHE/objects or ~/.cache/hoidata/objects)")
@@ -288,7 +299,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="toy_run", help="output folder (data/, store/train, store/test, store_grid.png)")
     p.add_argument("--workers", type=positive_int, default=2, help="worker processes for the store build")
     p.add_argument("--seed", type=non_negative_int, default=0)
-    p.add_argument("--sequences", type=positive_int, default=None, help="toy size: sequences per subject (see make-toy)")
+    p.add_argument("--sequences", type=positive_int, default=None, help="toy size: sequences per subject, 5 or more (the test split is every 5th)")
     p.add_argument("--frames", type=positive_int, default=None, help="toy size: frames per sequence and camera")
     p.set_defaults(func=cmd_toy_pipeline)
 

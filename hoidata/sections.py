@@ -49,7 +49,7 @@ def value_problem(annotation: str, value) -> str | None:
 
     Understands the annotations the settings dataclasses use: bool, int, float (an int is accepted), str, and
     tuples of them, either ``tuple[T, ...]`` or a fixed ``tuple[T, T]``; others are not checked. A bool is
-    not an int here.
+    not an int here. A ``tuple[str, ...]`` is a list of names (splits, hand sides): each may appear once.
     """
     if annotation in _SCALARS:
         ok = isinstance(value, _SCALARS[annotation]) and (annotation == "bool" or not isinstance(value, bool))
@@ -66,6 +66,9 @@ def value_problem(annotation: str, value) -> str | None:
             problem = value_problem(items[0], v)
             if problem:
                 return f"every item {problem}"
+        twice = [v for i, v in enumerate(value) if v in value[:i]]
+        if items == ["str", "..."] and twice:  # a list of names (splits, sides): a repeat would count its frames twice
+            return f"names {twice[0]!r} more than once; give each name once, got {list(value)!r}"
     return None
 
 
@@ -80,12 +83,12 @@ def limit_problem(rules: tuple[str, ...], value) -> str | None:
     return None
 
 
-def section(cls, values: dict, path: Path, name: str):
+def section(cls, values: dict, path: Path, name: str, overrides=()):
     """``cls(**values)`` after checking every key is a field of ``cls``, every value fits its annotation and the
     range the class declares for it (``LIMITS``: field -> rules like (">= 1",); the defaults obey them too).
 
     ``values`` is the section's table, ``path`` the file named in an error and ``name`` the section's name (an
-    error names the key as ``name.key``)."""
+    error names the key as ``name.key``, and the command line's ``overrides`` of it with the file, see :func:`origin`)."""
     if not isinstance(values, dict):
         raise DataError(path, name, f"must be a table of settings, got {values!r}")
     known = {f.name: f for f in fields(cls)}
@@ -96,7 +99,7 @@ def section(cls, values: dict, path: Path, name: str):
             raise DataError(path, f"{name}.{key}", f"unknown setting; expected one of {sorted(known)}")
         problem = value_problem(known[key].type, value) or (key in limits and limit_problem(limits[key], value))
         if problem:
-            raise DataError(path, f"{name}.{key}", problem)
+            raise DataError(origin(path, overrides, f"{name}.{key}"), f"{name}.{key}", problem)
         kwargs[key] = tuple(value) if isinstance(value, list) else value
     return cls(**kwargs)
 

@@ -20,6 +20,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from hoidata.atomic import atomic_path, write_atomic
 from hoidata.errors import DataError
 
 METRICS = ("rr_mje", "pa_mje", "oce", "mce", "add_s")
@@ -149,8 +150,8 @@ def run_table(name: str, train_store: Path, test_store: Path, mano: Path, out: P
     summary = {"table": name, "steps_per_variant": steps, "seed": seed, "train_store": str(train_store),
                "test_store": str(test_store), "extra_overrides": extra, "train_seconds": timing,
                "rows": results, "mean_pose_baseline": baseline}
-    (out / "table.json").write_text(json.dumps(summary, indent=2))
-    (out / "table.md").write_text(markdown_table(summary))
+    write_atomic(out / "table.json", json.dumps(summary, indent=2).encode())  # whole, or one line naming it
+    write_atomic(out / "table.md", markdown_table(summary).encode())
     plot_table(summary, out / "ablation.png")
     return summary
 
@@ -201,7 +202,7 @@ def plot_table(summary: dict, png: Path) -> Path:
     fig.suptitle(f"{summary['table']} ablation")
     fig.tight_layout()
     png = Path(png)
-    png.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(png, dpi=110)
+    with atomic_path(png) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
     plt.close(fig)
     return png

@@ -31,6 +31,7 @@ from hoidata.cli_types import ArgumentParser, local_path, non_negative_int, posi
 from hoidata.errors import DataError, run_cli
 from hoidata.schema import FULL
 from hoidata.store import RemoteStore, read_index, resolve_store
+from hoidata.store.paths import refuse_repeated_stores
 from hoisdf.evaluation import metrics as M
 from hoisdf.evaluation.inference import infer, load_for_eval, resolve_device, run_folder
 from hoisdf.evaluation.official import format_ho3d_scores
@@ -83,6 +84,7 @@ def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=No
     from hoidata.hand import load_mano
 
     stores = [resolve_store(s) for s in ([stores] if isinstance(stores, (str, Path, RemoteStore)) else stores)]
+    refuse_repeated_stores(stores, "the stores to evaluate (--shards)")  # each record is scored once
     out_dir = Path(out_dir) if out_dir else run_folder(Path(run)) / f"eval-{'+'.join(s.name for s in stores)}"
     clear_results(out_dir)  # whatever happens next, no earlier run's result file stays beside this run's
     if boxes not in (None, "gt", "predicted"):

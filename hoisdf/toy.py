@@ -132,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=non_negative_int, default=0)
     # twice make-toy's default sequences at half its frames: the same 600 DexYCB images with twice the grasps,
     # which the object's depth needs to generalise (README, "The main job")
-    p.add_argument("--sequences", type=positive_int, default=10, help="toy size: sequences per subject (see hoidata make-toy)")
+    p.add_argument("--sequences", type=positive_int, default=10, help="toy size: sequences per subject, 5 or more (see hoidata make-toy)")
     p.add_argument("--frames", type=positive_int, default=5, help="toy size: frames per sequence and camera")
     p.add_argument("--vis", type=non_negative_int, default=8, help="result pictures to write")
     p.add_argument("--ablation", choices=sorted(TABLES), default=None,

@@ -25,6 +25,7 @@ from hoidata.cli_types import ArgumentParser, local_path
 from hoidata.errors import DataError, redact_urls, run_cli
 from hoidata.provenance import git_commit
 from hoidata.store import resolve_store
+from hoidata.store.paths import refuse_repeated_stores
 from hoidata.store.remote import url_authority
 from hoisdf.config import TrainConfig, load_train_config, overridden_config
 from hoisdf.data import StoreSpec
@@ -136,6 +137,8 @@ def run(args, argv: list[str]) -> int:
     _split_overrides(args)
     stores = [parse_store(s) for s in args.shards]
     val_stores = [StoreSpec(resolve_store(s)) for s in args.val_shards]
+    refuse_repeated_stores([s.path for s in stores], "--shards", " (a weight, STORE:2, samples a store more often)")
+    refuse_repeated_stores([s.path for s in val_stores], "--val-shards")
     run_dir = args.out or Path("runs") / Path(args.config or "default").stem
     checkpoint = find_checkpoint(run_dir) if args.resume else None
     payload = load_checkpoint(checkpoint) if args.resume else None

@@ -1,7 +1,11 @@
 """Real OS errors name the file (issue 25, item 6), on a REALLY full filesystem: a 1 MiB tmpfs filled to the last
 page, not a mocked error. The errno of write()/flush()/fsync()/close() carries no file name; every writer attaches
 the path it writes (hoidata.errors.naming_os_errors), so each command prints ``error: <path>: No space left on
-device``. Needs root to mount (skipped with the reason otherwise)."""
+device``. Needs root to mount (skipped with the reason otherwise).
+
+Training (issue 30, item 4): the checkpoint, metrics.csv and the TensorBoard events fail the same way, on a full
+tmpfs and under a file size limit (RLIMIT_FSIZE in a child process: "File too large"), and the run resumes exactly
+from its last good checkpoint."""
 
 from __future__ import annotations
 
@@ -13,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
+from test_faults_train import _args
 
 from hoidata.errors import user_message
 
@@ -113,3 +119,97 @@ def test_each_command_prints_the_file_on_a_full_disk(full, tiny_dexycb, tiny_sto
                                   "--out", str(full / "eval"), "--plausibility", "0", "--workers", "0", "--limit", "2",
                                   "--no-progress"]), "evaluate")
     check(_cli(capsys, hoidata, ["inspect", str(tiny_store), "--out", str(full / "grid.png")]), "inspect")
+
+
+# --- training on a full disk (issue 30, item 4): every file the trainer writes fails the same clean way ------------
+
+def _sha(path: Path) -> str:
+    import hashlib
+
+    return hashlib.sha256(path.read_bytes()).hexdigest()  # the file's bytes are the contract: it must stay untouched
+
+
+def _train_limited(argv: list[str], limit: int) -> subprocess.CompletedProcess:
+    """``python -m hoisdf.train ARGV`` in a child whose files may not grow past ``limit`` bytes (RLIMIT_FSIZE: a write
+    past it fails with EFBIG, "File too large", as Python ignores SIGXFSZ)."""
+    import resource
+    import sys
+
+    def cap():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    return subprocess.run([sys.executable, "-m", "hoisdf.train", *argv], capture_output=True, text=True, timeout=300,
+                          env=env, preexec_fn=cap, check=False)
+
+
+def _whole_rows(run: Path) -> list[list[str]]:
+    rows = [line.split(",") for line in (run / "metrics.csv").read_text().splitlines()]
+    assert rows[0] == ["split", "epoch", "step", "name", "value"] and all(len(r) == 5 for r in rows), rows
+    float(rows[-1][4])  # the last row is whole
+    return rows[1:]
+
+
+def test_a_checkpoint_that_does_not_fit_is_one_line_and_the_run_resumes_exactly(tiny_store, mano_dir, tmp_path):
+    """--resume to step 4 under a 1 MiB file size limit: the step-4 checkpoint cannot be written. One line naming it,
+    exit 2, the step-2 checkpoint untouched and no temporary file; the logs hold whole rows; a --resume with room
+    continues from step 2 and ends bit for bit where an uninterrupted 4-step run ends."""
+    from hoisdf.train import main as train
+
+    assert train(_args(tiny_store, mano_dir, tmp_path / "four", "train.max_steps=4")) == 0
+    run = tmp_path / "run"
+    assert train(_args(tiny_store, mano_dir, run, "train.max_steps=2")) == 0
+    last = run / "checkpoints" / "last.pt"
+    before = _sha(last)
+    result = _train_limited(["--resume", *_args(tiny_store, mano_dir, run, "train.max_steps=4")], 1 << 20)
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr[-3000:]
+    assert lines == [f"error: {last}: File too large"]  # was: torch's RuntimeError from its zip writer
+    assert _sha(last) == before and [p.name for p in last.parent.iterdir()] == ["last.pt"]
+    assert {int(r[2]) for r in _whole_rows(run)} == {1, 2, 3, 4}  # steps 3 and 4 were logged before the save failed
+    assert train(["--resume", *_args(tiny_store, mano_dir, run, "train.max_steps=4")]) == 0
+    assert sorted({int(r[2]) for r in _whole_rows(run)}) == [1, 2, 3, 4] and len(_whole_rows(run)) == len(
+        _whole_rows(tmp_path / "four"))  # the rows after step 2 were dropped and logged again, once
+    a, b = (torch.load(path / "checkpoints" / "last.pt", weights_only=True) for path in (tmp_path / "four", run))
+    assert a["progress"] == b["progress"] and a["progress"]["global_step"] == 4
+    assert all(torch.equal(a["model"][k], b["model"][k]) for k in a["model"])
+    for k, state in a["optimizer"]["state"].items():
+        assert all(torch.equal(v, b["optimizer"]["state"][k][n]) for n, v in state.items() if torch.is_tensor(v))
+
+
+def test_a_training_run_on_a_full_disk_names_the_checkpoint(full, tiny_store, mano_dir, capsys):
+    """A real ENOSPC: the run folder on a tmpfs with 64 KiB free (room for config.json and the logs, not for a
+    checkpoint). One line naming last.pt and "No space left on device", and the logs stay readable."""
+    from hoisdf.train import main as train
+
+    os.truncate(full / "filler", os.path.getsize(full / "filler") - (64 << 10))
+    run = full / "run"
+    err = _cli(capsys, train, _args(tiny_store, mano_dir, run, "train.max_steps=2"))
+    assert err == f"error: {run}/checkpoints/last.pt: {NOSPACE}"
+    assert not any((run / "checkpoints").iterdir())  # no temporary file stays
+    assert json.loads((run / "config.json").read_text())["config"]["train"]["max_steps"] == 2
+    assert {int(r[2]) for r in _whole_rows(run)} == {1, 2}
+
+
+def test_logs_that_cannot_grow_are_one_line_naming_them(tiny_store, mano_dir, tmp_path):
+    """Under a 4 KiB file size limit config.json (3.4 KB) fits and the TensorBoard events (about 0.9 KB a step) stop
+    growing first: one line naming RUN/tb, without the event writer thread's own traceback, and metrics.csv holds
+    whole rows."""
+
+    run = tmp_path / "run"
+    result = _train_limited(_args(tiny_store, mano_dir, run, "train.max_steps=8"), 4096)
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr[-3000:]
+    assert lines == [f"error: {run / 'tb'}: File too large"]
+    _whole_rows(run)
+
+
+def test_a_log_append_is_whole_or_not_at_all(full):
+    """append_whole on a real full disk: a row that does not fit is cut back off, and the error names the file."""
+    from hoidata.atomic import append_whole
+
+    os.truncate(full / "filler", os.path.getsize(full / "filler") - 4096)  # one page free
+    log = full / "metrics.csv"
+    append_whole(log, b"a,b\n" * 500)
+    _names(log, lambda: append_whole(log, b"c,d\n" * 2000))  # 8000 bytes: about 2 KB of it would fit
+    assert log.read_bytes() == b"a,b\n" * 500

@@ -228,8 +228,8 @@ def test_disk_full_and_read_only_errors_are_one_line(tiny_dexycb, tiny_store, ma
     rc = hoidata([*BUILD[:4], str(tiny_dexycb), "--out", str(tmp_path / "s"), 'dataset.splits=["train"]'])
     _one_error_line(capsys, rc, "shard-000000.tar", "No space left on device")
 
-    def read_only(payload, path):
-        raise OSError(errno.EROFS, os.strerror(errno.EROFS), str(path))
+    def read_only(payload, file):  # torch.save writes through a file object: its write errors name no file
+        raise OSError(errno.EROFS, os.strerror(errno.EROFS))
 
     monkeypatch.setattr(checkpoint.torch, "save", read_only)
     _one_error_line(capsys, train(_args(tiny_store, mano_dir, tmp_path / "run", "train.max_steps=1")),

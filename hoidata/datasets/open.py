@@ -72,6 +72,8 @@ def read_splits(dataset: str, root, mano_dir, splits, *, models_dir=None, dexycb
     from hoidata.datasets.frame_list import check_listed, read_frame_list
 
     splits = tuple(splits)
+    if len(set(splits)) != len(splits):  # each frame is read once: a repeated split would give duplicate records
+        raise DataError(root, "dataset.splits", f"names a split more than once: {list(splits)}")
     if frame_list and len(splits) != 1:
         raise DataError(frame_list, "dataset.frame_list", f"a frame list holds the ids of one split, not {splits}")
     listed = read_frame_list(frame_list) if frame_list else None

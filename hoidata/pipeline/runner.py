@@ -66,6 +66,7 @@ class BuildSummary:
     seconds: float = 0.0
     index_written: bool = False  # the store is complete: its index lists every shard
     index_kept: bool = False  # ... and this run found it so (an earlier run or another part wrote it)
+    empty_splits: tuple = ()  # splits of dataset.splits without a frame: the store holds none of them
 
     @property
     def frames_per_second(self) -> float:
@@ -134,11 +135,18 @@ def build_store(cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path, 
     run = run_task(task, workers, part, progress, executor)
     summary = BuildSummary.of_run(out, run)
     summary.reader_skipped = [skip_dict(s) for s in reader_skips]
+    summary.empty_splits = empty_splits(cfg.dataset.splits, frames)
     if run.all_done:
         summary.skipped = finish_store(out, cfg.as_dict(), models_dir, run.units, reader_skips, summary,
                                        toolkit_provenance(cfg, root))
     summary.seconds = time.perf_counter() - start
     return summary
+
+
+def empty_splits(splits, frames) -> tuple[str, ...]:
+    """The splits of ``splits`` that none of ``frames`` is in (a store built from them holds none of those)."""
+    found = {f.split for f in frames}
+    return tuple(s for s in splits if s not in found)
 
 
 def toolkit_provenance(cfg: BuildConfig, root: Path) -> dict:
@@ -180,4 +188,5 @@ def estimate_build(cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Pat
     return {"frames": len(frames), "skipped_by_reader": len(skips), "seconds_per_frame": round(per_frame, 3),
             "frames_per_second_per_worker": round(1 / per_frame, 2),
             "estimated_minutes": round(len(frames) * per_frame / max(workers, 1) / 60, 1),
-            "bytes_per_frame": size // len(picks), "estimated_gb": round(size / len(picks) * len(frames) / 1e9, 3)}
+            "bytes_per_frame": size // len(picks), "estimated_gb": round(size / len(picks) * len(frames) / 1e9, 3),
+            **({"splits_without_frames": ", ".join(empty)} if (empty := empty_splits(cfg.dataset.splits, frames)) else {})}

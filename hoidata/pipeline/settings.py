@@ -85,8 +85,8 @@ def load_build_config(name_or_path: str, overrides: list[str] = ()) -> BuildConf
     refuse_unused(list(overrides), BUILD_SECTIONS, "build-sdf", resolve_pipeline(name_or_path))
     path, data = read_pipeline(name_or_path, overrides)
     check_sections(data, path, BUILD_SECTIONS, None)  # the file's other sections are their readers' to check
-    record = section(RecordSettings, data.get("record", {}), path, "record")
-    dataset = section(DatasetConfig, data.get("dataset", {}), path, "dataset")
+    record = section(RecordSettings, data.get("record", {}), path, "record", overrides)
+    dataset = section(DatasetConfig, data.get("dataset", {}), path, "dataset", overrides)
     if dataset.name not in ("dexycb", "ho3d"):
         raise DataError(origin(path, overrides, "dataset.name"), "dataset.name",
                         f"unknown dataset {dataset.name!r}; expected 'dexycb' or 'ho3d'")
@@ -103,7 +103,7 @@ def load_build_config(name_or_path: str, overrides: list[str] = ()) -> BuildConf
     _check_crop(record, dataset, path)
     return BuildConfig(dataset,
                        replace(record, sigmas=tuple(record.sigmas)),
-                       section(StoreConfig, data.get("store", {}), path, "store"))
+                       section(StoreConfig, data.get("store", {}), path, "store", overrides))
 
 
 def _check_crop(record: RecordSettings, dataset: DatasetConfig, path: Path) -> None:

@@ -37,6 +37,19 @@ def resolve_store(location) -> Path | RemoteStore:
     return Path(os.fspath(location))
 
 
+def refuse_repeated_stores(stores, what: str, hint: str = "") -> None:
+    """A store named twice in one list (``--shards a a``, also spelled ``./a`` and ``a/``, through a link, or as one
+    URL with another query) is a DataError naming it and ``what`` (the option), before anything is read: it would
+    be read, trained on or scored twice. ``stores``: what :func:`resolve_store` returns; ``hint``: what to do."""
+    seen: dict = {}
+    for store in stores:
+        key = store.base if isinstance(store, RemoteStore) else Path(store).resolve()
+        if key in seen:
+            raise DataError(store, None, f"{what} names this store twice (also as {seen[key]}); give each store "
+                                         f"once{hint}")
+        seen[key] = store
+
+
 # text that names a URL, not a folder: any scheme:// (also ones no loader reads: ftp://, file://, gs:///x), and the
 # store schemes with one slash (a typo of one): Path() would squash them into a folder named 'http:' or 's3:'
 _URL_LIKE = re.compile(r"^(?:[A-Za-z][A-Za-z0-9+.-]+://|(?:https?|s3|gs):/)", re.IGNORECASE)

@@ -7,6 +7,31 @@ from dataclasses import replace
 from pathlib import Path
 
 LAYOUTS = ("dexycb", "ho3d", "ho3d_v3")  # ho3d_v3: HO-3D v3's layout (hoidata/toy/ho3d.py)
+# the toolkit's i % 5 == 4 rule puts a subject's 5th sequence in val or test: with fewer, s0/s1 val and test are empty
+DEXYCB_SPLIT_SEQUENCES = 5
+HO3D_MAX_SEQUENCES = 3  # the toy HO-3D's training sequences: BB10, MC1, SM2 (hoidata/toy/ho3d.py, TRAIN_SEQUENCES)
+
+
+def check_chain_size(sequences: int | None) -> None:
+    """``hoidata toy-pipeline`` builds the toy DexYCB's train and test stores: a size that leaves its test split empty
+    is refused before anything is written, naming the minimum (``None``: make-toy's default size, which works)."""
+    if sequences is not None and sequences < DEXYCB_SPLIT_SEQUENCES:
+        raise ValueError(f"--sequences {sequences}: the toy chain builds a train and a test store, and the toolkit "
+                         f"puts a subject's 5th sequence in val or test, so fewer than {DEXYCB_SPLIT_SEQUENCES} leave "
+                         f"the test split empty; give --sequences {DEXYCB_SPLIT_SEQUENCES} or more "
+                         "(nothing was written)")
+
+
+def empty_split_notes(rows: list[dict], layout: str, sequences: int | None) -> list[str]:
+    """``note:`` lines for the splits of :func:`split_rows` that came out without frames at this size, naming the
+    size that fills them, so a later ``build-sdf`` of such a split stopping with "no frames" is no surprise."""
+    empty = [f"{r['setting']} {r['split']}" for r in rows if r["frames"] == 0]
+    if not empty:
+        return []
+    why = (f": the toolkit puts a subject's 5th sequence in val or test, give --sequences {DEXYCB_SPLIT_SEQUENCES} "
+           "or more" if layout == "dexycb" and sequences is not None and sequences < DEXYCB_SPLIT_SEQUENCES else
+           ": make-toy's default size fills every split")
+    return [f"note: no frames in {', '.join(empty)} at this size{why}"]
 
 
 def write_assets(out: Path) -> tuple[Path, Path]:
@@ -35,6 +60,9 @@ def make_toy(out: str | Path, layout: str, sequences: int | None = None, frames:
     for name, value in (("sequences", sequences), ("frames", frames)):
         if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
             raise ValueError(f"{name} must be a whole number >= 1 (or None for the default size), got {value!r}")
+    if layout != "dexycb" and sequences is not None and sequences > HO3D_MAX_SEQUENCES:
+        raise ValueError(f"--sequences {sequences}: the toy HO-3D has {HO3D_MAX_SEQUENCES} training sequences (BB10, "
+                         f"MC1, SM2); give 1 to {HO3D_MAX_SEQUENCES} (nothing was written)")
     out = Path(out)
     start = time.perf_counter()
     prepare_folder(out, {"layout": layout, "sequences": sequences, "frames": frames, "seed": seed})

@@ -17,11 +17,12 @@ from __future__ import annotations
 
 import os
 import random
+import shutil
 from pathlib import Path
 
 import torch
 
-from hoidata.atomic import atomic_path
+from hoidata.atomic import atomic_file
 from hoidata.errors import DataError
 
 CHECKPOINTS = "checkpoints"
@@ -48,10 +49,46 @@ def set_rng_state(state: dict, generator: torch.Generator | None = None) -> None
         generator.set_state(state["generator"])
 
 
+class _KeptErrors:
+    """The file ``torch.save`` writes through, keeping the OSError of a failed write: torch's zip writer turns it
+    into a ``RuntimeError`` that names neither the file nor the reason (a full disk, a file size limit)."""
+
+    def __init__(self, file):
+        self.file, self.error = file, None
+
+    def _kept(self, call, *args):
+        try:
+            return call(*args)
+        except OSError as err:
+            self.error = self.error or err
+            raise
+
+    def write(self, data) -> int:
+        return self._kept(self.file.write, data)
+
+    def flush(self) -> None:
+        self._kept(self.file.flush)
+
+
 def save_checkpoint(path: Path, payload: dict) -> Path:
-    """Write ``payload`` to ``path`` atomically (temporary file + rename): a crash never leaves half a file."""
-    with atomic_path(path) as tmp:
-        torch.save(payload, tmp)
+    """Write ``payload`` to ``path`` atomically (temporary file, synced, renamed): a crash or a full disk never
+    leaves half a file, and a checkpoint already at ``path`` stays whole. A failed write is the OSError naming
+    ``path`` and the system's reason (``No space left on device``, ``File too large``), not torch's RuntimeError."""
+    with atomic_file(path) as f:
+        sink = _KeptErrors(f)
+        try:
+            torch.save(payload, sink)
+        except RuntimeError:
+            if sink.error is None:
+                raise
+            raise sink.error from None  # named by atomic_file
+    return Path(path)
+
+
+def copy_checkpoint(source: Path, path: Path) -> Path:
+    """The checkpoint file ``source`` copied to ``path`` atomically; a failed write names ``path``."""
+    with open(source, "rb") as src, atomic_file(path) as dst:
+        shutil.copyfileobj(src, dst, 1 << 20)
     return Path(path)
 
 

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import csv
 import io
-import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,8 +21,8 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from hoidata.atomic import atomic_path, write_atomic
-from hoidata.errors import DataError
+from hoidata.atomic import append_whole, write_atomic
+from hoidata.errors import DataError, naming_os_errors
 from hoidata.store import read_index
 from hoisdf.config import TrainConfig
 from hoisdf.data import StoreSpec, build_dataset, make_loader
@@ -35,6 +34,7 @@ from hoisdf.training.checkpoint import (
     CHECKPOINTS,
     LAST,
     check_training_payload,
+    copy_checkpoint,
     load_weights,
     rng_state,
     save_checkpoint,
@@ -79,6 +79,27 @@ def trim_log(path: Path, global_step: int) -> None:
         text = io.StringIO()
         csv.writer(text).writerows(kept)
         write_atomic(path, text.getvalue().encode())
+
+
+def quiet_event_writer_threads() -> None:
+    """Keep TensorBoard's event writer thread from printing its own traceback when a write fails (a full disk).
+
+    The thread stores the error, and the writer's next ``add_scalar`` / ``flush`` raises it in the training loop,
+    where it becomes the one error line naming ``RUN/tb``; the thread's re-raise would print a second report.
+    Installed once, as ``threading.excepthook``; any other thread's error goes to the previous hook."""
+    import threading
+
+    previous = threading.excepthook
+    if getattr(previous, "quiet_event_writer", False):
+        return
+
+    def hook(args) -> None:
+        if type(args.thread).__name__ == "_AsyncWriterThread" and issubclass(args.exc_type, OSError):
+            return  # raised again by the writer's flush() in the training loop
+        previous(args)
+
+    hook.quiet_event_writer = True
+    threading.excepthook = hook
 
 
 class Trainer:
@@ -133,8 +154,7 @@ class Trainer:
             return None
         path = save_checkpoint(self.run_dir / CHECKPOINTS / LAST, self.state_dict(states))
         if name != LAST:  # the same bytes under the epoch's name, copied rather than serialised twice
-            with atomic_path(self.run_dir / CHECKPOINTS / name) as copy:
-                shutil.copyfile(path, copy)
+            copy_checkpoint(path, self.run_dir / CHECKPOINTS / name)
         return path
 
     def load(self, payload: dict, path: Path | str = "<checkpoint>") -> dict:
@@ -246,8 +266,7 @@ class Trainer:
 
     def _record_keys(self, keys: list[str]) -> None:
         if self.config.train.record_keys:
-            with open(self.run_dir / f"keys-rank{self.rank}.txt", "a") as f:
-                f.writelines(k + "\n" for k in keys)
+            append_whole(self.run_dir / f"keys-rank{self.rank}.txt", "".join(k + "\n" for k in keys).encode())
 
     # --- validation and logs --------------------------------------------------------------------------------
     @torch.no_grad()
@@ -281,21 +300,26 @@ class Trainer:
             return
         p = self.progress
         path = self.run_dir / CURVE
-        new = not path.exists()
-        with open(path, "a", newline="") as f:
-            writer = csv.writer(f)
-            if new:
-                writer.writerow(["split", "epoch", "step", "name", "value"])
-            for name, value in values.items():
-                writer.writerow([split, p.epoch, p.global_step, name, f"{value:.6g}"])
+        rows = io.StringIO()  # whole rows or none: a full disk never leaves half a row (append_whole)
+        writer = csv.writer(rows)
+        if not path.exists():
+            writer.writerow(["split", "epoch", "step", "name", "value"])
+        for name, value in values.items():
+            writer.writerow([split, p.epoch, p.global_step, name, f"{value:.6g}"])
+        append_whole(path, rows.getvalue().encode())
+        with naming_os_errors(self.run_dir / "tb"):  # the event writer's errors name no file
+            self._log_tensorboard(split, values)
+
+    def _log_tensorboard(self, split: str, values: dict[str, float]) -> None:
         if self._writer is None:
             try:
                 from torch.utils.tensorboard import SummaryWriter
             except ImportError:  # tensorboard is optional; metrics.csv has the same numbers
                 self._writer = False
             else:
+                quiet_event_writer_threads()
                 self._writer = SummaryWriter(str(self.run_dir / "tb"), purge_step=self._purge_step)
         if self._writer:
             for name, value in values.items():
-                self._writer.add_scalar(f"{split}/{name}", value, p.global_step)
+                self._writer.add_scalar(f"{split}/{name}", value, self.progress.global_step)
             self._writer.flush()
