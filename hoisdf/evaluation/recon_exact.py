@@ -31,6 +31,7 @@ import numpy as np
 from hoidata.geometry.bvh import MeshBVH
 
 MAX_QUERIES = 20_000_000  # distance queries per direction of one part of one frame
+CHUNK = 100_000  # sub-triangles per block of the vertex-to-closest-point bound
 
 
 class Target:
@@ -72,8 +73,10 @@ class _Pieces:
         hi = self.area * np.minimum(self.fc + 0.25 * m, np.square(dc + big_r))
         lo = np.minimum(lo, hi)  # equal up to rounding where T is a point
         # sup d over T: <= max over the vertices of the distance to any closest point already known
-        known = np.concatenate([self.pc[:, None], self.pv], 1)  # (n, 4, 3)
-        sup2 = np.square(self.tri[:, :, None] - known[:, None]).sum(3).max(1).min(1)
+        sup2 = np.empty(len(self.tri))
+        for s in range(0, len(self.tri), CHUNK):  # in chunks: the (n, 3, 4, 3) differences are large
+            known = np.concatenate([self.pc[s:s + CHUNK, None], self.pv[s:s + CHUNK]], 1)  # (n, 4, 3)
+            sup2[s:s + CHUNK] = np.square(self.tri[s:s + CHUNK, :, None] - known[:, None]).sum(3).max(1).min(1)
         inf2 = np.maximum((self.fv - r2).min(1), np.square(np.maximum(dc - big_r, 0.0)))
         t2 = np.square(thresholds)[None]
         surely = sup2[:, None] < t2
