@@ -30,7 +30,7 @@ import numpy as np
 
 from hoidata.geometry.bvh import MeshBVH
 
-MAX_QUERIES = 20_000_000  # distance queries per direction of one part of one frame
+MAX_QUERIES = 4_000_000  # distance queries per direction of one part of one frame (about 1 GB of sub-triangles)
 CHUNK = 100_000  # sub-triangles per block of the vertex-to-closest-point bound
 
 
