@@ -4,6 +4,7 @@ with no model and no store.
     hoisdf score ho3d   --pred pred.json|pred.zip --gt DIR [--version v2|v3] [--subset PREFIX | --ids FILE]
     hoisdf score dexycb --pred RESULT.txt --root DEXYCB_DIR --split s0_test
     hoisdf score contact --pred pred.json|pred.zip|hands.npz [--order evaluation.txt] --store STORE --mano DIR
+    hoisdf score recon  --pred SDF_MESH_DIR --gt GT_MESH_DIR [--protocol gsdf|exact] [--seed S] [--repeats K]
 
 Each subcommand prints a table and, with ``--out FILE.json``, writes the numbers under the same names. A
 malformed file is one ``error:`` line naming the file, the entry and the field (exit 2; ``--debug`` for the
@@ -31,6 +32,7 @@ SUBCOMMANDS = {
     "ho3d": "hoisdf.evaluation.score_ho3d",
     "dexycb": "hoisdf.evaluation.score_dexycb",
     "contact": "hoisdf.evaluation.score_contact",
+    "recon": "hoisdf.evaluation.score_recon",
 }
 
 
