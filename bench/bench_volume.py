@@ -34,8 +34,9 @@ from hoisdf.evaluation.solids import MeshSolid, Part, region_volume
 HO3D_EVALUATION_FRAMES = 11_524
 
 
-def toy_frames(count: int, seed: int = 0) -> list[tuple]:
-    """``count`` (hand_v, hand_f, obj_v, obj_f, object name): deeply penetrating toy frames, metres."""
+def toy_frames(count: int, seed: int = 0, offsets=(0.0,)) -> list[tuple]:
+    """``count`` (hand_v, hand_f, obj_v, obj_f, object name), metres: the object centred at the palm (offset 0:
+    deeply penetrating), or moved from there by ``offsets[i % len(offsets)]`` metres in a random direction."""
     with tempfile.TemporaryDirectory() as tmp:
         write_toy_mano(tmp)
         mano = load_mano(tmp, side="right", dtype=torch.float64)
@@ -50,6 +51,8 @@ def toy_frames(count: int, seed: int = 0) -> list[tuple]:
         ov, of, _ = build_toy_object(names[i % len(names)])
         rot = Rotation.random(random_state=1000 + seed + i).as_matrix()
         palm = hand[:778].mean(0) + rng.normal(scale=0.005, size=3)
+        away = rng.normal(size=3)
+        palm = palm + offsets[i % len(offsets)] * away / np.linalg.norm(away)
         out.append((hand, np.asarray(mano.closed_faces), ov @ rot.T + palm, of, names[i % len(names)]))
     return out
 
