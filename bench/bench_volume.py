@@ -1,7 +1,8 @@
 """Intersection volume of the toy's deeply penetrating hands, side by side in one run: the octree with exact cells
 (:func:`hoisdf.evaluation.solids.region_volume`, ``exact_cells`` on) at ``--rel`` (1 %), the same octree with the
 ball bound only (the method before exact cells) within the evaluator's budget, and the literature's surface-voxel
-script at 5 mm (obman_train / GraspTTA ``intersect_vox``, restated in :mod:`bench.plausibility_cases`).
+script at 5 mm on MANO's open mesh (obman_train / GraspTTA ``intersect_vox``, restated in
+:func:`hoisdf.evaluation.contact_legacy.surface_voxel_volume`).
 
 Frames: the toy MANO hand (``hoidata make-toy``'s procedural hand, closed with its wrist cap) at a random global
 rotation and 0.6-1.4 times the toy grasp mean, with a toy object (each of the five in turn) centred at the palm:
@@ -24,11 +25,11 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-from bench.plausibility_cases import surface_voxel_volume
 from hoidata.hand import load_mano
 from hoidata.toy.hand import write_toy_mano
 from hoidata.toy.objects import TOY_OBJECTS, build_toy_object
 from hoisdf.evaluation import plausibility
+from hoisdf.evaluation.contact_legacy import surface_voxel_volume
 from hoisdf.evaluation.solids import MeshSolid, Part, region_volume
 
 HO3D_EVALUATION_FRAMES = 11_524
@@ -88,7 +89,7 @@ def main() -> None:
         ref = volume(frame, 0.001, True, 10 * plausibility.BUDGET)
         new, t_new = timed(lambda: volume(frame, args.rel, True, plausibility.BUDGET))
         old, t_old = timed(lambda: volume(frame, args.rel, False, plausibility.BUDGET))
-        vox, t_vox = timed(lambda: surface_voxel_volume(frame[:2], frame[2:4], 0.005))
+        vox, t_vox = timed(lambda: surface_voxel_volume(*frame[:4]))
         assert ref.lower <= new.upper and new.lower <= ref.upper, "bounds that do not overlap"
         within = abs(new.volume - ref.volume) <= args.rel * ref.volume + ref.error_bound
         sums += (t_new, t_old, t_vox)

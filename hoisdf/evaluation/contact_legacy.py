@@ -72,6 +72,23 @@ def gsdf_frame(hand_v, hand_f, obj_v, obj_f) -> dict[str, float]:
     return out
 
 
+def _open_hand(hand_v, hand_f, n_points: int):
+    import trimesh
+
+    hand_v, hand_f = np.asarray(hand_v, np.float64)[:n_points], np.asarray(hand_f)
+    return trimesh.Trimesh(vertices=hand_v, faces=hand_f[(hand_f < n_points).all(1)])  # their default processing
+
+
+def surface_voxel_volume(hand_v, hand_f, obj_v, obj_f, pitch: float = PITCH, n_points: int = 778) -> float:
+    """obman_train's ``intersect_vox``: the object's surface voxels (``pitch`` metres) whose centres lie in the open
+    hand mesh (trimesh's ray test), times pitch^3; m^3."""
+    import trimesh
+
+    obj = trimesh.Trimesh(vertices=np.asarray(obj_v, np.float64), faces=np.asarray(obj_f))
+    inside = _open_hand(hand_v, hand_f, n_points).contains(obj.voxelized(pitch=pitch).points)
+    return float(inside.sum()) * pitch ** 3
+
+
 def grasptta_frame(hand_v, hand_f, obj_v, obj_f, n_points: int = 778) -> dict[str, float]:
     """GraspTTA's surface-voxel volume and 5 mm contact of one frame (see the module docstring); ``hand_v``'s
     first ``n_points`` vertices and the faces among them are MANO's open mesh."""
@@ -79,17 +96,13 @@ def grasptta_frame(hand_v, hand_f, obj_v, obj_f, n_points: int = 778) -> dict[st
 
     from hoisdf.evaluation.plausibility import penetration_depth
 
-    hand_v, hand_f = np.asarray(hand_v, np.float64)[:n_points], np.asarray(hand_f)
-    hand_f = hand_f[(hand_f < n_points).all(1)]
-    hand = trimesh.Trimesh(vertices=hand_v, faces=hand_f)  # their calls, their default processing
+    hand_v = np.asarray(hand_v, np.float64)[:n_points]
     obj = trimesh.Trimesh(vertices=np.asarray(obj_v, np.float64), faces=np.asarray(obj_f))
-    inside_hand = hand.contains(obj.voxelized(pitch=PITCH).points)
     _, distance, _ = trimesh.proximity.closest_point(obj, hand_v)
-    inside_obj = obj.ray.contains_points(hand_v)
-    touching = inside_obj | (distance <= CONTACT_TOL)
+    touching = obj.ray.contains_points(hand_v) | (distance <= CONTACT_TOL)
     return {"contact": float(touching.any()),
             "penetration_depth_mm": penetration_depth(hand_v, obj_v, obj_f) * 1e3,
-            "intersection_volume_cm3": float(inside_hand.sum()) * PITCH ** 3 * 1e6}
+            "intersection_volume_cm3": surface_voxel_volume(hand_v, hand_f, obj_v, obj_f, PITCH, n_points) * 1e6}
 
 
 def legacy_frame(definition: str, hand_v, hand_f, obj_v, obj_f, n_points: int = 778) -> dict[str, float]:
