@@ -8,8 +8,10 @@ Frames: the toy MANO hand (``hoidata make-toy``'s procedural hand, closed with i
 rotation and 0.6-1.4 times the toy grasp mean, with a toy object (each of the five in turn) centred at the palm:
 whole objects sunk into the hand, 10-200 cm^3 of overlap. Each row: seconds per frame (wall, one process) and the
 volume with its rigorous bound. A reference at 0.1 % (exact cells) checks that the 1 % results are within 1 %.
-Then ``--split-frames`` frames through :func:`hoisdf.evaluation.plausibility.frame_metrics_many` (every metric, the
-scorer's settings, ``--workers`` processes) give the extrapolation to an HO-3D evaluation split (11,524 frames).
+Then ``--split-frames`` other frames, every metric at the scorer's settings (:func:`~hoisdf.evaluation.plausibility.
+frame_metrics`), give the extrapolation to an HO-3D evaluation split (11,524 frames): CPU seconds per frame in this
+process (what two free cores divide), and wall time on ``--workers`` processes (``frame_metrics_many``) at the
+machine's load.
 
 Run: ``python -m bench.bench_volume [--frames 10] [--rel 0.01] [--split-frames 40] [--workers 2]``.
 """
@@ -103,10 +105,16 @@ def main() -> None:
     samples = [f[:4] for f in split]
     settings = dict(tolerance=plausibility.TOLERANCE, rel_tolerance=args.rel, n_points=778,
                     max_cells=plausibility.BUDGET)
+    cpu = time.process_time()
+    _, wall = timed(lambda: [plausibility.frame_metrics(*s, **settings) for s in samples])
+    cpu = (time.process_time() - cpu) / len(samples)
+    print(f"{len(samples)} frames, every metric (rel {args.rel:g}), this process: {wall / len(samples):.3f} s wall, "
+          f"{cpu:.3f} s CPU per frame -> {HO3D_EVALUATION_FRAMES} frames on 2 free cores: "
+          f"{cpu * HO3D_EVALUATION_FRAMES / 2 / 60:.1f} min (CPU time / 2)")
     _, wall = timed(lambda: plausibility.frame_metrics_many(samples, args.workers, **settings))
-    print(f"{len(samples)} frames, every metric (rel {args.rel:g}), {args.workers} processes: {wall:.1f} s, "
-          f"{wall / len(samples):.3f} s per frame -> {HO3D_EVALUATION_FRAMES} frames in "
-          f"{wall / len(samples) * HO3D_EVALUATION_FRAMES / 60:.1f} min; load after {os.getloadavg()[0]:.2f}")
+    print(f"the same on {args.workers} processes: {wall:.1f} s wall ({wall / len(samples):.3f} s per frame, with "
+          f"the processes' start) -> {wall / len(samples) * HO3D_EVALUATION_FRAMES / 60:.1f} min at this load; "
+          f"load after {os.getloadavg()[0]:.2f}")
 
 
 if __name__ == "__main__":

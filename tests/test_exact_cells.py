@@ -33,7 +33,8 @@ def test_cube_integral_of_a_tilted_plane_and_a_corner_matches_closed_forms():
     box.apply_transform(trimesh.transformations.rotation_matrix(angle, [1.0, 0.0, 0.0]))
     solid = MeshSolid(*_mesh(box))
     edge = 0.01
-    centres = np.array([[0.0123, 0.0311, 0.0017], [0.3, 0.2, 0.9], [0.01, 0.02, -0.3], [-0.498, 0.1, 0.1 * np.tan(np.radians(10.0)) + 0.001]])
+    centres = np.array([[0.0123, 0.0311, 0.0017], [0.3, 0.2, 0.9], [0.01, 0.02, -0.3],
+                        [-0.498, 0.1, 0.1 * np.tan(np.radians(10.0)) + 0.001]])
     vol, touched = solid.cube_volumes(centres, edge)
     t = np.tan(angle)  # the top plane after the turn: z = y tan(angle)
     y0, y1 = centres[0, 1] - edge / 2, centres[0, 1] + edge / 2

@@ -14,7 +14,7 @@ continuous function of the vertices: a face on the column's border or at z0 chan
 the sum is exact up to rounding, with no ray that can slip between two faces.
 
 Where every face that meets C separates w = 0 from w = s (s = +1 for an outward-wound mesh, -1 for an
-inward-wound one), the solid |w| > 1/2 fills s * integral of w of the cube; :func:`irregular_faces` marks the faces
+inward-wound one), the solid |w| > 1/2 fills s * integral of w of the cube; :func:`face_parts` finds the parts
 for which that cannot be assumed (those that cross another face, or whose front is not at w = 0, resp. -1).
 """
 
@@ -185,15 +185,49 @@ def orientation(vertices: np.ndarray, faces: np.ndarray) -> float:
     return 1.0 if float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum()) >= 0 else -1.0
 
 
-def irregular_faces(solid, sign: float) -> np.ndarray:
-    """(F,) bool: faces of a closed :class:`hoisdf.evaluation.solids.MeshSolid` that may border anything but
-    w = 0 and w = ``sign``: those that cross another face (not a neighbour) or whose front has a winding number
-    other than 0 (outward) resp. -1 (inward). A fold between neighbouring faces goes unnoticed."""
+def _front_winding(solid, tri: np.ndarray, parent: np.ndarray) -> np.ndarray:
+    """(K,) the winding number just in front of each triangle (K, 3, 3), a part of face ``parent``, rounded."""
     v, f = solid.vertices, solid.faces
-    cross = crosses(solid, v[f], np.arange(len(f)))
-    normal = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    normal = np.cross(v[f[parent, 1]] - v[f[parent, 0]], v[f[parent, 2]] - v[f[parent, 0]])
     length = np.linalg.norm(normal, axis=1, keepdims=True)
-    step = 1e-7 * float(np.linalg.norm(solid.hi - solid.lo))
-    front = v[f].mean(1) + step * np.divide(normal, length, out=np.zeros_like(normal), where=length > 0)
+    step = 1e-7 * float(np.linalg.norm(solid.hi - solid.lo))  # off the face, far below any feature size
+    return np.rint(solid.winding(tri.mean(1) + step * normal / length))
+
+
+def _split(tri: np.ndarray) -> np.ndarray:
+    """Each triangle (K, 3, 3) in 4 at its edge midpoints -> (4 K, 3, 3)."""
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    ab, bc, ca = (a + b) / 2, (b + c) / 2, (c + a) / 2
+    return np.stack([np.stack(t, 1) for t in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))], 1).reshape(-1, 3, 3)
+
+
+def face_parts(solid, sign: float, levels: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """Triangle soups (K, 3, 3) of a closed :class:`hoisdf.evaluation.solids.MeshSolid`: the *irregular* parts of
+    its surface, which may border anything but w = 0 and w = ``sign`` (they cross a face that is not a neighbour
+    of theirs, or their front has a winding number other than 0, resp. -1 for an inward-wound mesh), and the
+    *boundary*: all but the buried parts, which cross no face and have |w| >= 1 on both sides (front w >= 1 or
+    <= -2; w grows by 1 from a part's front to its back), so they border nothing of the solid |w| > 1/2.
+
+    Faces that cross another are split in 4 ``levels`` times, and a part that no longer crosses anything is
+    judged by its own front, so what stays irregular hugs the crossing curves. A fold between neighbouring faces
+    goes unnoticed."""
+    v, f = solid.vertices, solid.faces
     expected = 0.0 if sign > 0 else -1.0
-    return cross | (np.rint(solid.winding(front)) != expected) | (length[:, 0] == 0)
+    tri, parent = v[f], np.arange(len(f))
+    flat = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1) == 0
+    irregular, boundary = [tri[flat]], [tri[flat]]
+    tri, parent = tri[~flat], parent[~flat]
+    for level in range(levels + 1):
+        if len(tri) == 0:
+            break
+        cross = crosses(solid, tri, parent)
+        w = _front_winding(solid, tri[~cross], parent[~cross])
+        settled = tri[~cross]
+        irregular.append(settled[w != expected])
+        boundary.append(settled[(w < 1) & (w > -2)])
+        tri, parent = tri[cross], parent[cross]
+        if level < levels:
+            tri, parent = _split(tri), np.repeat(parent, 4)
+    irregular.append(tri)
+    boundary.append(tri)
+    return np.concatenate(irregular), np.concatenate(boundary)

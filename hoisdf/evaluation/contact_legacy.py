@@ -1,5 +1,6 @@
 """The contact definitions of earlier papers, restated so that they give their scripts' numbers on the same meshes
-(docs/plausibility.md, "Older definitions"; tests/golden/contact/ holds the scripts' own numbers).
+(docs/plausibility.md, "Older definitions, beside the exact ones"; tests/golden/contact/ holds the scripts' own
+numbers).
 
 - ``gsdf`` (gSDF, Chen et al. 2023, ``tools/eval_contact.py``; AlignSDF and HORT report the same): libigl's
   signed distance (its default sign, the winding number) of every hand vertex, each moved by +1e-10 m, to the
@@ -33,8 +34,8 @@ DEFINITIONS = ("exact", "gsdf", "grasptta")
 def _igl_signed(points, vertices, faces) -> np.ndarray:
     import igl
 
-    out = igl.signed_distance(np.ascontiguousarray(points, dtype=np.float64), np.ascontiguousarray(vertices, np.float64),
-                              np.ascontiguousarray(faces, np.int64))
+    out = igl.signed_distance(np.ascontiguousarray(points, dtype=np.float64),
+                              np.ascontiguousarray(vertices, np.float64), np.ascontiguousarray(faces, np.int64))
     return np.asarray(out[0])
 
 

@@ -14,8 +14,9 @@ Inputs (docs/plausibility.md):
 
 Per frame it computes :func:`hoisdf.evaluation.plausibility.frame_metrics`, prints the means and writes
 every frame's numbers with ``--out FILE.json``. ``--contact-definition gsdf|grasptta`` adds an older paper's
-contact, penetration and volume (:mod:`hoisdf.evaluation.contact_legacy`) beside the exact ones. It follows ``hoisdf score``'s subcommand interface (``HELP``,
-``add_arguments``, ``score``, ``format_result``) and is listed there as ``contact``.
+contact, penetration and volume (:mod:`hoisdf.evaluation.contact_legacy`) beside the exact ones. It follows
+``hoisdf score``'s subcommand interface (``HELP``, ``add_arguments``, ``score``, ``format_result``) and is listed
+there as ``contact``.
 """
 
 from __future__ import annotations
@@ -174,7 +175,8 @@ def score_contact(pred, store, mano_dir, order=None, tolerance: float = TOLERANC
                                 rel_tolerance=rel_tolerance, max_cells=max_cells)
     out = {"mean": summarize(frames, tolerance), "subset": len(frames) < total, "frames_total": total,
            "frames": [{"id": i, **f} for i, f in zip(ids, frames)],
-           "settings": {"pred": str(pred), "store": str(store), "tolerance_m3": tolerance, "rel_tolerance": rel_tolerance,
+           "settings": {"pred": str(pred), "store": str(store), "tolerance_m3": tolerance,
+                        "rel_tolerance": rel_tolerance,
                         "contact_threshold_m": threshold, "max_cells": max_cells, "contact_definition": definition}}
     if definition != "exact":
         legacy = legacy_many(definition, samples, workers, MANO_VERTS)
@@ -203,7 +205,8 @@ def format_result(result: dict) -> str:
         d, lm = result["legacy"]["definition"], result["legacy"]["mean"]
         rows += [(f"{d} definition", "(its own script's numbers on these meshes; exact ones above)"),
                  (f"  contact ratio ({d})", f"{lm['contact_ratio']:.4f}  (exact {m['contact_ratio']:.4f})"),
-                 (f"  penetration (mm, {d})", f"{lm['penetration_depth_mm']:.3f}  (exact {m['penetration_depth_mm']:.3f})"),
+                 (f"  penetration (mm, {d})",
+                  f"{lm['penetration_depth_mm']:.3f}  (exact {m['penetration_depth_mm']:.3f})"),
                  (f"  volume (cm^3, {d})", f"{lm['intersection_volume_cm3']:.4f}  "
                                            f"(exact {m['intersection_volume_cm3']:.4f})")]
     if m["frames_over_tolerance"]:

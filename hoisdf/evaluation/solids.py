@@ -29,7 +29,7 @@ import numpy as np
 from hoidata.geometry.bvh import MeshBVH
 from hoidata.geometry.sdf import AMBIGUOUS, WINDING_INSIDE, validate_mesh
 from hoidata.geometry.signs import is_closed, winding_numbers
-from hoisdf.evaluation.cell_volume import column_integrals, crosses, irregular_faces, orientation
+from hoisdf.evaluation.cell_volume import column_integrals, crosses, face_parts, orientation
 
 ROOT_CELLS = 16  # the first level splits the box's longest side into this many cubes
 MAX_CELLS = 20_000_000  # cell-centre evaluations one volume may spend before it gives up (a few minutes)
@@ -72,19 +72,32 @@ class MeshSolid:
         out[boxed] = w
         return out
 
+    @staticmethod
+    def _soup(tri: np.ndarray) -> MeshSolid | None:
+        """A triangle soup (K, 3, 3) as a solid (for its distances), None when empty."""
+        if len(tri) == 0:
+            return None
+        return MeshSolid(tri.reshape(-1, 3), np.arange(3 * len(tri), dtype=np.int64).reshape(-1, 3))
+
     def regular(self) -> tuple[float, MeshSolid | None]:
-        """(s, irregular): the orientation s (+1 outward, -1 inward) and the faces that may border anything but
-        w = 0 and w = s (:func:`hoisdf.evaluation.cell_volume.irregular_faces`) as a triangle-soup solid, None when
-        there are none. Computed once per solid."""
+        """(s, irregular): the orientation s (+1 outward, -1 inward) and the parts of the surface that may border
+        anything but w = 0 and w = s (:func:`hoisdf.evaluation.cell_volume.face_parts`) as a triangle-soup solid,
+        None when there are none. Computed once per closed solid."""
         if not hasattr(self, "_regular"):
             sign = orientation(self.vertices, self.faces)
-            bad = np.flatnonzero(irregular_faces(self, sign))
-            soup = None
-            if len(bad):
-                tri = self.vertices[self.faces[bad]].reshape(-1, 3)
-                soup = MeshSolid(tri, np.arange(len(tri), dtype=np.int64).reshape(-1, 3))
-            self._regular = (sign, soup)
+            irregular, boundary = face_parts(self, sign)
+            self._boundary = self._soup(boundary)
+            self._regular = (sign, self._soup(irregular))
         return self._regular
+
+    def boundary_distance(self, points: np.ndarray) -> np.ndarray:
+        """(N,) distance to the surface but its buried parts (:func:`~hoisdf.evaluation.cell_volume.face_parts`): in a
+        ball of that radius |w| > 1/2 is as at its centre (a segment from the centre crosses only buried faces,
+        between values of |w| >= 1). Plain :meth:`distance` for an open mesh or one with no buried face."""
+        if not self.closed:
+            return self.distance(points)
+        self.regular()
+        return (self._boundary or self).distance(points)
 
     def cube_volumes(self, centres: np.ndarray, edge: float) -> tuple[np.ndarray, np.ndarray]:
         """(K,) s x the integral of w over each cube (its volume in the solid where only regular faces meet it),
@@ -155,7 +168,7 @@ def _classify(part: Part, points: np.ndarray, radius: float, given: np.ndarray |
     ``given`` (K,) bool marks centres whose membership is already known (``given_member``): they lie in a ball
     that was all as its centre one level up, so the winding number (the costly ray casts) is not computed there.
     """
-    dist = part.solid.distance(points)
+    dist = part.solid.boundary_distance(points) if part.level <= 1.0 else part.solid.distance(points)
     member = np.zeros(len(points), bool)
     ask = np.ones(len(points), bool) if given is None else ~given
     if given is not None:
