@@ -14,7 +14,9 @@ out of the region. Of an undecided cell, the ball around its centre whose radius
 (in the region when the centre is, out otherwise); the rest of the cell is not. Undecided cells are split in 8
 until what is not known adds up to at most the tolerance. The true volume lies between the known-in volume and
 the volume not known to be out, so the error bound is rigorous for closed meshes (for an open one w also varies
-continuously across its holes, and no bound is claimed).
+continuously across its holes, and no bound is claimed). An undecided cell that only one mesh's surface crosses,
+away from that surface's irregular parts, gets its exact volume instead (:mod:`hoisdf.evaluation.cell_volume`):
+then only cells along the curves where two surfaces meet stay undecided.
 
 All positions share one frame and unit (metres here); volumes are in cubic units of it.
 """
@@ -255,7 +257,7 @@ def _resolve(parts: list[Part], centres: np.ndarray, edge: float, radius: float,
         vol, touched = part.solid.cube_volumes(centres[idx], edge)
         spent += len(idx)
         vol = np.where(touched, vol, np.where(per_member[p, idx], edge ** 3, 0.0))
-        ok = (vol >= -1e-9 * edge ** 3) & (vol <= (1 + 1e-9) * edge ** 3)  # rounding only; else refine
+        ok = (vol >= -1e-8 * edge ** 3) & (vol <= (1 + 1e-8) * edge ** 3)  # rounding only; else refine
         resolved[idx[ok]], volume[idx[ok]] = True, np.clip(vol[ok], 0.0, edge ** 3)
     return resolved, volume, spent
 
@@ -289,19 +291,18 @@ def region_volume(parts: list[Part], lo, hi, tolerance: float, rel_tolerance: fl
     if np.any(hi <= lo):
         return VolumeEstimate(0.0, 0.0, 0.0, 0, guaranteed)
     centres, edge = _grid(lo, hi)
-    decided, cells, hints = 0.0, 0, None
+    decided, cells, hints, slack = 0.0, 0, None, 0.0
     while True:
         radius, cell = edge * np.sqrt(3) / 2 * (1 + SLACK), edge ** 3
         alive, known, member, rho_in, rho_out, spent, per_part = _level(parts, centres, radius, hints)
         cells += spent
         decided += float((alive & known).sum()) * cell
         open_ = alive & ~known
-        slack = 0.0
         if exact_cells and open_.any():
             resolved, volume, spent = _resolve(parts, centres, edge, radius, open_, per_part)
             cells += spent
             decided += float(volume[resolved].sum())
-            slack = 1e-9 * cell * float(resolved.sum())  # far above the rounding of the column sums
+            slack += 1e-8 * cell * float(resolved.sum())  # far above the rounding of the column sums
             open_ &= ~resolved
         # An undecided cell is still known around its centre: a ball of rho_in in the region when the centre is,
         # one of rho_out outside it otherwise (rho < the half-diagonal here, so 1 - 52 % of the cell, or less).
