@@ -9,7 +9,8 @@ numbers).
   grid that are inside both meshes (libigl signed distance < 0), 0.125 cm^3 each. The grid starts 5 mm below the
   overlap of the two vertex boxes and runs ``int((extent + 10 mm) / 5 mm) + 1`` points per axis, its coordinates
   accumulated in float32 (a torch loop there, the same float32 sums here). Out of contact, or with vertex boxes
-  that do not overlap (strictly, on every axis), all three are 0.
+  that do not overlap (strictly, on every axis), all three are 0. The hand is the closed one, every vertex (gSDF's
+  reconstructed hands are closed meshes).
 - ``grasptta`` (GraspTTA, Jiang et al. 2021, ``gen_diverse_grasp_ho3d.py``; the volume is obman_train's
   ``intersect_vox``, also in GanHand): trimesh voxelizes the object's *surface* at 5 mm, counts the voxel centres
   inside the hand (trimesh's ray test ``contains``) and multiplies by 0.125 cm^3; contact is some hand vertex
