@@ -109,3 +109,20 @@ def test_a_mesh_through_itself_keeps_rigorous_bounds():
     inward = intersection_bounds(*_mesh(ball), c1.vertices, c1.faces[:, ::-1], tolerance=1e-12, rel_tolerance=0.01)
     exact_c1 = float(c1.intersection(ball).volume)
     assert inward.lower - ROUNDING * exact_c1 <= exact_c1 <= inward.upper + ROUNDING * exact_c1
+
+
+@pytest.mark.slow  # three manifold3d booleans and three 1 % volumes: a few seconds
+def test_the_analytic_cases_to_one_percent():
+    """bench/analytic_solids' lens, cap and tilted cylinder at 1 %: the exact boolean inside the bounds."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "bench" / "analytic_solids.py"
+    spec = importlib.util.spec_from_file_location("analytic_solids", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    for name, case in module.cases().items():
+        exact = _polyhedral(case["hand"], case["object"])
+        est = intersection_bounds(*case["hand"], *case["object"], tolerance=1e-12, rel_tolerance=0.01)
+        slack = ROUNDING * exact
+        assert est.lower - slack <= exact <= est.upper + slack and est.error_bound <= 0.01 * est.lower, name
