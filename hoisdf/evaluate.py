@@ -212,7 +212,8 @@ def _run(args) -> int:
     for who, plaus in result["plausibility"].items():
         if isinstance(plaus, dict) and "skipped" not in plaus:
             print(f"plausibility, {who} ({plaus['num_samples']} samples): penetration "
-                  f"{plaus['penetration_depth_mm']:.2f} mm, intersection {plaus['intersection_volume_cm3']:.2f} cm^3, "
+                  f"{plaus['penetration_depth_mm']:.2f} mm, intersection {plaus['intersection_volume_cm3']:.2f} cm^3 "
+                  f"(bound {plaus['intersection_error_cm3']:.2f} on average), "
                   f"contact ratio {plaus['contact_ratio']:.2f}")
     if "skipped" not in result["baseline"]["overall"]:
         print(f"baseline mean pose from {result['baseline']['mean_pose_from']}"

@@ -133,3 +133,42 @@ def test_bad_files_get_one_line(split, tmp_path, capsys):
         assert code == 2 and len(err.strip().splitlines()) == 1, (argv, err)
         for word in words:
             assert word in err, (word, err)
+
+
+def test_older_contact_definitions_beside_the_exact_ones(split, tmp_path, capsys):
+    """--contact-definition gsdf / grasptta: each frame also gets that script's numbers (hoisdf.evaluation.
+    contact_legacy, checked against the scripts themselves in tests/test_contact_definitions.py), the means are
+    printed beside the exact ones, and the exact numbers are unchanged."""
+    from hoidata.hand import load_mano
+    from hoisdf.evaluation.contact_legacy import gsdf_frame
+
+    root, store = split
+    xyz, verts = _truth(root)
+    pred = _write_pred(tmp_path / "pred.json", xyz, verts)
+    base = ["--pred", pred, "--store", store, "--mano", root / "mano", "--order", root / "evaluation.txt"]
+    code, _, _ = _score(capsys, *base, "--out", tmp_path / "exact.json")
+    exact = json.loads((tmp_path / "exact.json").read_text())
+    for definition in ("gsdf", "grasptta"):
+        out = tmp_path / f"{definition}.json"
+        code, text, err = _score(capsys, *base, "--contact-definition", definition, "--out", out)
+        assert code == 0, err
+        assert f"{definition} definition" in text and "rigorous bound" in text
+        result = json.loads(out.read_text())
+        assert result["legacy"]["definition"] == definition and result["mean"] == exact["mean"]
+        frames = result["frames"]
+        contact = [f[f"{definition}_contact"] for f in frames]
+        assert result["legacy"]["mean"]["contact_ratio"] == pytest.approx(np.mean(contact))
+    # gSDF's numbers per frame, recomputed from the closed hands and the store's posed objects
+    from hoidata.store import read_index
+    from hoisdf.evaluation.score_contact import match_records, posed_objects
+
+    mano = load_mano(root / "mano", side="right")
+    cv = verts * np.array([1.0, -1.0, -1.0])
+    closed = mano.close(__import__("torch").as_tensor(cv)).numpy().astype(np.float64)
+    index = read_index(store)
+    ids = [f["id"] for f in json.loads((tmp_path / "gsdf.json").read_text())["frames"]]
+    objects = posed_objects(index, match_records(index, ids, "frame_id", pred))
+    for k, frame in enumerate(json.loads((tmp_path / "gsdf.json").read_text())["frames"]):
+        want = gsdf_frame(closed[k], np.asarray(mano.closed_faces), *objects[k])
+        assert frame["gsdf_intersection_volume_cm3"] == pytest.approx(want["intersection_volume_cm3"], abs=1e-12)
+        assert frame["gsdf_contact"] == want["contact"]

@@ -13,8 +13,10 @@ Inputs (docs/plausibility.md):
 - ``--mano``: folder with MANO_RIGHT.pkl, for the faces and the wrist cap that closes each hand.
 
 Per frame it computes :func:`hoisdf.evaluation.plausibility.frame_metrics`, prints the means and writes
-every frame's numbers with ``--out FILE.json``. It follows ``hoisdf score``'s subcommand interface (``HELP``,
-``add_arguments``, ``score``, ``format_result``) and is listed there as ``contact``.
+every frame's numbers with ``--out FILE.json``. ``--contact-definition gsdf|grasptta`` adds an older paper's
+contact, penetration and volume (:mod:`hoisdf.evaluation.contact_legacy`) beside the exact ones. It follows
+``hoisdf score``'s subcommand interface (``HELP``, ``add_arguments``, ``score``, ``format_result``) and is listed
+there as ``contact``.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from hoidata.cli_types import non_negative_int, positive_int
 from hoidata.errors import DataError
 from hoidata.geometry.mirror import mirror_mesh
 from hoidata.store import read_index
+from hoisdf.evaluation.contact_legacy import DEFINITIONS, legacy_many, legacy_summary
 from hoisdf.evaluation.plausibility import (
     BUDGET,
     CONTACT_THRESHOLD,
@@ -133,7 +136,7 @@ def posed_objects(index, rows: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]
 
 def score_contact(pred, store, mano_dir, order=None, tolerance: float = TOLERANCE, rel_tolerance: float = REL_TOLERANCE,
                   threshold: float = CONTACT_THRESHOLD, limit: int | None = None, workers: int = 1,
-                  max_cells: int = MAX_CELLS) -> dict:
+                  max_cells: int = MAX_CELLS, definition: str = "exact") -> dict:
     """Per-frame and mean plausibility of the predicted hands (see the module docstring).
 
     Args:
@@ -147,9 +150,12 @@ def score_contact(pred, store, mano_dir, order=None, tolerance: float = TOLERANC
         limit: only the first ``limit`` frames (a subset, said so in the result).
         workers: processes (0 or 1: this one).
         max_cells: evaluation budget per volume and frame.
+        definition: also an older paper's contact, depth and volume, beside the exact ones: "gsdf" or
+            "grasptta" (:mod:`hoisdf.evaluation.contact_legacy`); "exact": only the exact ones.
 
     Returns:
-        {"mean": ..., "frames": [{"id": ..., metrics}], "subset": bool, "settings": {...}}.
+        {"mean": ..., "frames": [{"id": ..., metrics}], "subset": bool, "settings": {...}}, and with an older
+        definition "legacy": {"definition", "mean"}; each frame then also holds its numbers as ``<definition>_*``.
     """
     import torch
 
@@ -167,10 +173,17 @@ def score_contact(pred, store, mano_dir, order=None, tolerance: float = TOLERANC
     samples = [(closed[k], faces, *obj) for k, obj in enumerate(posed_objects(index, rows))]
     frames = frame_metrics_many(samples, workers, tolerance=tolerance, threshold=threshold, n_points=MANO_VERTS,
                                 rel_tolerance=rel_tolerance, max_cells=max_cells)
-    return {"mean": summarize(frames, tolerance), "subset": len(frames) < total, "frames_total": total,
-            "frames": [{"id": i, **f} for i, f in zip(ids, frames)],
-            "settings": {"pred": str(pred), "store": str(store), "tolerance_m3": tolerance,
-                         "rel_tolerance": rel_tolerance, "contact_threshold_m": threshold, "max_cells": max_cells}}
+    out = {"mean": summarize(frames, tolerance), "subset": len(frames) < total, "frames_total": total,
+           "frames": [{"id": i, **f} for i, f in zip(ids, frames)],
+           "settings": {"pred": str(pred), "store": str(store), "tolerance_m3": tolerance,
+                        "rel_tolerance": rel_tolerance,
+                        "contact_threshold_m": threshold, "max_cells": max_cells, "contact_definition": definition}}
+    if definition != "exact":
+        legacy = legacy_many(definition, samples, workers, MANO_VERTS)
+        for frame, extra in zip(out["frames"], legacy):
+            frame.update({f"{definition}_{k}": v for k, v in extra.items()})
+        out["legacy"] = {"definition": definition, "mean": legacy_summary(legacy)}
+    return out
 
 
 HELP = "penetration depth, intersection volume, contact ratio, IVU and self-penetration of predicted hand meshes"
@@ -178,15 +191,24 @@ HELP = "penetration depth, intersection volume, contact ratio, IVU and self-pene
 
 def format_result(result: dict) -> str:
     """The printed table of :func:`score`'s result."""
-    m = result["mean"]
+    m, st = result["mean"], result["settings"]
     rows = [("frames", f"{m['num_samples']}" + (f" of {result['frames_total']} (a subset)" if result["subset"] else "")),
             ("penetration depth (mm)", f"{m['penetration_depth_mm']:.3f}"),
-            ("intersection volume (cm^3)", f"{m['intersection_volume_cm3']:.4f}  (each within "
-                                           f"{m['intersection_error_cm3']:.4f} on average)"),
+            ("intersection volume (cm^3)", f"{m['intersection_volume_cm3']:.4f}  (rigorous bound "
+                                           f"{m['intersection_error_cm3']:.4f} on average; asked: max("
+                                           f"{st['tolerance_m3'] * 1e6:g} cm^3, {st['rel_tolerance']:g} x volume))"),
             ("contact ratio", f"{m['contact_ratio']:.4f}"),
             ("contact area (cm^2)", f"{m['contact_area_cm2']:.3f}"),
             ("IVU (cm)", f"{m['ivu_cm']:.4f}  ({m['ivu_frames']} frames in contact)"),
             ("self-penetration (cm^3)", f"{m['self_penetration_cm3']:.4f}")]
+    if "legacy" in result:
+        d, lm = result["legacy"]["definition"], result["legacy"]["mean"]
+        rows += [(f"{d} definition", "(its own script's numbers on these meshes; exact ones above)"),
+                 (f"  contact ratio ({d})", f"{lm['contact_ratio']:.4f}  (exact {m['contact_ratio']:.4f})"),
+                 (f"  penetration (mm, {d})",
+                  f"{lm['penetration_depth_mm']:.3f}  (exact {m['penetration_depth_mm']:.3f})"),
+                 (f"  volume (cm^3, {d})", f"{lm['intersection_volume_cm3']:.4f}  "
+                                           f"(exact {m['intersection_volume_cm3']:.4f})")]
     if m["frames_over_tolerance"]:
         rows.append(("over the tolerance", f"{m['frames_over_tolerance']} frames (budget --max-cells; their bounds "
                                            "are in --out)"))
@@ -210,6 +232,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "wider, still rigorous bound")
     p.add_argument("--limit", type=positive_int, default=None, metavar="N", help="only the first N frames")
     p.add_argument("--workers", type=non_negative_int, default=1, help="processes (default 1)")
+    p.add_argument("--contact-definition", choices=DEFINITIONS, default="exact",
+                   help="also an older paper's contact, penetration and volume beside the exact ones: gsdf (gSDF's "
+                        "tools/eval_contact.py: contact only when a vertex is inside, 5 mm grid volume) or grasptta "
+                        "(GraspTTA / obman_train: surface voxels, contact within 5 mm); default exact: only the exact")
 
 
 def score(args) -> dict:
@@ -217,6 +243,6 @@ def score(args) -> dict:
     if not args.tolerance > 0 or args.rel_tolerance < 0 or not args.threshold >= 0:
         raise DataError(None, None, "--tolerance must be positive, --rel-tolerance and --threshold non-negative")
     result = score_contact(args.pred, args.store, args.mano, args.order, args.tolerance * 1e-6, args.rel_tolerance,
-                           args.threshold * 1e-3, args.limit, args.workers, args.max_cells)
+                           args.threshold * 1e-3, args.limit, args.workers, args.max_cells, args.contact_definition)
     note = f"a subset: {len(result['frames'])} of {result['frames_total']} frames" if result["subset"] else ""
     return {**result, "samples": len(result["frames"]), **({"note": note} if note else {})}

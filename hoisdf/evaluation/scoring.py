@@ -83,7 +83,7 @@ def plausibility_of(groups: dict, mano, progress: bool = True, workers: int = 1)
     """Penetration depth, intersection volume, contact ratio, IVU and self-penetration of closed hands, per group:
     ``groups`` maps a name to (verts (N, 778, 3), poses (N, 4, 4), meshes: N object (vertices, faces), see
     :func:`sample_meshes`, posed by ``poses``). Every group's frames run on one pool of ``workers`` processes
-    (:func:`hoisdf.evaluation.plausibility.frame_metrics_many`; volumes to 0.1 cm^3 or 5 %, whichever is larger,
+    (:func:`hoisdf.evaluation.plausibility.frame_metrics_many`; volumes to 0.1 cm^3 or 1 %, whichever is larger,
     within the scorer's budget). Returns {name: :func:`~hoisdf.evaluation.plausibility.summarize` of its frames}."""
     faces = np.asarray(mano.closed_faces)
     samples, sizes, n_points = [], {}, {v.shape[1] for v, _, _ in groups.values()}
