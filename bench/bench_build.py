@@ -1,6 +1,6 @@
 """Whole build-sdf throughput and bytes per frame, against the AlignSDF/HOISDF sample layout.
 
-Usage: python -m bench.bench_build [--frames 60] [--root DIR] [--rounds 2]
+Usage: python -m bench.bench_build [--frames 60] [--root DIR] [--rounds 2] [--workers 1 2]
 
 Writes a small toy DexYCB (unless --root points at one), then in one run:
 - builds the frames once untimed with 1 worker (this process then has its modules imported, the numba kernels
@@ -58,13 +58,14 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=60)
     parser.add_argument("--root", default=None)
     parser.add_argument("--rounds", type=int, default=2)
+    parser.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="worker counts (1 first: the bytes)")
     args = parser.parse_args()
     work = Path(tempfile.mkdtemp(prefix="bench_build_"))
     try:
         root = Path(args.root) if args.root else toy_root(args.frames, work)
         timed_build(root, work / "warm-up", 1, BACKENDS[0])
         seconds, records = {}, {}
-        runs = [(b, w) for w in (1, 2) for b in BACKENDS]
+        runs = [(b, w) for w in args.workers for b in BACKENDS]
         for _ in range(args.rounds):
             for backend, workers in runs:
                 t, records[backend, workers] = timed_build(root, work / f"store-{backend}{workers}", workers, backend)
@@ -77,16 +78,18 @@ def main() -> None:
             fps = records[backend, workers] / t
             print(f"{backend:>8} {workers:>7} {records[backend, workers]:>8} {t:>8.1f} {fps:>9.2f} {fps / workers:>9.2f}  "
                   + " ".join(f"{x:.1f}" for x in seconds[backend, workers]))
-        for workers in (1, 2):
+        for workers in args.workers:
             print(f"{workers} worker(s): bvh {np.median(seconds['igl', workers]) / np.median(seconds['bvh', workers]):.2f}x "
                   "the igl baseline's frames/s")
-        sizes = member_bytes(work / "store-bvh1")
+        first = f"store-bvh{args.workers[0]}"
+        sizes = member_bytes(work / first)
         total = sum(sizes.values())
         print("\nbytes per record: " + ", ".join(f"{m} {v / 1e3:.1f} kB" for m, v in sizes.items())
               + f", total {total / 1e3:.1f} kB")
         print(f"sdf.npy {sizes[schema.SDF] / 1e3:.1f} kB vs AlignSDF/HOISDF samples {ALIGNSDF_BYTES / 1e3:.0f} kB: "
               f"{sizes[schema.SDF] / ALIGNSDF_BYTES:.3f}x; whole record {total / ALIGNSDF_BYTES:.3f}x")
-        print(f"(store checks: {store.verify_store(work / 'store-bvh1')})")
+        checks = str(store.verify_store(work / first)).replace(str(work), "<work>")  # no temporary path in the table
+        print(f"(store checks: {checks})")
         assert np.isfinite(total)
     finally:
         shutil.rmtree(work, ignore_errors=True)

@@ -50,7 +50,7 @@ def _unpack(batch: dict, device: torch.device) -> dict:
     return out
 
 
-def prepare(out: Path, config_name: str | None) -> None:
+def prepare(out: Path, config_name: str | None, store: Path | None = None, mano: Path | None = None) -> None:
     from bench.common import store_and_mano, test_inputs
     from hoisdf.config import load_train_config
     from hoisdf.data import StoreSpec, build_dataset
@@ -58,7 +58,7 @@ def prepare(out: Path, config_name: str | None) -> None:
 
     work = Path(tempfile.mkdtemp(prefix="bench_gpu_"))
     try:
-        args = argparse.Namespace(store=None, mano=None)
+        args = argparse.Namespace(store=store, mano=mano)
         store, mano_dir = store_and_mano(args, work, records=3 * BATCH)
         config = load_train_config(config_name, [f"train.batch_size={BATCH}"])
         m, t = config.model, config.train
@@ -129,6 +129,8 @@ def main(argv=None) -> int:
     prep = sub.add_parser("prepare", help="build the inputs file (needs the data packages)")
     prep.add_argument("--out", type=Path, default=Path("bench/gpu_inputs"))
     prep.add_argument("--config", default=None, help="pipeline TOML of the model (default: the full-size model)")
+    prep.add_argument("--store", type=Path, default=None, help="an existing store (default: a toy store in a temp folder)")
+    prep.add_argument("--mano", type=Path, default=None, help="MANO folder (default: the procedural toy hand)")
     go = sub.add_parser("run", help="time eager vs compiled (needs only torch, numpy, scipy)")
     go.add_argument("--inputs", type=Path, default=Path("bench/gpu_inputs"))
     go.add_argument("--json", type=Path, default=None)
@@ -140,7 +142,7 @@ def main(argv=None) -> int:
     go.add_argument("--backend", default="inductor", help="torch.compile backend (eager: a quick check of the script)")
     args = p.parse_args(argv)
     if args.cmd == "prepare":
-        prepare(args.out, args.config)
+        prepare(args.out, args.config, args.store, args.mano)
     else:
         run(args.inputs, args.json, args.frames, args.warmup, args.steps, args.precision, args.skip, args.backend)
     return 0
