@@ -30,6 +30,7 @@ import sys
 import tempfile
 from dataclasses import asdict
 from pathlib import Path
+from types import SimpleNamespace
 
 import torch
 
@@ -86,7 +87,7 @@ def run(inputs: Path, json_out: Path | None, frames: int, warmup: int, steps: in
         training_rows,
     )
     from hoidata.hand import load_mano
-    from hoisdf.model.hoisdf import HOISDF
+    from hoisdf.model.build import build_model
     from hoisdf.training.losses import LossWeights
 
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
@@ -104,7 +105,8 @@ def run(inputs: Path, json_out: Path | None, frames: int, warmup: int, steps: in
 
     def build(fixed: bool):
         torch.manual_seed(0)
-        return HOISDF(mano, **{**settings, "fixed_shape": fixed})
+        # build_model reads the settings by attribute: the saved ModelSettings fields, without importing the config
+        return build_model(SimpleNamespace(**{**settings, "fixed_shape": fixed}), mano)
 
     torch.backends.cudnn.benchmark = True
     if "infer" not in skip:
@@ -117,8 +119,8 @@ def run(inputs: Path, json_out: Path | None, frames: int, warmup: int, steps: in
         del compact, fixed, test
     if "train" not in skip:
         batches = [_unpack(b, device) for b in data["train_batches"]]
-        result["train"] = training_rows(lambda: build(True), mano, LossWeights(**data["loss"]), batches, warmup,
-                                        steps, device, precision, backend=backend)
+        result["train"] = training_rows(lambda: build(True), mano, LossWeights(**data["loss"]), settings["cls_dist"],
+                                        batches, warmup, steps, device, precision, backend=backend)
         print_rows([], result["train"])
         save()
 
