@@ -51,7 +51,8 @@ def _unpack(batch: dict, device: torch.device) -> dict:
     return out
 
 
-def prepare(out: Path, config_name: str | None, store: Path | None = None, mano: Path | None = None) -> None:
+def prepare(out: Path, config_name: str | None, store: Path | None = None, mano: Path | None = None,
+            batch: int = BATCH) -> None:
     from bench.common import store_and_mano, test_inputs
     from hoisdf.config import load_train_config
     from hoisdf.data import StoreSpec, build_dataset
@@ -60,10 +61,10 @@ def prepare(out: Path, config_name: str | None, store: Path | None = None, mano:
     work = Path(tempfile.mkdtemp(prefix="bench_gpu_"))
     try:
         args = argparse.Namespace(store=store, mano=mano)
-        store, mano_dir = store_and_mano(args, work, records=3 * BATCH)
-        config = load_train_config(config_name, [f"train.batch_size={BATCH}"])
+        store, mano_dir = store_and_mano(args, work, records=3 * batch)
+        config = load_train_config(config_name, [f"train.batch_size={batch}"])
         m, t = config.model, config.train
-        data = build_dataset([StoreSpec(store)], BATCH, 3 * BATCH, t.seed, m.n_hand, m.n_object, t.near,
+        data = build_dataset([StoreSpec(store)], batch, 3 * batch, t.seed, m.n_hand, m.n_object, t.near,
                              t.shuffle_buffer, training=True)
         batches = [b for _, b in zip(range(3), data)]
         generator = torch.Generator().manual_seed(0)
@@ -113,7 +114,7 @@ def run(inputs: Path, json_out: Path | None, frames: int, warmup: int, steps: in
         compact, fixed = build(False).to(device).eval(), build(True).to(device).eval()
         test = _unpack(data["test_inputs"], device)
         result["infer"] = inference_rows(compact, fixed, compile_inference(fixed, device, None, backend), test,
-                                         [1, BATCH], frames, warmup, device, precision)
+                                         sorted({1, len(test["img"])}), frames, warmup, device, precision)
         print_rows(result["infer"], [])
         save()
         del compact, fixed, test
@@ -133,6 +134,7 @@ def main(argv=None) -> int:
     prep.add_argument("--config", default=None, help="pipeline TOML of the model (default: the full-size model)")
     prep.add_argument("--store", type=Path, default=None, help="an existing store (default: a toy store in a temp folder)")
     prep.add_argument("--mano", type=Path, default=None, help="MANO folder (default: the procedural toy hand)")
+    prep.add_argument("--batch", type=int, default=BATCH, help="batch of the saved batches (the larger inference batch)")
     go = sub.add_parser("run", help="time eager vs compiled (needs only torch, numpy, scipy)")
     go.add_argument("--inputs", type=Path, default=Path("bench/gpu_inputs"))
     go.add_argument("--json", type=Path, default=None)
@@ -144,7 +146,7 @@ def main(argv=None) -> int:
     go.add_argument("--backend", default="inductor", help="torch.compile backend (eager: a quick check of the script)")
     args = p.parse_args(argv)
     if args.cmd == "prepare":
-        prepare(args.out, args.config, args.store, args.mano)
+        prepare(args.out, args.config, args.store, args.mano, args.batch)
     else:
         run(args.inputs, args.json, args.frames, args.warmup, args.steps, args.precision, args.skip, args.backend)
     return 0

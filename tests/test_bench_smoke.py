@@ -45,7 +45,8 @@ SCRIPTS: dict[str, list[tuple[list[str], str]]] = {
                         "evaluate end to end")],
     # the GPU rows: inputs prepared here, then the run on the CPU when there is no CUDA, without code generation
     # (--backend eager): every row of the table, no inductor compile
-    "bench_gpu": [(["prepare", "--config", "toy", "--store", "{store}", "--mano", "{mano}", "--out", "{tmp}/gpu"],
+    "bench_gpu": [(["prepare", "--config", "toy", "--store", "{store}", "--mano", "{mano}", "--out", "{tmp}/gpu",
+                    "--batch", "2"],
                    "inputs.pt"),
                   (["run", "--inputs", "{tmp}/gpu", "--backend", "eager", "--frames", "2", "--warmup", "1",
                     "--steps", "1", "--precision", "fp32"], "compiled fixed")],
