@@ -1,6 +1,6 @@
 """Whole build-sdf throughput and bytes per frame, against the AlignSDF/HOISDF sample layout.
 
-Usage: python -m bench.bench_build [--frames 60] [--root DIR] [--rounds 2]
+Usage: python -m bench.bench_build [--frames 60] [--root DIR] [--rounds 2] [--workers 1 2] [--profile]
 
 Writes a small toy DexYCB (unless --root points at one), then in one run:
 - builds the frames once untimed with 1 worker (this process then has its modules imported, the numba kernels
@@ -12,13 +12,19 @@ Writes a small toy DexYCB (unless --root points at one), then in one run:
   (``record.sdf_backend="bvh"``) and with the previous one as the baseline (``"igl"``), interleaved
   over --rounds rounds (medians reported; the machine's load average is printed with them);
 - measures the bytes per record in the store, split by member, against the layout HOISDF trains from:
-  20,000 float32 samples per mesh (hand file and object file, 6 columns each) per frame.
+  20,000 float32 samples per mesh (hand file and object file, 6 columns each) per frame;
+- with ``--profile``: one more 1-worker build (default backend) under cProfile, its time per frame split into the
+  build's stages (STAGES: the cumulative time of each stage's function; "other" is the rest: reading the frame
+  list, the index, the worker's loop). cProfile's own overhead inflates the total by some 10-30 %, the Python-heavy
+  stages most; the shares are what to read.
 """
 
 from __future__ import annotations
 
 import argparse
+import cProfile
 import os
+import pstats
 import shutil
 import tempfile
 import time
@@ -44,6 +50,51 @@ def timed_build(root: Path, out: Path, workers: int, backend: str) -> tuple[floa
     return time.perf_counter() - start, summary.records
 
 
+# stage -> (file suffix, function): each stage's cumulative time in a profile of a 1-worker build
+STAGES = {
+    "read frame list": ("hoidata/pipeline/runner.py", "read_frames"),
+    "object assets (load, repair)": ("hoidata/pipeline/worker.py", "load_object_asset"),
+    "MANO model load": ("hoidata/hand/model.py", "load_mano"),
+    "decode (frame JPEG)": ("hoidata/datasets/frame.py", "load_image"),
+    "crop (warp)": ("hoidata/geometry/crop.py", "warp_image"),
+    "MANO hand": ("hoidata/pipeline/records.py", "posed_hand"),
+    "object posing": ("hoidata/pipeline/records.py", "posed_object"),
+    "render (masks)": ("hoidata/render/masks.py", "masks"),
+    "dataset-mask IoU": ("hoidata/pipeline/records.py", "dataset_mask_iou"),
+    "SDF samples": ("hoidata/geometry/sampling.py", "build_sdf_record"),
+    "heatmap": ("hoidata/pipeline/records.py", "summed_heatmap"),
+    "encode (JPEG, PNG, npy, json)": ("hoidata/store/codec.py", "encode_record"),
+    "write shard": ("hoidata/store/shards.py", "write_shard"),
+    "index (finish_store)": ("hoidata/pipeline/finish.py", "finish_store"),
+}
+
+
+def profile_stages(root: Path, out: Path) -> tuple[int, float, dict[str, float]]:
+    """(records, total seconds, {stage: seconds}) of one 1-worker build under cProfile. The crop's warp is counted
+    without the dataset-mask IoU's own warp (which stays in that stage)."""
+    profiler = cProfile.Profile()
+    profiler.enable()
+    seconds, records = timed_build(root, out, 1, BACKENDS[0])
+    profiler.disable()
+    stats = pstats.Stats(profiler).stats
+    found = {}
+    for stage, (suffix, name) in STAGES.items():
+        found[stage] = sum(v[3] for (file, _, func), v in stats.items() if file.endswith(suffix) and func == name)
+    inner_warp = sum(ct for (_, _, func), (*_, callers) in stats.items() if func == "warp_image"
+                     for (_, _, caller), (_, _, _, ct) in callers.items() if caller == "dataset_mask_iou")
+    found["crop (warp)"] -= inner_warp
+    return records, seconds, found
+
+
+def print_profile(records: int, seconds: float, stages: dict[str, float]) -> None:
+    stages = {**stages, "other (the build's loop, fingerprints)": seconds - sum(stages.values())}
+    print(f"\nprofile of one 1-worker build under cProfile ({records} records, {seconds:.1f} s, "
+          f"{1e3 * seconds / records:.1f} ms a frame with the profiler's overhead)")
+    print(f"{'stage':<34} {'ms/frame':>9} {'share':>6}")
+    for stage, t in stages.items():
+        print(f"{stage:<34} {1e3 * t / records:>9.2f} {100 * t / seconds:>5.1f}%")
+
+
 def member_bytes(out: Path) -> dict[str, float]:
     sizes, n = {m: 0 for m in schema.MEMBERS}, 0
     for members in store.read_shard_members(sorted(out.glob("shard-*.tar"))[0]):
@@ -58,13 +109,15 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=60)
     parser.add_argument("--root", default=None)
     parser.add_argument("--rounds", type=int, default=2)
+    parser.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="worker counts (1 first: the bytes)")
+    parser.add_argument("--profile", action="store_true", help="also profile one 1-worker build by stage")
     args = parser.parse_args()
     work = Path(tempfile.mkdtemp(prefix="bench_build_"))
     try:
         root = Path(args.root) if args.root else toy_root(args.frames, work)
         timed_build(root, work / "warm-up", 1, BACKENDS[0])
         seconds, records = {}, {}
-        runs = [(b, w) for w in (1, 2) for b in BACKENDS]
+        runs = [(b, w) for w in args.workers for b in BACKENDS]
         for _ in range(args.rounds):
             for backend, workers in runs:
                 t, records[backend, workers] = timed_build(root, work / f"store-{backend}{workers}", workers, backend)
@@ -77,17 +130,21 @@ def main() -> None:
             fps = records[backend, workers] / t
             print(f"{backend:>8} {workers:>7} {records[backend, workers]:>8} {t:>8.1f} {fps:>9.2f} {fps / workers:>9.2f}  "
                   + " ".join(f"{x:.1f}" for x in seconds[backend, workers]))
-        for workers in (1, 2):
+        for workers in args.workers:
             print(f"{workers} worker(s): bvh {np.median(seconds['igl', workers]) / np.median(seconds['bvh', workers]):.2f}x "
                   "the igl baseline's frames/s")
-        sizes = member_bytes(work / "store-bvh1")
+        first = f"store-bvh{args.workers[0]}"
+        sizes = member_bytes(work / first)
         total = sum(sizes.values())
         print("\nbytes per record: " + ", ".join(f"{m} {v / 1e3:.1f} kB" for m, v in sizes.items())
               + f", total {total / 1e3:.1f} kB")
         print(f"sdf.npy {sizes[schema.SDF] / 1e3:.1f} kB vs AlignSDF/HOISDF samples {ALIGNSDF_BYTES / 1e3:.0f} kB: "
               f"{sizes[schema.SDF] / ALIGNSDF_BYTES:.3f}x; whole record {total / ALIGNSDF_BYTES:.3f}x")
-        print(f"(store checks: {store.verify_store(work / 'store-bvh1')})")
+        checks = str(store.verify_store(work / first)).replace(str(work), "<work>")  # no temporary path in the table
+        print(f"(store checks: {checks})")
         assert np.isfinite(total)
+        if args.profile:
+            print_profile(*profile_stages(root, work / "profiled"))
     finally:
         shutil.rmtree(work, ignore_errors=True)
 

@@ -1,6 +1,7 @@
 """Cluster engines and remote stores, side by side in one run: what they cost over the local tools.
 
 Usage: python -m bench.bench_cluster [--frames 192] [--records-per-shard 8] [--rounds 3] [--json out.json]
+       [--root DIR]  (an existing toy DexYCB with its mano and models folders, instead of writing one)
 
 1. build-sdf wall time on the same toy DexYCB frames (default record settings) with
    - the local pool (``--workers 2``),
@@ -137,12 +138,13 @@ def main() -> None:
     parser.add_argument("--records-per-shard", type=int, default=8)
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--json", default=None)
+    parser.add_argument("--root", type=Path, default=None, help="an existing toy DexYCB (default: write one)")
     args = parser.parse_args()
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
     work = Path(tempfile.mkdtemp(prefix="bench_cluster_"))
     try:
         load = [os.getloadavg()[0]]
-        root = toy_root(args.frames, work)
+        root = args.root or toy_root(args.frames, work)
         builds = build_rows(root, work, args.records_per_shard)
         load.append(os.getloadavg()[0])
         base = builds[0]

@@ -30,6 +30,7 @@ import sys
 import tempfile
 from dataclasses import asdict
 from pathlib import Path
+from types import SimpleNamespace
 
 import torch
 
@@ -50,7 +51,8 @@ def _unpack(batch: dict, device: torch.device) -> dict:
     return out
 
 
-def prepare(out: Path, config_name: str | None) -> None:
+def prepare(out: Path, config_name: str | None, store: Path | None = None, mano: Path | None = None,
+            batch: int = BATCH) -> None:
     from bench.common import store_and_mano, test_inputs
     from hoisdf.config import load_train_config
     from hoisdf.data import StoreSpec, build_dataset
@@ -58,11 +60,11 @@ def prepare(out: Path, config_name: str | None) -> None:
 
     work = Path(tempfile.mkdtemp(prefix="bench_gpu_"))
     try:
-        args = argparse.Namespace(store=None, mano=None)
-        store, mano_dir = store_and_mano(args, work, records=3 * BATCH)
-        config = load_train_config(config_name, [f"train.batch_size={BATCH}"])
+        args = argparse.Namespace(store=store, mano=mano)
+        store, mano_dir = store_and_mano(args, work, records=3 * batch)
+        config = load_train_config(config_name, [f"train.batch_size={batch}"])
         m, t = config.model, config.train
-        data = build_dataset([StoreSpec(store)], BATCH, 3 * BATCH, t.seed, m.n_hand, m.n_object, t.near,
+        data = build_dataset([StoreSpec(store)], batch, 3 * batch, t.seed, m.n_hand, m.n_object, t.near,
                              t.shuffle_buffer, training=True)
         batches = [b for _, b in zip(range(3), data)]
         generator = torch.Generator().manual_seed(0)
@@ -86,7 +88,7 @@ def run(inputs: Path, json_out: Path | None, frames: int, warmup: int, steps: in
         training_rows,
     )
     from hoidata.hand import load_mano
-    from hoisdf.model.hoisdf import HOISDF
+    from hoisdf.model.build import build_model
     from hoisdf.training.losses import LossWeights
 
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
@@ -104,21 +106,22 @@ def run(inputs: Path, json_out: Path | None, frames: int, warmup: int, steps: in
 
     def build(fixed: bool):
         torch.manual_seed(0)
-        return HOISDF(mano, **{**settings, "fixed_shape": fixed})
+        # build_model reads the settings by attribute: the saved ModelSettings fields, without importing the config
+        return build_model(SimpleNamespace(**{**settings, "fixed_shape": fixed}), mano)
 
     torch.backends.cudnn.benchmark = True
     if "infer" not in skip:
         compact, fixed = build(False).to(device).eval(), build(True).to(device).eval()
         test = _unpack(data["test_inputs"], device)
         result["infer"] = inference_rows(compact, fixed, compile_inference(fixed, device, None, backend), test,
-                                         [1, BATCH], frames, warmup, device, precision)
+                                         sorted({1, len(test["img"])}), frames, warmup, device, precision)
         print_rows(result["infer"], [])
         save()
         del compact, fixed, test
     if "train" not in skip:
         batches = [_unpack(b, device) for b in data["train_batches"]]
-        result["train"] = training_rows(lambda: build(True), mano, LossWeights(**data["loss"]), batches, warmup,
-                                        steps, device, precision, backend=backend)
+        result["train"] = training_rows(lambda: build(True), mano, LossWeights(**data["loss"]), settings["cls_dist"],
+                                        batches, warmup, steps, device, precision, backend=backend)
         print_rows([], result["train"])
         save()
 
@@ -129,6 +132,9 @@ def main(argv=None) -> int:
     prep = sub.add_parser("prepare", help="build the inputs file (needs the data packages)")
     prep.add_argument("--out", type=Path, default=Path("bench/gpu_inputs"))
     prep.add_argument("--config", default=None, help="pipeline TOML of the model (default: the full-size model)")
+    prep.add_argument("--store", type=Path, default=None, help="an existing store (default: a toy store in a temp folder)")
+    prep.add_argument("--mano", type=Path, default=None, help="MANO folder (default: the procedural toy hand)")
+    prep.add_argument("--batch", type=int, default=BATCH, help="batch of the saved batches (the larger inference batch)")
     go = sub.add_parser("run", help="time eager vs compiled (needs only torch, numpy, scipy)")
     go.add_argument("--inputs", type=Path, default=Path("bench/gpu_inputs"))
     go.add_argument("--json", type=Path, default=None)
@@ -140,7 +146,7 @@ def main(argv=None) -> int:
     go.add_argument("--backend", default="inductor", help="torch.compile backend (eager: a quick check of the script)")
     args = p.parse_args(argv)
     if args.cmd == "prepare":
-        prepare(args.out, args.config)
+        prepare(args.out, args.config, args.store, args.mano, args.batch)
     else:
         run(args.inputs, args.json, args.frames, args.warmup, args.steps, args.precision, args.skip, args.backend)
     return 0

@@ -8,15 +8,18 @@ same points and meshes, side by side, it times
 - ``compute_sdf_samples`` as build-sdf calls it: the ``bvh`` backend (hand sign: winding number);
 - the baseline, the same call with ``backend="igl"`` (the libigl path build-sdf used before);
 - ``trimesh.proximity.signed_distance`` for the hand and the object (fresh Trimesh objects per
-  call, as for a new frame; trimesh's sign is positive inside, so it is negated).
+  call, as for a new frame; trimesh's sign is positive inside, so it is negated);
+- open3d's ``RaycastingScene.compute_signed_distance`` (the ``bench`` extra: ``pip install 'hoisdf[bench]'``;
+  the column reads "not installed" without it): a fresh scene per mesh per call, as for a new frame, built and
+  queried with one thread (``nthreads=1``); float32 points, sign by ray parity (negative inside).
 
 The methods run interleaved, frame by frame, in ``--rounds`` rounds (after one warm-up of each,
 which also builds the kept tree shapes, as a build worker's first frames do), so load from other
 jobs hits all of them alike; it reports per-frame medians, the speed-ups, and the spread of the
 whole-set speed-up over the rounds. Everything runs on one core (numba and libigl single-threaded
-here; trimesh is). Checks on every frame: max |bvh - igl| and |bvh - brute force| on distances,
-sign disagreements between bvh and igl, and against trimesh (decided by the brute-force reference,
-:func:`hoidata.geometry.sdf.brute_force_signed_distance`).
+here; trimesh is; open3d is told to). Checks on every frame: max |bvh - igl| and |bvh - brute force| on
+distances, and for every method the points whose sign differs from the brute-force reference
+(:func:`hoidata.geometry.sdf.brute_force_signed_distance`: exact distance, winding-number sign) on every point.
 
 Run: ``python -m bench.bench_sdf`` (about 1-2 minutes on 2 cores).
 """
@@ -45,12 +48,12 @@ CAMERA_T = np.array([0.03, -0.02, 0.55])
 
 
 LEGEND = """bvh: compute_sdf_samples (backend 'bvh', hand sign by winding number); igl: the same call with
-backend='igl' (the previous path, the baseline); trimesh: trimesh.proximity.signed_distance, hand and object.
-x: trimesh / bvh, x-igl: trimesh / igl, bvh/igl: igl / bvh (time ratios of per-frame medians).
-|bvh-igl|, |bvh-ref|: max distance difference in metres to the baseline (all points) and to the
-brute-force reference (every 4th point), both meshes. signs: 'd i/k' = d points whose sign differs between
-bvh and igl; i whose sign differs from trimesh, k of them decided for bvh by the brute-force reference
-(hand, then object)."""
+backend='igl' (the previous path, the baseline); trimesh: trimesh.proximity.signed_distance, hand and object;
+open3d: RaycastingScene.compute_signed_distance, one scene per mesh, nthreads=1.
+x: trimesh / bvh, x-igl: trimesh / igl, bvh/igl: igl / bvh, o3d/bvh: open3d / bvh (time ratios of
+per-frame medians). |bvh-igl|, |bvh-ref|: max distance difference in metres to the baseline (all points) and
+to the brute-force reference (every 4th point), both meshes. sign errors: points whose sign differs from the
+brute-force reference's (every point), per method in the order bvh igl trimesh open3d, as hand+object."""
 
 
 def toy_frames(workdir: str, n_frames: int) -> list[dict]:
@@ -91,6 +94,27 @@ def with_trimesh(frame: dict, points: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return -trimesh.proximity.signed_distance(hand, points), -trimesh.proximity.signed_distance(obj, points)
 
 
+def open3d_module():
+    """open3d, or None when it is not installed (a benchmark-only dependency: the ``bench`` extra)."""
+    try:
+        import open3d
+    except ImportError:
+        return None
+    return open3d
+
+
+def with_open3d(o3d, frame: dict, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """open3d's signed distances to the hand and the object: a fresh scene per mesh (a new frame), one thread."""
+    query = o3d.core.Tensor(np.asarray(points, dtype=np.float32))
+    out = []
+    for v, f in ((frame["hand"], frame["hand_faces"]), (frame["obj"], frame["obj_faces"])):
+        scene = o3d.t.geometry.RaycastingScene(nthreads=1)
+        scene.add_triangles(o3d.core.Tensor(np.asarray(v, dtype=np.float32)),
+                            o3d.core.Tensor(np.asarray(f, dtype=np.uint32)))
+        out.append(scene.compute_signed_distance(query, nthreads=1).numpy().astype(np.float64))
+    return out[0], out[1]
+
+
 def timed(fn) -> tuple[object, float]:
     """(result, wall time in ms) of one call."""
     start = time.perf_counter()
@@ -98,36 +122,28 @@ def timed(fn) -> tuple[object, float]:
     return result, 1e3 * (time.perf_counter() - start)
 
 
-def referee(points, ours_sdf, other_sdf, vertices, faces) -> tuple[int, int]:
-    """(sign disagreements, how many of them the brute-force reference decides for ours)."""
-    differ = np.flatnonzero((ours_sdf < 0) != (other_sdf < 0))
-    if len(differ) == 0:
-        return 0, 0
-    ref, _ = brute_force_signed_distance(points[differ], vertices, faces)
-    return len(differ), int(np.sum((ref < 0) == (ours_sdf[differ] < 0)))
+METHODS = ("bvh", "igl", "trimesh", "open3d")
 
 
-METHODS = ("bvh", "igl", "trimesh")
-
-
-def run_method(name: str, frame: dict, points: np.ndarray):
-    return with_trimesh(frame, points) if name == "trimesh" else sdf_samples(frame, points, name)
+def run_method(name: str, frame: dict, points: np.ndarray, o3d=None):
+    if name == "trimesh":
+        return with_trimesh(frame, points)
+    return with_open3d(o3d, frame, points) if name == "open3d" else sdf_samples(frame, points, name)
 
 
 def checks(frame: dict, points: np.ndarray, results: dict) -> dict:
-    """Distance differences and sign disagreements of one frame (see LEGEND)."""
+    """Distance differences of bvh and every method's sign errors against the brute-force reference (LEGEND)."""
     meshes = ((frame["hand"], frame["hand_faces"]), (frame["obj"], frame["obj_faces"]))
     gap_igl = max(float(np.abs(b - i).max()) for b, i in zip(results["bvh"], results["igl"]))
-    gap_ref = 0.0
-    for got, (v, f) in zip(results["bvh"], meshes):
-        ref, _ = brute_force_signed_distance(points[::4], v, f)
-        gap_ref = max(gap_ref, float(np.abs(got[::4] - ref).max()))
-    signs = []
-    for k, (v, f) in enumerate(meshes):
-        bvh, igl, tm = results["bvh"][k], results["igl"][k], results["trimesh"][k]
-        n, decided = referee(points, bvh, tm, v, f)
-        signs.append(f"{int(np.sum((bvh < 0) != (igl < 0)))} {n}/{decided}")
-    return {"gap_igl": gap_igl, "gap_ref": gap_ref, "signs": " ".join(signs)}
+    refs = [brute_force_signed_distance(points, v, f)[0] for v, f in meshes]
+    gap_ref = max(float(np.abs(got[::4] - ref[::4]).max()) for got, ref in zip(results["bvh"], refs))
+    errors = {name: [int(np.sum((got < 0) != (ref < 0))) for got, ref in zip(results[name], refs)]
+              for name in results}
+    return {"gap_igl": gap_igl, "gap_ref": gap_ref, "errors": errors}
+
+
+def error_cell(errors: dict, methods) -> str:
+    return " ".join(f"{errors[m][0]}+{errors[m][1]}" if m in errors else "-" for m in methods)
 
 
 def spread(values) -> str:
@@ -141,39 +157,56 @@ def main(argv=None) -> None:
     parser.add_argument("--n-hand", type=int, default=4096)
     parser.add_argument("--n-object", type=int, default=2048)
     args = parser.parse_args(argv)
+    o3d = open3d_module()
+    methods = METHODS if o3d is not None else METHODS[:-1]
     with tempfile.TemporaryDirectory() as workdir:
         frames = toy_frames(workdir, args.frames)
     clouds = [sample_query_points(f["hand"], f["hand_faces"], f["obj"], f["obj_faces"], f["root"],
                                   np.random.default_rng(k), args.n_hand, args.n_object)[0]
               for k, f in enumerate(frames)]
     for frame, points in zip(frames, clouds, strict=True):  # warm-up: compile, kept tree shapes
-        for name in METHODS:
-            run_method(name, frame, points)
-    times = {name: np.zeros((args.rounds, len(frames))) for name in METHODS}
+        for name in methods:
+            run_method(name, frame, points, o3d)
+    times = {name: np.zeros((args.rounds, len(frames))) for name in methods}
     results = [{} for _ in frames]
     for r in range(args.rounds):
         for j, (frame, points) in enumerate(zip(frames, clouds, strict=True)):
-            for name in METHODS:
-                results[j][name], times[name][r, j] = timed(lambda n=name, f=frame, p=points: run_method(n, f, p))
+            for name in methods:
+                results[j][name], times[name][r, j] = timed(lambda n=name, f=frame, p=points: run_method(n, f, p, o3d))
+    version = f"open3d {o3d.__version__}" if o3d is not None else "open3d not installed (pip install 'hoisdf[bench]')"
     print(f"{len(clouds[0])} points per frame; ms per frame, median of {args.rounds} interleaved rounds; "
-          f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())} (1, 5, 15 min)")
-    head = (f"{'frame':<36}{'bvh':>7}{'igl':>7}{'trimesh':>9}{'x':>6}{'x-igl':>7}{'bvh/igl':>9}"
-            f"{'|bvh-igl|':>11}{'|bvh-ref|':>11}  signs")
-    print(head + "\n" + "-" * (len(head) + 12))
+          f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())} (1, 5, 15 min); {version}")
+    head = (f"{'frame':<36}{'bvh':>7}{'igl':>7}{'trimesh':>9}{'open3d':>14}{'x':>6}{'x-igl':>7}{'bvh/igl':>9}"
+            f"{'o3d/bvh':>9}{'|bvh-igl|':>11}{'|bvh-ref|':>11}  sign errors (bvh igl trimesh open3d)")
+    print(head + "\n" + "-" * len(head))
     med = {name: np.median(t, axis=0) for name, t in times.items()}
+
+    def row(name: str, b: float, i: float, t: float, o: float | None, tail: str) -> str:
+        o3d_cells = f"{o:14.1f}{o / b:9.2f}" if o is not None else f"{'not installed':>14}{'-':>9}"
+        return (f"{name:<36}{b:7.1f}{i:7.1f}{t:9.0f}{o3d_cells[:14]}{t / b:6.0f}{t / i:7.0f}{i / b:9.2f}"
+                f"{o3d_cells[14:]}{tail}")
+
+    totals = {name: [0, 0] for name in methods}
     for j, frame in enumerate(frames):
         c = checks(frame, clouds[j], results[j])
-        b, i, t = med["bvh"][j], med["igl"][j], med["trimesh"][j]
-        print(f"{frame['name']:<36}{b:7.1f}{i:7.1f}{t:9.0f}{t / b:6.0f}{t / i:7.0f}{i / b:9.2f}"
-              f"{c['gap_igl']:11.1e}{c['gap_ref']:11.1e}  {c['signs']}")
-    b, i, t = (med[name].sum() for name in METHODS)
-    print(f"{'all frames (sum of medians)':<36}{b:7.1f}{i:7.1f}{t:9.0f}{t / b:6.0f}{t / i:7.0f}{i / b:9.2f}")
+        for name, (h, o) in c["errors"].items():
+            totals[name][0] += h
+            totals[name][1] += o
+        o = med["open3d"][j] if o3d is not None else None
+        print(row(frame["name"], med["bvh"][j], med["igl"][j], med["trimesh"][j], o,
+                  f"{c['gap_igl']:11.1e}{c['gap_ref']:11.1e}  {error_cell(c['errors'], METHODS)}"))
+    sums = {name: med[name].sum() for name in methods}
+    print(row("all frames (sum of medians)", sums["bvh"], sums["igl"], sums["trimesh"], sums.get("open3d"),
+              f"{'':22}  {error_cell(totals, METHODS)}"))
     per_round = {name: t.sum(axis=1) for name, t in times.items()}
-    print(f"whole-set speed-up per round, median (min-max) over {args.rounds} rounds: "
-          f"trimesh/bvh {spread(per_round['trimesh'] / per_round['bvh'])}, "
-          f"trimesh/igl {spread(per_round['trimesh'] / per_round['igl'])}, "
-          f"igl/bvh {np.median(per_round['igl'] / per_round['bvh']):.2f} "
-          f"({np.min(per_round['igl'] / per_round['bvh']):.2f}-{np.max(per_round['igl'] / per_round['bvh']):.2f})")
+
+    def ratio(a: str, b: str, digits: int) -> str:
+        x = per_round[a] / per_round[b]
+        return f"{a}/{b} {np.median(x):.{digits}f} ({np.min(x):.{digits}f}-{np.max(x):.{digits}f})"
+
+    extra = f", {ratio('open3d', 'bvh', 2)}" if o3d is not None else ", open3d/bvh: open3d not installed"
+    print(f"whole-set speed-up per round, median (min-max) over {args.rounds} rounds: {ratio('trimesh', 'bvh', 0)}, "
+          f"{ratio('trimesh', 'igl', 0)}, {ratio('igl', 'bvh', 2)}{extra}")
     print(LEGEND)
 
 

@@ -275,8 +275,8 @@ def bench_compile(args, config, mano, batches: list[dict], infer_batch: int, fra
     generator = torch.Generator().manual_seed(0)
     train_batches = [augment_batch(to_device(b, device), config.augment, generator, train=True) for b in batches]
     train_rows = [] if "train" in args.skip else training_rows(
-        lambda: build_model(fixed, mano), mano, config.loss, train_batches, warmup, steps, device, precision,
-        args.compile_mode, args.backend)
+        lambda: build_model(fixed, mano), mano, config.loss, fixed.cls_dist, train_batches, warmup, steps, device,
+        precision, args.compile_mode, args.backend)
     print(f"\ncompiled vs eager ({precision}, torch {torch.__version__}; inference: fixed = whole grid, boxes as "
           "masks, compiled with fullgraph=True; training: fixed-shape model, graph breaks allowed)")
     print_rows(infer_rows, train_rows)

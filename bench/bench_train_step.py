@@ -1,7 +1,7 @@
 """Training-step time of model variants side by side in one run: conv memory layout and token-MLP width.
 
 Usage: python -m bench.bench_train_step [--config toy] [--store STORE] [--mano DIR] [--device cpu]
-           [--batch-size 8] [--rounds 3] [--steps 4] [--json OUT]
+           [--batch-size 8] [--rounds 3] [--steps 4] [--variants nchw nhwc ...] [--json OUT]
 
 Variants (everything else from ``--config``): ``nchw``: NCHW convolutions (``model.channels_last=false``)
 with the paper's token MLP (1024-512-256), i.e. the model before these options existed; ``nhwc``: NHWC
@@ -32,6 +32,9 @@ from hoisdf.data import StoreSpec
 from hoisdf.training.trainer import Trainer
 
 PAPER_TOKEN = "[1024, 512, 256]"
+
+
+VARIANTS = ("nchw", "nhwc", "token", "nhwc+token")
 
 
 def variants(config_token: list[int]) -> dict[str, list[str]]:
@@ -73,6 +76,8 @@ def main(argv=None) -> int:
     p.add_argument("--batch-size", type=int, default=8)
     p.add_argument("--rounds", type=int, default=3)
     p.add_argument("--steps", type=int, default=4)
+    p.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS,
+                   help="variants to time (nchw, the baseline, and nhwc, for the backbone table, always run)")
     p.add_argument("--json", type=Path, default=None)
     args = p.parse_args(argv)
     device = resolve_device(args.device)
@@ -82,7 +87,10 @@ def main(argv=None) -> int:
     common = ["train.workers=0", f"train.batch_size={args.batch_size}"]
     token = list(load_train_config(args.config, common).model.token_hidden)
     trainers = {}
+    chosen = {"nchw", "nhwc", *args.variants}
     for name, extra in variants(token).items():
+        if name not in chosen:
+            continue
         torch.manual_seed(0)
         cfg = load_train_config(args.config, common + extra)
         trainers[name] = Trainer(cfg, [StoreSpec(store)], mano, work / name, device)

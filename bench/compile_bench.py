@@ -137,10 +137,11 @@ def time_training(model, loss_fn, optimizer, batches: list[dict], points: str, w
             "first_step_s": first, "peak_gib": peak_gib(device)}
 
 
-def training_rows(build, mano, loss_weights, batches: list[dict], warmup: int, steps: int, device,
+def training_rows(build, mano, loss_weights, cls_dist: float, batches: list[dict], warmup: int, steps: int, device,
                   precision: str, compile_mode: str | None = None, backend: str = "inductor") -> list[dict]:
     """Eager and compiled training steps for both query-point paths; ``build()`` returns a fresh model (same
-    seed), so every variant starts from the same weights and optimizer state."""
+    seed), so every variant starts from the same weights and optimizer state. ``cls_dist``: the model settings'
+    ``cls_dist`` (the loss's, as the trainer passes it)."""
     rows = []
     for compiled in (False, True):
         for points in ("gt", "field"):
@@ -148,7 +149,7 @@ def training_rows(build, mano, loss_weights, batches: list[dict], warmup: int, s
             model = build().to(device)
             optimizer = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=1e-4,
                                           weight_decay=0.01)
-            loss_fn = HOISDFLoss(loss_weights, mano, model.scale, model.clamp, model.cls_dist)
+            loss_fn = HOISDFLoss(loss_weights, mano, model.scale, model.clamp, cls_dist)
             options = {"mode": compile_mode} if backend == "inductor" else {"backend": backend}
             runner = torch.compile(model, dynamic=False, **options) if compiled else model
             r = time_training(runner, loss_fn, optimizer, batches, points, warmup, steps, device, precision)

@@ -38,7 +38,7 @@ from hoidata import schema
 from hoidata.export.gsdf import file_name
 from hoidata.geometry import crop as crop_ops
 from hoidata.store import decode_record, read_shard_members
-from hoisdf.data.loader import _key_seed, sample_sdf_arrays
+from hoisdf.data.loader import _key_seed, crop_entries, sample_sdf_arrays
 
 LABEL_FIELDS = ("K", "hand_root", "joints_3d", "joints_2d", "mano_pose", "mano_betas", "object_pose", "hand_box",
                 "object_box")
@@ -54,7 +54,7 @@ def store_records(store: Path):
 
 def _labels(meta: dict, key: str) -> dict:
     out = {name: np.asarray(meta[name], dtype=np.float32) for name in LABEL_FIELDS}
-    out.update(object_id=np.int64(meta["object_id"]), mirrored=np.bool_(meta["mirrored"]),
+    out.update(crop_entries(meta), object_id=np.int64(meta["object_id"]), mirrored=np.bool_(meta["mirrored"]),
                is_synthetic=np.bool_(meta["dataset"] == "synthetic"), key=key)
     return out
 
@@ -121,16 +121,16 @@ class UpstreamDataset(PerFileDataset):
         self.crop_size = crop_size  # the store's crop side: the baseline cuts the same crop
 
     @staticmethod
-    def export(store: Path, gsdf_export: Path, out: Path) -> list[str]:
-        """Per-frame files for the records of ``store`` from their dataset folder (the frame and its label map,
-        named in the records' ``source``) and a ``hoidata export --format gsdf`` of the same frames (its SDF
-        files); returns the keys in store order."""
+    def export(store: Path, dataset_root: Path, gsdf_export: Path, out: Path) -> list[str]:
+        """Per-frame files for the records of ``store`` from their dataset folder ``dataset_root`` (the frame and
+        its label map, named in the records' ``source`` relative to that folder, as build-sdf stores them) and a
+        ``hoidata export --format gsdf`` of the same frames (its SDF files); returns the keys in store order."""
         for kind in ("rgb", "labels", "sdf_hand", "sdf_obj", "norm", "meta"):
             (out / kind).mkdir(parents=True, exist_ok=True)
         keys, sdf_data = [], gsdf_export / "data" / "sdf_data"
         for _, rec in store_records(store):
             key, meta = rec["__key__"], rec[schema.META]
-            labels = Path(meta["source"]["labels"])
+            labels = Path(dataset_root) / meta["source"]["labels"]  # an absolute stored path stays as it is
             frame = labels.parent / labels.name.replace("labels_", "color_").replace(".npz", ".jpg")
             shutil.copyfile(frame, out / "rgb" / f"{key}.jpg")
             shutil.copyfile(labels, out / "labels" / f"{key}.npz")
