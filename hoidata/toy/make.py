@@ -6,7 +6,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-LAYOUTS = ("dexycb", "ho3d", "ho3d_v3")  # ho3d_v3: HO-3D v3's layout (hoidata/toy/ho3d.py)
+LAYOUTS = ("dexycb", "ho3d", "ho3d_v3", "hot3d")  # ho3d_v3: HO-3D v3's layout (hoidata/toy/ho3d.py); hot3d: clips
 
 
 def write_assets(out: Path) -> tuple[Path, Path]:
@@ -21,11 +21,12 @@ def write_assets(out: Path) -> tuple[Path, Path]:
 
 def make_toy(out: str | Path, layout: str, sequences: int | None = None, frames: int | None = None,
              seed: int = 0, progress: bool = True) -> dict:
-    """Write a toy dataset in `layout` ('dexycb', 'ho3d' or 'ho3d_v3') under `out`, with ``out/mano`` and
+    """Write a toy dataset in `layout` ('dexycb', 'ho3d', 'ho3d_v3' or 'hot3d') under `out`, with ``out/mano`` and
     ``out/models``.
 
-    `sequences` (per subject for DexYCB, training sequences for HO-3D) and `frames` (per sequence and
-    camera) scale it; None keeps the default size. Returns what was written and how long it took.
+    `sequences` (per subject for DexYCB, training sequences for HO-3D, clips for HOT3D: the first 1..3 of the
+    default's) and `frames` (per sequence and camera; per clip) scale it; None keeps the default size. Returns what
+    was written and how long it took.
     """
     from hoidata.toy.dexycb import ToyDexYCBSize, write_toy_dexycb
     from hoidata.toy.ho3d import ToyHO3DSize, write_toy_ho3d
@@ -39,7 +40,13 @@ def make_toy(out: str | Path, layout: str, sequences: int | None = None, frames:
     start = time.perf_counter()
     prepare_folder(out, {"layout": layout, "sequences": sequences, "frames": frames, "seed": seed})
     mano_dir, models_dir = write_assets(out)
-    if layout == "dexycb":
+    if layout == "hot3d":
+        from hoidata.toy.hot3d import ToyHOT3DSize, write_toy_hot3d
+
+        size = ToyHOT3DSize()
+        size = replace(size, clips=size.clips[:sequences or len(size.clips)], frames=frames or size.frames)
+        counts = write_toy_hot3d(out, mano_dir, models_dir, size, seed=seed, progress=progress)
+    elif layout == "dexycb":
         size = ToyDexYCBSize()
         size = replace(size, sequences=sequences or size.sequences, frames=frames or size.frames)
         counts = write_toy_dexycb(out, mano_dir, models_dir, size, seed=seed, progress=progress)
@@ -88,6 +95,12 @@ def split_rows(root: str | Path, layout: str) -> list[dict]:
                 frames = list(reader.frames())
                 rows.append({"setting": name, "split": split, "frames": len(frames),
                              "left_mirrored": sum(f.mirror for f in frames), "skipped": len(reader.skipped)})
+    elif layout == "hot3d":
+        for split in ("train", "val"):
+            reader = open_reader("hot3d_clips", root, root / "mano", split, on_error="raise")
+            frames = list(reader.frames())
+            rows.append({"setting": layout, "split": split, "frames": len(frames),
+                         "left_mirrored": sum(f.mirror for f in frames), "skipped": len(reader.skipped)})
     else:
         for split in ("train", "evaluation"):
             reader = open_reader("ho3d", root, root / "mano", split, on_error="raise",
