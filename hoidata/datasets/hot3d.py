@@ -34,6 +34,7 @@ from hoidata.datasets.hot3d_format import (
     list_members,
     numbers,
     read_betas,
+    rle_decode,
     stream_camera,
     transform,
 )
@@ -209,9 +210,31 @@ class HOT3DClipsReader:
             mano_pose=pose, mano_betas=world["betas"], mano_transl=transl, joints_3d=joints,
             joints_2d=project(joints, K), tip_convention="manopth", mirror=self.mirror_left and side == "left",
             fix_left_shapedirs=True,
-            source={"clip": str(clip.path), "key": key, "stream": stream, "object_uid": uid, "rgb": cam.is_rgb},
+            source={"clip": str(clip.path), "key": key, "stream": stream, "object_uid": uid, "rgb": cam.is_rgb,
+                    "objects_json": list(clip.frames[key]["objects.json"])},
             image_source=CropImage(str(clip.path), where, member, cam.camera, cam.world_from_camera, K,
                                    world_from_crop, self.crop_size))
+
+
+def crop_object_mask(frame: Frame) -> tuple[np.ndarray, np.ndarray] | None:
+    """The clip's amodal mask of the frame's object in the frame's stream, remapped into the crop camera's image
+    (bilinear, >= 0.5), and where the crop sees the fisheye image at all: two bool (size, size); None where the clip
+    has no mask for that stream."""
+    import json
+
+    src = frame.image_source
+    name = f"{frame.source['key']}.objects.json"
+    objects = json.loads(ClipMembers(Path(src.tar)).read(tuple(frame.source["objects_json"])))
+    rle = objects[frame.source["object_uid"]][0].get("masks_amodal", {}).get(frame.source["stream"])
+    if rle is None:
+        return None
+    mask = rle_decode(rle, src.tar, f"{name}: {frame.source['object_uid']}.masks_amodal.{frame.source['stream']}")
+    if mask.shape != (src.camera.height, src.camera.width):
+        raise DataError(src.tar, name, f"mask is {mask.shape[1]}x{mask.shape[0]}, the image "
+                                       f"{src.camera.width}x{src.camera.height}")
+    maps = crop_maps(src.camera, src.world_from_camera, src.K, src.world_from_crop, src.size)
+    seen = (maps[0] >= 0) & (maps[1] >= 0) & (maps[0] <= src.camera.width - 1) & (maps[1] <= src.camera.height - 1)
+    return remap_crop(mask.astype(np.float32), maps) >= 0.5, seen
 
 
 def hand_reason(hand: dict) -> str | None:

@@ -136,9 +136,9 @@ def _render_stream(renderer, view, stream, world_from_camera, hands, objects, lo
 
 
 def head_pose(f: int) -> np.ndarray:
-    """Device -> world in frame ``f``: the head moves a little; the hands sit ~40 degrees below the view axis,
-    where the lens distorts."""
-    return toy_scenes.look_at(np.array([0.03 * np.sin(f), -0.38, 0.42 + 0.01 * f]), np.array([0.0, 0.15, 0.40]))
+    """Device -> world in frame ``f``: the head moves a little; the hands sit ~30 degrees below the view axis,
+    where the lens distorts, and the objects inside the toy's field of view."""
+    return toy_scenes.look_at(np.array([0.03 * np.sin(f), -0.38, 0.42 + 0.01 * f]), np.array([0.0, 0.1, 0.30]))
 
 
 def _frame_members(key: str, f: int, device: str, streams, rig, hands, objects, looks) -> list[tuple[str, bytes]]:

@@ -50,7 +50,7 @@ COEFFS = (0.30, -0.20, 0.05, 0.01, -0.005, 0.001, 1.0e-3, -5.0e-4, 5.0e-4, -2.0e
 def device_streams(device: str) -> list[Stream]:
     """The toy headset's streams: Aria has an RGB stream ``214-1`` (15 projection values: one focal length) and two
     monochrome ``1201-1`` / ``1201-2``; Quest 3 the two monochrome ones with 16 values (fx, fy)."""
-    mono = [(-0.05, -0.35, "1201-1", "left"), (0.05, 0.35, "1201-2", "right")]
+    mono = [(-0.05, -0.15, "1201-1", "left"), (0.05, 0.15, "1201-2", "right")]
     if device == "Aria":
         out = [Stream("214-1", "camera-rgb", Fisheye624(608, 608, 250.0, 250.0, 303.3, 304.2, COEFFS), np.eye(4))]
         return out + [Stream(sid, f"camera-slam-{side}", Fisheye624(480, 360, 180.0, 180.0, 239.6, 179.8, COEFFS),
