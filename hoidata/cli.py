@@ -104,6 +104,11 @@ def cmd_build_sdf(args: argparse.Namespace) -> int:
         print(f"note: no frames in split(s) {', '.join(s.empty_splits)} of {root}: the store holds none of them")
     print("index.zarr already lists every shard: nothing written" if s.index_kept else "index.zarr written"
           if s.index_written else "index not written yet: other parts still have shards to build")
+    if s.index_written or s.index_kept:
+        from hoidata.pipeline.runner import mask_iou_line
+
+        line = mask_iou_line(s.store)
+        print(line or "", end="\n" if line else "")
     return 0
 
 
@@ -230,10 +235,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = add("make-toy", "write toy DexYCB / HO-3D datasets with procedural MANO files and objects")
     p.add_argument("--out", required=True, help="output folder; with --layout all it gets dexycb/ and ho3d/")
-    p.add_argument("--layout", choices=("dexycb", "ho3d", "ho3d_v3", "all"), default="all",
-                   help="dataset layout (default: all = dexycb and ho3d; ho3d_v3: HO-3D v3's JPEG layout)")
-    p.add_argument("--sequences", type=positive_int, default=None, help="sequences per subject (DexYCB; val and test need 5 or more) / training sequences (HO-3D: 1-3)")
-    p.add_argument("--frames", type=positive_int, default=None, help="frames per sequence and camera")
+    p.add_argument("--layout", choices=("dexycb", "ho3d", "ho3d_v3", "hot3d", "all"), default="all",
+                   help="dataset layout (default: all = dexycb and ho3d; ho3d_v3: HO-3D v3's JPEG layout; hot3d: "
+                        "HOT3D-Clips tars)")
+    p.add_argument("--sequences", type=positive_int, default=None,
+                   help="sequences per subject (DexYCB; val and test need 5 or more) / training sequences (HO-3D) / clips (HOT3D, at most 3)")
+    p.add_argument("--frames", type=positive_int, default=None, help="frames per sequence and camera (per clip: HOT3D)")
     p.add_argument("--seed", type=non_negative_int, default=0, help="random seed; the same seed gives the same files")
     p.add_argument("--cache-dir", default=None, help="cache for simplified meshes (default $HOIDATA_CACHE/objects or ~/.cache/hoidata/objects)")
     p.set_defaults(func=cmd_make_toy)

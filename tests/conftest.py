@@ -103,7 +103,7 @@ def pytest_configure(config):
 STORE_FIXTURES = frozenset({
     "tiny_dexycb", "tiny_store", "tiny_store_two_shards", "dexycb_8cam", "dexycb_s0", "ho3d_small",
     "ho3d_small_eval_store",
-    "dex_root", "ho3d_root", "v3_root", "synth_store", "ho3d_source",  # the same kind, in one test file each
+    "dex_root", "ho3d_root", "v3_root", "synth_store", "ho3d_source", "hot3d_root",  # the same kind, one file each
 })
 _RUNNING = pytest.StashKey()
 

@@ -27,7 +27,7 @@ def test_each_reader_names_its_sections_and_training_knows_the_builds():
 
 @pytest.mark.parametrize("name", sorted(p.stem for p in (ROOT / "pipelines").glob("*.toml")))
 def test_every_shipped_pipeline_loads_for_both_readers(name):
-    assert build.load_build_config(name).dataset.name in ("dexycb", "ho3d")
+    assert build.load_build_config(name).dataset.name in ("dexycb", "ho3d", "hot3d_clips")
     assert training.load_train_config(name).model.depth in (18, 34, 50)
 
 

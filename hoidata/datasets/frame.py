@@ -24,7 +24,7 @@ class Frame:
     root joint and a hand box).
     """
 
-    dataset: str  # 'dexycb' | 'ho3d' | 'toy'
+    dataset: str  # 'dexycb' | 'ho3d' | 'hot3d_clips' | 'toy'
     split: str  # 'train' | 'val' | 'test' | 'evaluation'
     frame_id: str  # unique within the dataset, no dots (safe as a WebDataset key)
     image_path: Path
@@ -49,6 +49,7 @@ class Frame:
     source: dict = field(default_factory=dict)  # provenance: raw file paths and indices
     image: np.ndarray | None = None  # (H, W, 3) RGB already in memory (synthetic renders); else read image_path
     labels: np.ndarray | None = None  # (H, W) in-memory label map of the render that made `image`: 1 hand, 2 object
+    image_source: object = None  # a picklable callable making the RGB image on demand (HOT3D: the crop's remap)
 
     @property
     def has_hand_pose(self) -> bool:
@@ -58,6 +59,8 @@ class Frame:
         """The RGB image (H, W, 3) uint8. Raises DataError naming the file if it cannot be read."""
         if self.image is not None:
             return self.image
+        if self.image_source is not None:
+            return self.image_source()
         return read_rgb(self.image_path, self.image_size)
 
 

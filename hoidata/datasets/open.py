@@ -15,19 +15,21 @@ from pathlib import Path
 from hoidata.datasets.frame import Frame, Skip
 from hoidata.errors import DataError
 
-DATASETS = ("dexycb", "ho3d")  # the readers open_reader knows, by the name a pipeline's dataset.name gives
+DATASETS = ("dexycb", "ho3d", "hot3d_clips")  # the readers open_reader knows, by the name a pipeline's dataset.name gives
 
 
 def open_reader(dataset: str, root, mano_dir, split: str, *, models_dir=None, dexycb=None, version: str = "v2",
                 frame_ids=None, on_error: str = "skip"):
-    """A reader of one split: a DexYCBReader or an HO3DReader (iterate ``frames()``, then read ``skipped``).
+    """A reader of one split: a DexYCBReader, an HO3DReader or a HOT3DClipsReader (iterate ``frames()``, then read
+    ``skipped``).
 
     Args:
-        dataset: 'dexycb' | 'ho3d' (a pipeline's ``dataset.name``); anything else is a DataError naming
-            ``dataset.name``.
+        dataset: 'dexycb' | 'ho3d' | 'hot3d_clips' (a pipeline's ``dataset.name``); anything else is a DataError
+            naming ``dataset.name``.
         root: the dataset folder.
         mano_dir: folder with MANO_RIGHT.pkl / MANO_LEFT.pkl (pose bases, HO-3D's rest wrist, the proximity filter).
-        split: the split's name ('train' | 'val' | 'test' for DexYCB; 'train' | 'evaluation' for HO-3D).
+        split: the split's name ('train' | 'val' | 'test' for DexYCB; 'train' | 'evaluation' for HO-3D; 'train' |
+            'val' for HOT3D-Clips).
         models_dir: the YCB models folder the DexYCB proximity filter reads; None means ``root/models``. Give
             the folder the SDF and mask stage uses (a command's ``--models``).
         dexycb: DexYCB only: the :class:`~hoidata.datasets.dexycb.DexYCBSetting` (None: the ``dexycb`` preset).
@@ -46,6 +48,12 @@ def open_reader(dataset: str, root, mano_dir, split: str, *, models_dir=None, de
         from hoidata.datasets.ho3d import HO3DReader
 
         return HO3DReader(root, mano_dir, split, on_error=on_error, version=version)
+    if dataset == "hot3d_clips":
+        if frame_ids is not None:
+            raise DataError(None, "dataset.frame_list", "frame lists hold DexYCB toolkit ids; HOT3D-Clips has none")
+        from hoidata.datasets.hot3d import HOT3DClipsReader
+
+        return HOT3DClipsReader(root, mano_dir, split, on_error=on_error)
     raise DataError(None, "dataset.name", f"unknown dataset {dataset!r}; expected one of {', '.join(DATASETS)}")
 
 

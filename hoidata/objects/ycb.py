@@ -79,7 +79,10 @@ def class_name(cid: int) -> str:
 
 
 def object_mesh_path(models_dir: str | os.PathLike, name: str) -> Path:
-    """``models_dir/<name>/textured_simple.obj`` (the path; existence is not checked)."""
+    """``models_dir/<name>/textured_simple.obj`` (the path; existence is not checked); for a BOP-style name
+    ``obj_<id>`` (HOT3D-Clips' ``object_models_eval``), ``models_dir/obj_<id>.glb``."""
+    if name.startswith("obj_"):
+        return Path(models_dir) / f"{name}.glb"
     return Path(models_dir) / name / MESH_FILE
 
 

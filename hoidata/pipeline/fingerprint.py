@@ -57,7 +57,8 @@ def models(models_dir: Path, names, whole_folder: bool = False) -> dict[str, str
             continue
         digest = hashlib.sha256()
         for p in paths:
-            digest.update(f"{p.relative_to(folder)}\0{file_sha256(p)}\0".encode())
+            rel = p.relative_to(folder) if folder in p.parents else p.name  # HOT3D: models_dir/obj_<id>.glb
+            digest.update(f"{rel}\0{file_sha256(p)}\0".encode())
         out[name] = digest.hexdigest()
     return out
 

@@ -161,7 +161,7 @@ def build_record(frame: Frame, mano, obj: ObjectAsset, renderer, key: str, setti
     sdf, counts = build_sdf_record(hand, faces, mano.closed_face_parts, obj_verts, obj_faces, obj.watertight,
                                    frame.root_3d, np.random.default_rng(frame_seed(key)), settings.sdf_sampling())
     meta = {**record_meta(frame, key, view["box"], K_crop, hand, obj_verts, counts), **view["meta"]}
-    meta["seg_iou"] = dataset_mask_iou(frame, labels, to_mask)
+    meta["seg_iou"] = dataset_mask_iou(frame, labels, to_mask, amodal)
     return {
         "img": view["img"],
         "seg": pack_masks(labels, amodal),
@@ -194,7 +194,7 @@ def crop_view(raw: Frame, frame: Frame, obj: ObjectAsset, object_uv: np.ndarray,
             "to_pixels": to_crop, "to_K": to_crop, "meta": {}}
 
 
-HAND_BIT, OBJECT_BIT = 1, 2  # dataset_masks' bit code
+HAND_BIT, OBJECT_BIT, SEEN_BIT = 1, 2, 4  # dataset_masks' bit code (SEEN: where an AMODAL_ONLY dataset's image is)
 
 
 def dataset_masks(frame: Frame) -> np.ndarray | None:
@@ -203,7 +203,7 @@ def dataset_masks(frame: Frame) -> np.ndarray | None:
     if frame.labels is not None:  # a synthetic render's own label map
         return _bits(frame.labels == 1, frame.labels == 2)
     path = frame.segmentation_path
-    if path is None:
+    if path is None and frame.dataset != "hot3d_clips":
         return None
     if frame.dataset == "dexycb":
         from hoidata.datasets.dexycb_layout import read_labels
@@ -211,6 +211,11 @@ def dataset_masks(frame: Frame) -> np.ndarray | None:
         # the reader checked every key of this file when it listed the frame; only the label map is decoded here
         seg = read_labels(path, int(frame.source["num_objects"]), keys=("seg",))["seg"]
         return _bits(seg == 255, seg == frame.object_id)
+    if frame.dataset == "hot3d_clips":  # amodal object masks only (RLE), remapped into the crop camera
+        from hoidata.datasets.hot3d import crop_object_mask
+
+        got = crop_object_mask(frame)
+        return None if got is None else _bits(np.zeros_like(got[0]), got[0]) | (got[1].view(np.uint8) * SEEN_BIT)
     if frame.dataset == "ho3d":  # rendered at 1/4 resolution: hand in red, object in blue
         import cv2
 
@@ -226,8 +231,13 @@ def _bits(hand: np.ndarray, obj: np.ndarray) -> np.ndarray:
     return (hand.view(np.uint8) * np.uint8(HAND_BIT)) | (obj.view(np.uint8) * np.uint8(OBJECT_BIT))
 
 
-def dataset_mask_iou(frame: Frame, labels: np.ndarray, to_mask: np.ndarray) -> np.ndarray:
+AMODAL_ONLY = ("hot3d_clips",)  # datasets whose own masks are amodal object masks, without a hand mask
+
+
+def dataset_mask_iou(frame: Frame, labels: np.ndarray, to_mask: np.ndarray, amodal: np.ndarray | None = None
+                     ) -> np.ndarray:
     """IoU (2,) of our visible hand / object masks (label map 1 / 2) with the dataset's; -1 if it has none.
+    For AMODAL_ONLY datasets: the hand's is -1 and the object's compares our amodal object mask (``amodal[1]``).
 
     Both masks travel as bits of one map through one nearest-neighbour warp: each output pixel takes the
     bits of one source pixel, so this equals warping each mask on its own."""
@@ -241,6 +251,12 @@ def dataset_mask_iou(frame: Frame, labels: np.ndarray, to_mask: np.ndarray) -> n
     out = []
     for bit, label in ((HAND_BIT, 1), (OBJECT_BIT, 2)):
         theirs, ours = (warped & bit) > 0, labels == label
+        if frame.dataset in AMODAL_ONLY:  # compared where the dataset's image is (not the record's black margin)
+            if label == 1:
+                out.append(-1.0)
+                continue
+            seen = (warped & SEEN_BIT) > 0
+            theirs, ours = theirs & seen, amodal[1] & seen
         union = np.count_nonzero(ours | theirs)
         out.append(np.count_nonzero(ours & theirs) / union if union else 1.0)
     return np.array(out)

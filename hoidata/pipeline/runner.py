@@ -190,3 +190,20 @@ def estimate_build(cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Pat
             "estimated_minutes": round(len(frames) * per_frame / max(workers, 1) / 60, 1),
             "bytes_per_frame": size // len(picks), "estimated_gb": round(size / len(picks) * len(frames) / 1e9, 3),
             **({"splits_without_frames": ", ".join(empty)} if (empty := empty_splits(cfg.dataset.splits, frames)) else {})}
+
+
+def mask_iou_line(store: Path) -> str | None:
+    """The build summary's mask QA: the mean IoU (and the lowest) of the records' masks with the dataset's own
+    (``seg_iou``: hand, object; -1 where the dataset has none), or None when no record has one."""
+    import numpy as np
+
+    from hoidata.store import read_index
+
+    iou = read_index(store).labels.get("seg_iou")
+    parts = []
+    for i, name in enumerate(("hand", "object")):
+        values = np.asarray(iou[:, i], np.float64) if iou is not None else np.array([])
+        values = values[np.isfinite(values) & (values >= 0)]
+        if values.size:
+            parts.append(f"{name} {values.mean():.3f} (lowest {values.min():.3f}, {values.size} records)")
+    return "mask IoU with the dataset's own masks: " + "; ".join(parts) if parts else None

@@ -30,7 +30,7 @@ from hoidata.sections import (
 
 @dataclass(frozen=True)
 class DatasetConfig:
-    name: str = "dexycb"  # reader: 'dexycb' | 'ho3d'
+    name: str = "dexycb"  # reader: 'dexycb' | 'ho3d' | 'hot3d_clips'
     version: str = "v2"  # HO-3D release: 'v2' (PNG frames) | 'v3' (JPEG frames, its own lists; --dataset ho3d_v3)
     setting: str = "dexycb"  # a name for the frame selection (recorded)
     setup: str = "s0"  # DexYCB toolkit setup: s0 (seen), s1 (unseen subjects), s2 (unseen views), s3 (unseen objects)
@@ -87,9 +87,9 @@ def load_build_config(name_or_path: str, overrides: list[str] = ()) -> BuildConf
     check_sections(data, path, BUILD_SECTIONS, None)  # the file's other sections are their readers' to check
     record = section(RecordSettings, data.get("record", {}), path, "record", overrides)
     dataset = section(DatasetConfig, data.get("dataset", {}), path, "dataset", overrides)
-    if dataset.name not in ("dexycb", "ho3d"):
+    if dataset.name not in ("dexycb", "ho3d", "hot3d_clips"):
         raise DataError(origin(path, overrides, "dataset.name"), "dataset.name",
-                        f"unknown dataset {dataset.name!r}; expected 'dexycb' or 'ho3d'")
+                        f"unknown dataset {dataset.name!r}; expected 'dexycb', 'ho3d' or 'hot3d_clips'")
     if dataset.version not in ("v2", "v3"):
         raise DataError(origin(path, overrides, "dataset.version"), "dataset.version",
                         f"unknown HO-3D version {dataset.version!r}; expected 'v2' or 'v3'")

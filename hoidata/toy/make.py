@@ -6,9 +6,10 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-LAYOUTS = ("dexycb", "ho3d", "ho3d_v3")  # ho3d_v3: HO-3D v3's layout (hoidata/toy/ho3d.py)
+LAYOUTS = ("dexycb", "ho3d", "ho3d_v3", "hot3d")  # ho3d_v3: HO-3D v3's layout (hoidata/toy/ho3d.py); hot3d: clips
 # the toolkit's i % 5 == 4 rule puts a subject's 5th sequence in val or test: with fewer, s0/s1 val and test are empty
 DEXYCB_SPLIT_SEQUENCES = 5
+HOT3D_MAX_CLIPS = 3  # the toy HOT3D-Clips: clip-000001, clip-000002 (train), clip-000010 (val)
 HO3D_MAX_SEQUENCES = 3  # the toy HO-3D's training sequences: BB10, MC1, SM2 (hoidata/toy/ho3d.py, TRAIN_SEQUENCES)
 
 
@@ -46,11 +47,12 @@ def write_assets(out: Path) -> tuple[Path, Path]:
 
 def make_toy(out: str | Path, layout: str, sequences: int | None = None, frames: int | None = None,
              seed: int = 0, progress: bool = True) -> dict:
-    """Write a toy dataset in `layout` ('dexycb', 'ho3d' or 'ho3d_v3') under `out`, with ``out/mano`` and
+    """Write a toy dataset in `layout` ('dexycb', 'ho3d', 'ho3d_v3' or 'hot3d') under `out`, with ``out/mano`` and
     ``out/models``.
 
-    `sequences` (per subject for DexYCB, training sequences for HO-3D) and `frames` (per sequence and
-    camera) scale it; None keeps the default size. Returns what was written and how long it took.
+    `sequences` (per subject for DexYCB, training sequences for HO-3D, clips for HOT3D: the first 1..3 of the
+    default's) and `frames` (per sequence and camera; per clip) scale it; None keeps the default size. Returns what
+    was written and how long it took.
     """
     from hoidata.toy.dexycb import ToyDexYCBSize, write_toy_dexycb
     from hoidata.toy.ho3d import ToyHO3DSize, write_toy_ho3d
@@ -60,14 +62,23 @@ def make_toy(out: str | Path, layout: str, sequences: int | None = None, frames:
     for name, value in (("sequences", sequences), ("frames", frames)):
         if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
             raise ValueError(f"{name} must be a whole number >= 1 (or None for the default size), got {value!r}")
-    if layout != "dexycb" and sequences is not None and sequences > HO3D_MAX_SEQUENCES:
+    if layout in ("ho3d", "ho3d_v3") and sequences is not None and sequences > HO3D_MAX_SEQUENCES:
         raise ValueError(f"--sequences {sequences}: the toy HO-3D has {HO3D_MAX_SEQUENCES} training sequences (BB10, "
                          f"MC1, SM2); give 1 to {HO3D_MAX_SEQUENCES} (nothing was written)")
+    if layout == "hot3d" and sequences is not None and sequences > HOT3D_MAX_CLIPS:
+        raise ValueError(f"--sequences {sequences}: the toy HOT3D-Clips has {HOT3D_MAX_CLIPS} clips (two train, one "
+                         f"val); give 1 to {HOT3D_MAX_CLIPS} (nothing was written)")
     out = Path(out)
     start = time.perf_counter()
     prepare_folder(out, {"layout": layout, "sequences": sequences, "frames": frames, "seed": seed})
     mano_dir, models_dir = write_assets(out)
-    if layout == "dexycb":
+    if layout == "hot3d":
+        from hoidata.toy.hot3d import ToyHOT3DSize, write_toy_hot3d
+
+        size = ToyHOT3DSize()
+        size = replace(size, clips=size.clips[:sequences or len(size.clips)], frames=frames or size.frames)
+        counts = write_toy_hot3d(out, mano_dir, models_dir, size, seed=seed, progress=progress)
+    elif layout == "dexycb":
         size = ToyDexYCBSize()
         size = replace(size, sequences=sequences or size.sequences, frames=frames or size.frames)
         counts = write_toy_dexycb(out, mano_dir, models_dir, size, seed=seed, progress=progress)
@@ -116,6 +127,12 @@ def split_rows(root: str | Path, layout: str) -> list[dict]:
                 frames = list(reader.frames())
                 rows.append({"setting": name, "split": split, "frames": len(frames),
                              "left_mirrored": sum(f.mirror for f in frames), "skipped": len(reader.skipped)})
+    elif layout == "hot3d":
+        for split in ("train", "val"):
+            reader = open_reader("hot3d_clips", root, root / "mano", split, on_error="raise")
+            frames = list(reader.frames())
+            rows.append({"setting": layout, "split": split, "frames": len(frames),
+                         "left_mirrored": sum(f.mirror for f in frames), "skipped": len(reader.skipped)})
     else:
         for split in ("train", "evaluation"):
             reader = open_reader("ho3d", root, root / "mano", split, on_error="raise",

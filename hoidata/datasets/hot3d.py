@@ -1,0 +1,263 @@
+"""HOT3D-Clips reader: one Frame per (frame, stream, hand), in that hand's pinhole crop camera.
+
+Layout and fields: :mod:`hoidata.datasets.hot3d_format` and docs/datasets.md, "HOT3D-Clips". For each frame of a
+clip, each hand with a crop camera in ``hand_crops.json`` and each of its streams, the Frame is the crop camera's
+view: the image is the fisheye image remapped into the crop (:mod:`hoidata.geometry.crop_camera`, read lazily, when
+the record is built), K is the crop camera's, and every pose is in the crop camera's frame (OpenCV axes, metres).
+
+The hand: ``mano_pose.thetas`` are 15 PCA coefficients of MANO's ``hands_components`` with ``flat_hand_mean=False``
+(the mean pose added), ``wrist_xform`` the global orientation (axis-angle about the rest wrist) and the translation,
+world frame; betas are the clip's ``__hand_shapes.json__`` ``mano``, shared by both hands. MANO poses are read
+only where ``umetrack_pose`` is present (the official reader's rule); other hands are skipped with that reason.
+Left hands use MANO_LEFT with the shape-direction fix (as the official reader's model does) and are mirrored when
+``mirror_left`` is set. The object of a record is the annotated object nearest to the hand (object origin to the
+mean of the hand's joints), named ``obj_<bop id>`` as in ``object_models_eval``.
+
+Splits: HOT3D-Clips' test clips withhold hands.json, so both splits come from the training clips
+(``train_aria/``, ``train_quest3/``): ``val`` holds the clips whose number is a multiple of ``VAL_EVERY``, ``train``
+the others.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from hoidata.datasets.frame import Frame, Skip, project
+from hoidata.datasets.hot3d_format import (
+    SIDES,
+    ClipMembers,
+    crop_camera,
+    list_members,
+    numbers,
+    read_betas,
+    rle_decode,
+    stream_camera,
+    transform,
+)
+from hoidata.errors import DataError
+from hoidata.geometry.crop_camera import crop_maps, remap_crop
+from hoidata.geometry.fisheye624 import Fisheye624
+from hoidata.hand.pose import change_frame, pca_to_axis_angle
+
+CLIP_FOLDERS = ("train_aria", "train_quest3")
+SPLITS = ("train", "val")
+VAL_EVERY = 10  # val: clips whose number is a multiple of this
+CROP_SIZE = 256  # pixels of the crop camera's image (the official reader's default is 128)
+
+
+def clip_paths(root: Path, split: str) -> list[Path]:
+    """The clip tars of a split, in folder then name order."""
+    if split not in SPLITS:
+        raise ValueError(f"unknown HOT3D-Clips split {split!r}; expected one of {SPLITS}")
+    found = [p for folder in CLIP_FOLDERS for p in sorted((Path(root) / folder).glob("clip-*.tar"))]
+    if not found:
+        raise DataError(root, None, f"no clip-*.tar in {' or '.join(CLIP_FOLDERS)}: not a HOT3D-Clips folder")
+    out = []
+    for p in found:
+        number = p.stem.split("-", 1)[1]
+        if not number.isdigit():
+            raise DataError(p, None, "clip file name must be clip-<number>.tar")
+        if (int(number) % VAL_EVERY == 0) == (split == "val"):
+            out.append(p)
+    return out
+
+
+@dataclass(frozen=True)
+class CropImage:
+    """The crop camera's RGB image (size, size, 3) uint8, made on call from the clip's fisheye JPEG (picklable)."""
+
+    tar: str
+    where: tuple  # (offset, size) of the JPEG member's bytes in the tar
+    member: str
+    camera: Fisheye624
+    world_from_camera: np.ndarray
+    K: np.ndarray
+    world_from_crop: np.ndarray
+    size: int
+
+    def __call__(self) -> np.ndarray:
+        import cv2
+
+        data = ClipMembers(Path(self.tar)).read(self.where)
+        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        if image is None:
+            raise DataError(self.tar, self.member, "cannot decode the JPEG image")
+        if image.shape[:2] != (self.camera.height, self.camera.width):
+            raise DataError(self.tar, self.member, f"image is {image.shape[1]}x{image.shape[0]}, the camera's "
+                            f"calibration says {self.camera.width}x{self.camera.height}")
+        rgb = cv2.cvtColor(image, cv2.COLOR_GRAY2RGB if image.ndim == 2 else cv2.COLOR_BGR2RGB)
+        return remap_crop(rgb, crop_maps(self.camera, self.world_from_camera, self.K, self.world_from_crop, self.size))
+
+
+@dataclass
+class HOT3DClipsReader:
+    """Frames of HOT3D-Clips' ``train`` or ``val`` clips. Iterate with :meth:`frames`, then read ``skipped``.
+
+    Args:
+        root: the HOT3D-Clips folder (``train_aria/``, ``train_quest3/``).
+        mano_dir: folder with MANO_RIGHT.pkl and MANO_LEFT.pkl.
+        split: 'train' | 'val' (see the module docstring).
+        crop_size: pixels of the crop camera's image.
+        mirror_left: mirror left hands to right hands (as DexYCB-Full's setting does).
+        on_error: 'skip' records a malformed member in ``skipped`` and goes on; 'raise' stops.
+    """
+
+    root: Path
+    mano_dir: Path
+    split: str = "train"
+    crop_size: int = CROP_SIZE
+    mirror_left: bool = True
+    on_error: str = "skip"
+    skipped: list[Skip] = field(default_factory=list)
+
+    def __post_init__(self):
+        self.root, self.mano_dir = Path(self.root), Path(self.mano_dir)
+        self.clips = clip_paths(self.root, self.split)
+        self._manos = {}
+
+    def __len__(self) -> int:
+        return len(self.clips)
+
+    def published_ids(self, frames) -> list[int]:
+        """HOT3D has no published frame ids: -1 for each frame."""
+        return [-1] * len(frames)
+
+    def mano(self, side: str):
+        import torch
+
+        from hoidata.hand import load_mano
+
+        if side not in self._manos:
+            self._manos[side] = load_mano(self.mano_dir, side=side, fix_left_shapedirs=True, dtype=torch.float64)
+        return self._manos[side]
+
+    def _fail(self, error: DataError, frame_id: str, path) -> None:
+        if self.on_error == "raise":
+            raise error
+        self.skipped.append(Skip(frame_id, str(error), str(path)))
+
+    def frames(self) -> Iterator[Frame]:
+        for path in self.clips:
+            try:
+                clip = list_members(path)
+                betas = read_betas(clip)
+            except DataError as e:
+                self._fail(e, path.stem, path)
+                continue
+            for key in sorted(clip.frames):
+                try:
+                    yield from self._frame(clip, key, betas)
+                except DataError as e:
+                    self._fail(e, f"{path.stem}_{key}", path)
+            if clip.truncated:  # the frames before the cut were read
+                self._fail(DataError(path, None, clip.truncated), f"{path.stem}_truncated", path)
+
+    def _frame(self, clip: ClipMembers, key: str, betas: np.ndarray) -> Iterator[Frame]:
+        hands, crops = clip.json(key, "hands.json"), clip.json(key, "hand_crops.json")
+        cameras, objects = clip.json(key, "cameras.json"), clip.json(key, "objects.json")
+        for side in SIDES:
+            streams = sorted((crops.get(side) or {}).items())
+            ids = [f"{clip.path.stem}_{key}_{stream}_{side}" for stream, _ in streams]
+            hand = (hands or {}).get(side)
+            reason = None if hand is None else hand_reason(hand)
+            if hand is None or reason:
+                self.skipped += [Skip(i, reason or "no hands.json entry for this hand", str(clip.path)) for i in ids]
+                continue
+            world = self._world_hand(clip, key, side, hand, betas)
+            obj = nearest_object(objects, world["joints"].mean(0), clip.path, f"{key}.objects.json")
+            for frame_id, (stream, crop) in zip(ids, streams):
+                try:
+                    yield self._crop_frame(clip, key, side, stream, crop, cameras, world, obj, frame_id)
+                except DataError as e:
+                    self._fail(e, frame_id, clip.path)
+
+    def _world_hand(self, clip: ClipMembers, key: str, side: str, hand: dict, betas: np.ndarray) -> dict:
+        import torch
+
+        name = f"{key}.hands.json: {side}.mano_pose"
+        thetas = numbers(hand["mano_pose"].get("thetas"), 15, clip.path, f"{name}.thetas")
+        wrist = numbers(hand["mano_pose"].get("wrist_xform"), 6, clip.path, f"{name}.wrist_xform")
+        mano = self.mano(side)
+        pose = pca_to_axis_angle(np.concatenate([wrist[:3], thetas]), mano.hands_components.double().numpy(),
+                                 mano.hands_mean.double().numpy())
+        with torch.no_grad():
+            out = mano(torch.as_tensor(pose)[None], torch.as_tensor(betas)[None], torch.as_tensor(wrist[3:])[None])
+        return {"pose": pose, "transl": wrist[3:], "joints": out.joints[0].double().numpy(),
+                "rest_wrist": mano.rest_wrist(betas), "betas": betas}
+
+    def _crop_frame(self, clip, key, side, stream, crop, cameras, world, obj, frame_id) -> Frame:
+        member = f"{key}.image_{stream}.jpg"
+        if stream not in cameras:
+            raise DataError(clip.path, f"{key}.cameras.json: {stream}", "no camera for this stream")
+        where = clip.frames[key].get(f"image_{stream}.jpg")
+        if where is None:
+            raise DataError(clip.path, member, "member missing")
+        cam = stream_camera(cameras[stream], clip.path, f"{key}.cameras.json: {stream}")
+        K, world_from_crop = crop_camera(crop, self.crop_size, clip.path, f"{key}.hand_crops.json: {side}.{stream}")
+        crop_from_world = np.linalg.inv(world_from_crop)
+        R, t = crop_from_world[:3, :3], crop_from_world[:3, 3]
+        pose, transl = change_frame(world["pose"], world["transl"], world["rest_wrist"], R, t)
+        joints = world["joints"] @ R.T + t
+        bop_id, world_from_object, uid = obj
+        return Frame(
+            dataset="hot3d_clips", split=self.split, frame_id=frame_id, image_path=clip.path,
+            image_size=(self.crop_size, self.crop_size), K=K, side=side, root_3d=joints[0],
+            object_name=f"obj_{bop_id:06d}", object_id=bop_id, object_pose=crop_from_world @ world_from_object,
+            mano_pose=pose, mano_betas=world["betas"], mano_transl=transl, joints_3d=joints,
+            joints_2d=project(joints, K), tip_convention="manopth", mirror=self.mirror_left and side == "left",
+            fix_left_shapedirs=True,
+            source={"clip": str(clip.path), "key": key, "stream": stream, "object_uid": uid, "rgb": cam.is_rgb,
+                    "objects_json": list(clip.frames[key]["objects.json"])},
+            image_source=CropImage(str(clip.path), where, member, cam.camera, cam.world_from_camera, K,
+                                   world_from_crop, self.crop_size))
+
+
+def crop_object_mask(frame: Frame) -> tuple[np.ndarray, np.ndarray] | None:
+    """The clip's amodal mask of the frame's object in the frame's stream, remapped into the crop camera's image
+    (bilinear, >= 0.5), and where the crop sees the fisheye image at all: two bool (size, size); None where the clip
+    has no mask for that stream."""
+    import json
+
+    src = frame.image_source
+    name = f"{frame.source['key']}.objects.json"
+    objects = json.loads(ClipMembers(Path(src.tar)).read(tuple(frame.source["objects_json"])))
+    rle = objects[frame.source["object_uid"]][0].get("masks_amodal", {}).get(frame.source["stream"])
+    if rle is None:
+        return None
+    mask = rle_decode(rle, src.tar, f"{name}: {frame.source['object_uid']}.masks_amodal.{frame.source['stream']}")
+    if mask.shape != (src.camera.height, src.camera.width):
+        raise DataError(src.tar, name, f"mask is {mask.shape[1]}x{mask.shape[0]}, the image "
+                                       f"{src.camera.width}x{src.camera.height}")
+    maps = crop_maps(src.camera, src.world_from_camera, src.K, src.world_from_crop, src.size)
+    seen = (maps[0] >= 0) & (maps[1] >= 0) & (maps[0] <= src.camera.width - 1) & (maps[1] <= src.camera.height - 1)
+    return remap_crop(mask.astype(np.float32), maps) >= 0.5, seen
+
+
+def hand_reason(hand: dict) -> str | None:
+    """Why a hands.json entry gives no MANO hand, or None: no ``umetrack_pose`` (the official reader then reads no
+    MANO pose either), or no ``mano_pose`` (MANO registration failed in that frame)."""
+    if not isinstance(hand, dict) or "umetrack_pose" not in hand:
+        return "no umetrack_pose: the hand was not tracked in this frame (its MANO pose is not read)"
+    if not isinstance(hand.get("mano_pose"), dict):
+        return "no mano_pose: MANO registration failed in this frame"
+    return None
+
+
+def nearest_object(objects: dict, point: np.ndarray, path, name: str) -> tuple[int, np.ndarray, str]:
+    """(BOP id, object -> world (4, 4), object uid) of the annotated object whose origin is nearest ``point``."""
+    best = None
+    for uid, instances in (objects or {}).items():
+        for inst in instances if isinstance(instances, list) else [instances]:
+            if not isinstance(inst, dict) or "object_bop_id" not in inst:
+                raise DataError(path, f"{name}: {uid}.object_bop_id", "missing")
+            pose = transform(inst.get("T_world_from_object"), path, f"{name}: {uid}.T_world_from_object")
+            d = float(np.linalg.norm(pose[:3, 3] - point))
+            if best is None or d < best[0]:
+                best = (d, int(inst["object_bop_id"]), pose, str(uid))
+    if best is None:
+        raise DataError(path, name, "no annotated object in this frame")
+    return best[1:]
