@@ -51,6 +51,9 @@ SCRIPTS: dict[str, list[tuple[list[str], str]]] = {
                   (["run", "--inputs", "{tmp}/gpu", "--backend", "eager", "--frames", "2", "--warmup", "1",
                     "--steps", "1", "--precision", "fp32"], "compiled fixed")],
     "bench_cluster": [(["--root", "{root}", "--rounds", "1", "--records-per-shard", "8"], "ray (running)")],
+    "bench_volume": [(["--frames", "1", "--split-frames", "2", "--workers", "1"], "mean seconds per frame: exact cells")],
+    "bench_shuffle": [(["--store", "{store}", "--batch", "4", "--workers", "0", "--epochs", "1", "--rounds", "1"],
+                       "load average (1 min):")],
     "bench_suite_disk": [(["--every", "0.5", "tests/test_safe_pickle.py"], "| the suite's settings |")],
 }
 # scripts that cannot run here, with the reason; the test checks the reason still holds
