@@ -80,3 +80,22 @@ def test_gsdf_counts_no_contact_without_penetration_and_grasptta_does():
     with pytest.raises(ValueError, match="unknown contact definition"):
         legacy_frame("obman", *args)
     assert legacy_summary([got])["contact_ratio"] == 1.0
+
+
+@pytest.mark.slow  # builds the toy frames and voxelizes one 40 times: about 15 s
+def test_grasptta_volume_repeats_whatever_drew_from_trimesh_before():
+    """trimesh re-casts disputed rays in a direction from its shared, OS-seeded generator: toy frame 8 gave 6.25 or
+    5.0 cm^3 by that generator's state (4.625 in the whole suite, where other code had drawn from it first). The
+    definition draws from its own seeded generator, so every earlier state gives one number."""
+    import trimesh.util
+
+    hv, hf, ov, of, _ = _toy_frames()[8]
+    saved = trimesh.util._RANDOM_DEFAULT
+    volumes = set()
+    try:
+        for seed in range(40):
+            trimesh.util._RANDOM_DEFAULT = np.random.default_rng(seed)
+            volumes.add(grasptta_frame(hv, hf, ov, of)["intersection_volume_cm3"])
+    finally:
+        trimesh.util._RANDOM_DEFAULT = saved
+    assert len(volumes) == 1, sorted(volumes)

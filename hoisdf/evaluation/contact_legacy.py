@@ -15,13 +15,18 @@ numbers).
   ``intersect_vox``, also in GanHand): trimesh voxelizes the object's *surface* at 5 mm, counts the voxel centres
   inside the hand (trimesh's ray test ``contains``) and multiplies by 0.125 cm^3; contact is some hand vertex
   inside the object (trimesh's ray test) or within 5 mm of its surface (trimesh's closest point). The hand is MANO's
-  own open mesh (778 vertices, no wrist cap), as there.
+  own open mesh (778 vertices, no wrist cap), as there. trimesh's ray test casts a second ray, in a direction drawn
+  from its shared generator (seeded from OS entropy), where two rays disagree, so GraspTTA's own number can change
+  from run to run (toy frame 8: 6.25 or 5.0 cm^3, or 4.625 after the draws other code made in one process). Here that
+  draw comes from a generator seeded with ``RAY_SEED`` at every call: the number repeats.
 
 Both take one frame's meshes in metres (one frame, e.g. the camera's) and return contact (0/1), penetration depth
 (mm; the ``grasptta`` depth is the exact one, which GraspTTA's scripts do not define differently) and volume (cm^3).
 """
 
 from __future__ import annotations
+
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -30,6 +35,21 @@ PITCH = 0.005  # metres: GraspTTA's voxel pitch
 CONTACT_TOL = 0.005  # metres: GraspTTA's penetration_tol
 NUDGE = 1e-10  # metres: gSDF moves the hand vertices by this before the signed distance
 DEFINITIONS = ("exact", "gsdf", "grasptta")
+RAY_SEED = 0  # the generator trimesh's ray test re-casts disputed rays from (module docstring)
+
+
+@contextmanager
+def repeatable_rays(seed: int = RAY_SEED):
+    """trimesh's shared generator (``trimesh.util.random_generator()``) replaced by a fresh one seeded with `seed`
+    for the block, then put back."""
+    import trimesh.util
+
+    saved = trimesh.util._RANDOM_DEFAULT
+    trimesh.util._RANDOM_DEFAULT = np.random.default_rng(seed)
+    try:
+        yield
+    finally:
+        trimesh.util._RANDOM_DEFAULT = saved
 
 
 def _igl_signed(points, vertices, faces) -> np.ndarray:
@@ -87,7 +107,8 @@ def surface_voxel_volume(hand_v, hand_f, obj_v, obj_f, pitch: float = PITCH, n_p
     import trimesh
 
     obj = trimesh.Trimesh(vertices=np.asarray(obj_v, np.float64), faces=np.asarray(obj_f))
-    inside = _open_hand(hand_v, hand_f, n_points).contains(obj.voxelized(pitch=pitch).points)
+    with repeatable_rays():
+        inside = _open_hand(hand_v, hand_f, n_points).contains(obj.voxelized(pitch=pitch).points)
     return float(inside.sum()) * pitch ** 3
 
 
@@ -101,7 +122,8 @@ def grasptta_frame(hand_v, hand_f, obj_v, obj_f, n_points: int = 778) -> dict[st
     hand_v = np.asarray(hand_v, np.float64)[:n_points]
     obj = trimesh.Trimesh(vertices=np.asarray(obj_v, np.float64), faces=np.asarray(obj_f))
     _, distance, _ = trimesh.proximity.closest_point(obj, hand_v)
-    touching = obj.ray.contains_points(hand_v) | (distance <= CONTACT_TOL)
+    with repeatable_rays():
+        touching = obj.ray.contains_points(hand_v) | (distance <= CONTACT_TOL)
     return {"contact": float(touching.any()),
             "penetration_depth_mm": penetration_depth(hand_v, obj_v, obj_f) * 1e3,
             "intersection_volume_cm3": surface_voxel_volume(hand_v, hand_f, obj_v, obj_f, PITCH, n_points) * 1e6}
