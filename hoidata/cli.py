@@ -105,10 +105,11 @@ def cmd_build_sdf(args: argparse.Namespace) -> int:
     print("index.zarr already lists every shard: nothing written" if s.index_kept else "index.zarr written"
           if s.index_written else "index not written yet: other parts still have shards to build")
     if s.index_written or s.index_kept:
-        from hoidata.pipeline.runner import mask_iou_line
+        from hoidata.pipeline.runner import mask_iou_line, supervision_line
 
         line = mask_iou_line(s.store)
         print(line or "", end="\n" if line else "")
+        print(supervision_line(s.store))
     return 0
 
 

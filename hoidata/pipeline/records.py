@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import hashlib
 from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import ClassVar
 
 import cv2
@@ -51,6 +52,10 @@ class RecordSettings:
     # and object anchor in meta), what the released weights expect
     crop: str = "project"  # "project" | "upstream" (upstream HOISDF's exact test crop, docs/stores.md)
     crop_splits: tuple[str, ...] = ("test", "evaluation")  # splits whose records follow `crop` (others: "project")
+    # "project": the hand, object and uniform sets above; "deepsdf": the authors' AlignSDF/DeepSDF blocks, n_hand and
+    # n_object rows per entity in the frames' joint normalisation (hoidata.geometry.sampling_deepsdf, docs/stores.md)
+    sdf_points: str = "project"  # "project" | "deepsdf"
+    masks: str = "rendered"  # visible mask targets: "rendered" from the meshes | "dataset": the dataset's own masks
     LIMITS: ClassVar[dict] = {"crop_size": (">= 32", "<= 4096"), "context": ("> 0",), "n_hand": (">= 1",),
                               "n_object": (">= 1",), "uniform_fraction": (">= 0", "<= 1"), "cube": ("> 0",),
                               "sigmas": ("> 0",), "part_radius": ("> 0",), "heatmap_sigma": ("> 0",)}
@@ -143,6 +148,7 @@ def build_record(frame: Frame, mano, obj: ObjectAsset, renderer, key: str, setti
     ``heatmap``, ``sdf``, ``meta``) that :func:`hoidata.store.encode_record` turns into bytes.
     """
     from hoidata.geometry.sampling import build_sdf_record
+    from hoidata.geometry.sampling_deepsdf import deepsdf_record
     from hoidata.render import RenderMesh
 
     raw = frame
@@ -158,13 +164,17 @@ def build_record(frame: Frame, mano, obj: ObjectAsset, renderer, key: str, setti
     K_mask = crop_ops.resize_affine(size, half) @ (view["to_pixels"] @ frame.K)
     meshes = [RenderMesh(vertices=hand, faces=faces, label=1), RenderMesh(vertices=obj_verts, faces=obj_faces, label=2)]
     labels, amodal = renderer.masks(K_mask, meshes)
-    sdf, counts = build_sdf_record(hand, faces, mano.closed_face_parts, obj_verts, obj_faces, obj.watertight,
+    sample = deepsdf_record if settings.sdf_points == "deepsdf" else build_sdf_record
+    sdf, counts = sample(hand, faces, mano.closed_face_parts, obj_verts, obj_faces, obj.watertight,
                                    frame.root_3d, np.random.default_rng(frame_seed(key)), settings.sdf_sampling())
     meta = {**record_meta(frame, key, view["box"], K_crop, hand, obj_verts, counts), **view["meta"]}
     meta["seg_iou"] = dataset_mask_iou(frame, labels, to_mask, amodal)
+    seg = pack_masks(labels, amodal)
+    if settings.masks == "dataset":  # the dataset's own masks become the visible planes (the amodal ones stay rendered)
+        seg = with_dataset_masks(seg, frame, to_mask)
     return {
         "img": view["img"],
-        "seg": pack_masks(labels, amodal),
+        "seg": seg,
         "heatmap": summed_heatmap(project(frame.joints_3d, K_mask), half, settings.heatmap_sigma),
         "sdf": sdf,
         "meta": meta,
@@ -234,6 +244,45 @@ def _bits(hand: np.ndarray, obj: np.ndarray) -> np.ndarray:
 AMODAL_ONLY = ("hot3d_clips",)  # datasets whose own masks are amodal object masks, without a hand mask
 
 
+def warped_dataset_masks(frame: Frame, to_mask: np.ndarray, size: int) -> np.ndarray | None:
+    """The dataset's masks (:func:`dataset_masks` bits) on the record's (size, size) mask grid, or None if it has
+    none: flipped for a mirrored frame, then one nearest-neighbour warp through ``to_mask`` (each output pixel takes
+    the bits of one source pixel, as upstream's nearest warp does)."""
+    masks = dataset_masks(frame)
+    if masks is None:
+        return None
+    masks = cv2.flip(masks, 1) if frame.mirror else masks
+    return crop_ops.warp_image(masks, to_mask, size, nearest=True)
+
+
+def with_dataset_masks(seg: np.ndarray, frame: Frame, to_mask: np.ndarray) -> np.ndarray:
+    """``seg`` (packed bits) with its visible hand and object bits replaced by the dataset's own masks, as upstream's
+    loader reads them (DexYCB ``label["seg"]``: 255 hand, the grasped object's id; HO-3D's seg JPEG: R > 200 hand,
+    B > 200 object, resized nearest to the frame), warped into the crop. A frame whose mask file is missing is a
+    DataError naming the file (the build skips the frame and counts it); datasets without hand masks are refused."""
+    if frame.dataset in AMODAL_ONLY:
+        raise DataError(frame.image_path, "record.masks", f"{frame.dataset} has no hand masks: use record.masks = "
+                                                          '"rendered"')
+    warped = warped_dataset_masks(frame, to_mask, seg.shape[0])
+    if warped is None:
+        raise DataError(expected_mask_path(frame), "record.masks", "the dataset's mask file of this frame is missing")
+    visible = np.uint8(schema.SEG_HAND_VISIBLE | schema.SEG_OBJECT_VISIBLE)
+    out = seg & ~visible
+    out |= np.where(warped & HAND_BIT, schema.SEG_HAND_VISIBLE, 0).astype(np.uint8)
+    out |= np.where(warped & OBJECT_BIT, schema.SEG_OBJECT_VISIBLE, 0).astype(np.uint8)
+    return out
+
+
+def expected_mask_path(frame: Frame):
+    """Where a frame's dataset mask file is (or should be): the reader's path, or HO-3D's ``<seq>/seg/<id>.jpg``."""
+    if frame.segmentation_path is not None:
+        return frame.segmentation_path
+    if frame.dataset == "ho3d":
+        image = Path(frame.image_path)
+        return image.parents[1] / "seg" / f"{image.stem}.jpg"
+    return frame.image_path
+
+
 def dataset_mask_iou(frame: Frame, labels: np.ndarray, to_mask: np.ndarray, amodal: np.ndarray | None = None
                      ) -> np.ndarray:
     """IoU (2,) of our visible hand / object masks (label map 1 / 2) with the dataset's; -1 if it has none.
@@ -241,13 +290,9 @@ def dataset_mask_iou(frame: Frame, labels: np.ndarray, to_mask: np.ndarray, amod
 
     Both masks travel as bits of one map through one nearest-neighbour warp: each output pixel takes the
     bits of one source pixel, so this equals warping each mask on its own."""
-    import cv2
-
-    masks = dataset_masks(frame)
-    if masks is None:
+    warped = warped_dataset_masks(frame, to_mask, labels.shape[0])
+    if warped is None:
         return np.array([-1.0, -1.0])
-    masks = cv2.flip(masks, 1) if frame.mirror else masks
-    warped = crop_ops.warp_image(masks, to_mask, labels.shape[0], nearest=True)
     out = []
     for bit, label in ((HAND_BIT, 1), (OBJECT_BIT, 2)):
         theirs, ours = (warped & bit) > 0, labels == label

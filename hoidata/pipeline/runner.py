@@ -207,3 +207,17 @@ def mask_iou_line(store: Path) -> str | None:
         if values.size:
             parts.append(f"{name} {values.mean():.3f} (lowest {values.min():.3f}, {values.size} records)")
     return "mask IoU with the dataset's own masks: " + "; ".join(parts) if parts else None
+
+
+def supervision_line(store: Path) -> str:
+    """The build summary's line naming the store's supervision sources, from the settings its index records:
+    the mask targets (``record.masks``) and the SDF samples (``record.sdf_points``); a store built before these
+    settings existed holds the defaults."""
+    from hoidata.store import read_index
+
+    record = read_index(store).config.get("record", {})
+    masks = {"dataset": "the dataset's own masks (visible planes; amodal ones rendered)"}.get(
+        record.get("masks", "rendered"), "rendered from the meshes")
+    points = {"deepsdf": "deepsdf (the authors' AlignSDF/DeepSDF per-entity blocks)"}.get(
+        record.get("sdf_points", "project"), "project (hand, object and uniform sets)")
+    return f"supervision: masks {masks}; SDF samples {points}"

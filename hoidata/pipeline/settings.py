@@ -101,6 +101,7 @@ def load_build_config(name_or_path: str, overrides: list[str] = ()) -> BuildConf
     if record.sdf_backend not in SDF_BACKENDS:
         raise DataError(path, "record.sdf_backend", f"unknown backend {record.sdf_backend!r}; expected one of {SDF_BACKENDS}")
     _check_crop(record, dataset, path)
+    _check_supervision(record, dataset, path, overrides)
     return BuildConfig(dataset,
                        replace(record, sigmas=tuple(record.sigmas)),
                        section(StoreConfig, data.get("store", {}), path, "store", overrides))
@@ -117,6 +118,23 @@ def _check_crop(record: RecordSettings, dataset: DatasetConfig, path: Path) -> N
     if record.crop == "upstream" and dataset.name == "ho3d" and odd:
         raise DataError(path, "record.crop_splits", f"upstream's HO-3D test crop exists for the evaluation split "
                                                     f"only, not for {odd}")
+
+
+SDF_POINTS = ("project", "deepsdf")  # record.sdf_points: the project's sets | the authors' AlignSDF/DeepSDF blocks
+MASK_SOURCES = ("rendered", "dataset")  # record.masks: rendered from the meshes | the dataset's own masks
+
+
+def _check_supervision(record: RecordSettings, dataset: DatasetConfig, path: Path, overrides) -> None:
+    """record.sdf_points and record.masks name a choice; HOT3D-Clips has no hand masks to take as targets."""
+    if record.sdf_points not in SDF_POINTS:
+        raise DataError(origin(path, overrides, "record.sdf_points"), "record.sdf_points",
+                        f"expected one of {SDF_POINTS}, got {record.sdf_points!r}")
+    if record.masks not in MASK_SOURCES:
+        raise DataError(origin(path, overrides, "record.masks"), "record.masks",
+                        f"expected one of {MASK_SOURCES}, got {record.masks!r}")
+    if record.masks == "dataset" and dataset.name == "hot3d_clips":
+        raise DataError(origin(path, overrides, "record.masks", "dataset.name"), "record.masks", 'HOT3D-Clips has no hand masks (its own are amodal object masks): '
+                                              'use record.masks = "rendered"')
 
 
 def _check_selection(dataset: DatasetConfig, path: Path) -> None:
