@@ -119,3 +119,30 @@ def test_ho3d_build_stores_dataset_masks_and_skips_a_frame_without_one(ho3d_smal
         assert (not hand.any()) if frame_id == blank_id else hand.sum() > 20, frame_id
         counts = rec[schema.META]["sdf_counts"]
         assert counts[2] == 0 and counts[0] > 200 and counts[1] > 100  # the two blocks, no shared uniform set
+
+
+@pytest.mark.slow
+def test_dexycb_build_stores_the_label_files_seg_in_the_crop(tiny_dexycb, tmp_path):
+    """Right and mirrored left hands: the stored visible planes are label["seg"] == 255 / == the grasped object's id,
+    flipped for a mirrored record and warped (nearest) through the record's crop, read here from the raw file."""
+    from hoidata.pipeline.runner import build_store
+    from hoidata.store import iter_records
+
+    size = 128
+    overrides = ['dataset.splits=["train"]', f"record.crop_size={size}", "record.n_hand=256", "record.n_object=128",
+                 'record.masks="dataset"']
+    build_store(load_build_config("toy", overrides), tiny_dexycb, tiny_dexycb / "mano", tiny_dexycb / "models",
+                tmp_path / "store", workers=1, progress=False)
+    records = list(iter_records(tmp_path / "store"))
+    assert {r[schema.META]["mirrored"] for r in records} == {False, True}
+    for rec in records:
+        meta = rec[schema.META]
+        seg = np.load(tiny_dexycb / meta["source"]["labels"])["seg"]  # the path is relative to the root
+        planes = np.stack([seg == 255, seg == meta["object_id"]]).astype(np.uint8)
+        planes = planes[:, :, ::-1] if meta["mirrored"] else planes
+        x1, y1, x2, _ = meta["crop_box"]
+        to_mask = crop_ops.resize_affine(size, size // 2) @ crop_ops.crop_affine(np.array([x1, y1, x2 - x1]), size)
+        for plane, bit in zip(planes, (schema.SEG_HAND_VISIBLE, schema.SEG_OBJECT_VISIBLE)):
+            want = crop_ops.warp_image(np.ascontiguousarray(plane), to_mask, size // 2, nearest=True) > 0
+            assert np.array_equal((rec[schema.SEG] & bit) > 0, want), (meta["key"], bit)
+        assert ((rec[schema.SEG] & schema.SEG_HAND_VISIBLE) > 0).sum() > 10
