@@ -102,7 +102,7 @@ def load_build_config(name_or_path: str, overrides: list[str] = ()) -> BuildConf
         raise DataError(path, "record.sdf_backend", f"unknown backend {record.sdf_backend!r}; expected one of {SDF_BACKENDS}")
     _check_crop(record, dataset, path)
     return BuildConfig(dataset,
-                       replace(record, sigmas=tuple(record.sigmas)),
+                       replace(record, sigmas=tuple(record.sigmas), upstream_region=tuple(record.upstream_region)),
                        section(StoreConfig, data.get("store", {}), path, "store", overrides))
 
 

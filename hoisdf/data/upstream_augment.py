@@ -137,7 +137,7 @@ class UpstreamView:
     """One augmented sample, upstream's values: image (before colour) and image (after blur and colour) PIL;
     K (3, 3); joints_uv (21, 2) crop px; box21_uv (21, 2) crop px; hand_box, object_box (4,) grid-filter boxes;
     anchor (3,) float32 m; rot (3, 3) float32; affine (3, 3) float32 frame -> crop (upstream's convention);
-    side: the jittered crop side (frame px)."""
+    side: the jittered crop side (frame px); joints_3d turned; size: the output side (px)."""
 
     plain: object
     image: object
@@ -150,12 +150,15 @@ class UpstreamView:
     rot: np.ndarray
     affine: np.ndarray
     side: float
+    joints_3d: np.ndarray  # (21, 3) float32, turned by rot
+    size: int = up.INPUT_SIZE
 
 
 def augment_view(region: np.ndarray, origin, frame_size, K: np.ndarray, joints_uv: np.ndarray,
-                 box21_uv: np.ndarray, root_z, dataset: str, draw: UpstreamDraw) -> UpstreamView:
-    """Upstream's ``data_aug`` image and 2D part for one frame, given in upstream's dtypes (DexYCB: K float64, joints
-    float32; HO-3D: both float32); ``root_z``: the rotated hand root's depth (used on DexYCB only)."""
+                 box21_uv: np.ndarray, joints_3d: np.ndarray, dataset: str, draw: UpstreamDraw) -> UpstreamView:
+    """Upstream's ``data_aug`` for one frame, given in upstream's dtypes (DexYCB: K float64, joints float32; HO-3D:
+    both float32): ``region`` (n, n, 3) uint8 at ``origin`` in the frame of ``frame_size``; joints_3d (21, 3) float32
+    camera frame (joint 0 the hand root, whose turned depth places the DexYCB anchor)."""
     centre, side = up.base_square(joints_uv, box21_uv, tuple(frame_size))
     centre = centre + up.CENTER_JITTER * side * np.asarray(draw.jitter, np.float64)
     side = side * np.float64(draw.scale)
@@ -163,7 +166,8 @@ def augment_view(region: np.ndarray, origin, frame_size, K: np.ndarray, joints_u
     uv, box_uv = up.transform_points(joints_uv, affine), up.transform_points(box21_uv, affine)
     K_new = affine_k.dot(K)
     hand_box, object_box = up.joints_box(uv, HAND_GRID_FACTOR[dataset]), up.joints_box(box_uv, up.OBJECT_GRID_FACTOR)
-    depth = root_z if dataset == "dexycb" else up.HO3D_ANCHOR_DEPTH
+    joints_3d = np.asarray(joints_3d, np.float32).dot(rot.T)
+    depth = joints_3d[0][-1] if dataset == "dexycb" else up.HO3D_ANCHOR_DEPTH
     plain = warp_frame(region, origin, frame_size, affine)
     return UpstreamView(plain, blur_and_color(plain, draw), K_new, uv, box_uv, hand_box, object_box,
-                        up.centre_camera(object_box, depth, K_new), rot, affine, float(side))
+                        up.centre_camera(object_box, depth, K_new), rot, affine, float(side), joints_3d)

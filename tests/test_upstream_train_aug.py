@@ -1,0 +1,177 @@
+"""augment.upstream on record.upstream_region records: upstream HOISDF's training augmentation (``data/dexycb.py`` /
+``data/ho3d.py`` ``data_aug`` + ``data/dataset_util.py``), checked against golden facts of upstream's own train-mode
+``__getitem__`` run on the toy frames with its random draws recorded (tests/golden/upstream_train_aug/README.md)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hoidata import schema
+from hoidata.geometry import upstream_crop as up
+from hoisdf.data.upstream_augment import COLOR_OPS, UpstreamDraw, augment_view, draw_upstream, footprint_inside
+from hoisdf.data.upstream_samples import frame_inputs, upstream_sample
+
+GOLDEN_DIR = Path(__file__).parent / "golden" / "upstream_train_aug"
+GOLDEN = json.loads((GOLDEN_DIR / "train_aug.json").read_text())
+TOL = 1e-6  # K and boxes (px), anchor, joints and SDF points (m; SDF points in upstream's x3.1 units)
+SDF_SCALE = 3.1
+SMALL = ["record.n_hand=64", "record.n_object=32", 'record.upstream_region=["train"]', 'dataset.splits=["train"]']
+GROUPS = {"dexycb_right": ("dexycb_s0", "toy", SMALL), "dexycb_left": ("dexycb_s0", "toy", SMALL),
+          "ho3d": ("ho3d_small", "ho3d", SMALL)}
+
+
+def golden_draw(entry: dict) -> UpstreamDraw:
+    d = entry["draw"]
+    return UpstreamDraw(tuple(d["jitter"]), d["scale"], d["rotation"], d["blur"], d["brightness"], d["contrast"],
+                        d["saturation"], d["hue"], tuple(d["order"]))
+
+
+def close(got, want, what: str) -> None:
+    np.testing.assert_allclose(np.asarray(got, np.float64), np.asarray(want, np.float64), rtol=0, atol=TOL,
+                               err_msg=what)
+
+
+@pytest.fixture(scope="module")
+def region_records(request, tmp_path_factory):
+    """{key: decoded record} of the golden frames, from stores built with record.upstream_region (one per toy)."""
+    from hoidata.pipeline.runner import build_store
+    from hoidata.pipeline.settings import load_build_config
+    from hoidata.store import iter_records
+
+    out = {}
+    for fixture, pipeline, overrides in {(f, p, tuple(o)) for f, p, o in GROUPS.values()}:
+        root = request.getfixturevalue(fixture)
+        store_dir = tmp_path_factory.mktemp("region") / "store"
+        build_store(load_build_config(pipeline, list(overrides)), root, root / "mano", root / "models", store_dir,
+                    progress=False)
+        out.update({rec[schema.META]["key"]: rec for rec in iter_records(store_dir)})
+    return out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("group", sorted(GOLDEN))
+def test_region_records_augment_as_upstream(region_records, group):
+    """Upstream's draw replayed on the record: 0 differing pixels before colour, at most 1 level after (the frames
+    with a stored image); K, grid boxes, anchor, 2D and 3D joints within 1e-6."""
+    from PIL import Image
+
+    for key, want in GOLDEN[group].items():
+        rec = region_records[key]
+        meta, region = rec[schema.META], rec[schema.IMG]
+        K, joints_uv, box21_uv = frame_inputs(meta)
+        origin, size = meta["region_origin"].astype(int), meta["frame_size"].astype(int)
+        view = augment_view(region, origin, size, K, joints_uv, box21_uv, np.asarray(meta["joints_3d"], np.float32),
+                            meta["dataset"], golden_draw(want))
+        plain = np.ascontiguousarray(np.asarray(view.plain), np.uint8)
+        assert hashlib.sha256(plain.tobytes()).hexdigest() == want["plain_sha256"], key
+        if want["final_png"]:
+            final = np.asarray(Image.open(GOLDEN_DIR / want["final_png"]).convert("RGB"), np.int16)
+            assert np.abs(np.asarray(view.image, np.int16) - final).max() <= 1, key
+        close(view.K.astype(np.float32), want["K"], f"{key} K")
+        close(view.hand_box, want["bbox_hand"], f"{key} hand box")
+        close(view.object_box, want["bbox_obj"], f"{key} object box")
+        close(view.anchor, want["obj_center_cam"], f"{key} anchor")
+        close((view.joints_uv / 256 * 128).astype(np.float32), want["joint_coord"], f"{key} 2D joints")
+        close((view.joints_3d - view.joints_3d[0]) * 1000 / 1000, np.asarray(want["joint_cam_no_trans"]) / 1000, key)
+        close(view.joints_3d[0], want["mano_root"], f"{key} hand root")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("group", sorted(GOLDEN))
+def test_loader_sample_labels_as_upstream(region_records, group):
+    """The loader's per-sample step (upstream_sample) on the record: its K, boxes, anchor, hand root, object pose
+    (axis-angle and anchor-relative translation) and MANO global rotation against upstream's."""
+    import cv2
+
+    for key, want in GOLDEN[group].items():
+        rec = region_records[key]
+        meta = rec[schema.META]
+        sample = {"seg_bits": rec[schema.SEG], "hand_root": np.asarray(meta["joints_3d"][0], np.float32),
+                  "mano_pose": np.asarray(meta["mano_pose"], np.float32),
+                  "hand_points": np.zeros((4, 3), np.float32)}
+        out = upstream_sample(rec[schema.IMG], meta, sample, golden_draw(want), key)
+        assert out["img"].shape == (256, 256, 3) and out["seg_bits"].shape == (128, 128) and out["upstream_aug"]
+        close(out["K"], want["K"], f"{key} K")
+        close(out["grid_hand_box"], want["bbox_hand"], f"{key} hand box")
+        close(out["object_box"], want["bbox_obj"], f"{key} object box")
+        close(out["object_anchor"], want["obj_center_cam"], f"{key} anchor")
+        close(out["hand_root"], want["mano_root"], f"{key} hand root")
+        pose = out["object_pose"].astype(np.float64)
+        close(cv2.Rodrigues(pose[:3, :3])[0][:, 0], want["obj_rot"], f"{key} object rotation")
+        close(pose[:3, 3] - out["object_anchor"], want["rel_obj_trans"], f"{key} object translation")
+        close(out["mano_pose"][:3], want["mano_global"], f"{key} MANO global rotation")
+
+
+@pytest.mark.parametrize("group", sorted(GOLDEN))
+def test_sdf_points_turn_as_upstream(group):
+    """The loader's points (relative to the hand root) turned by the draw's rotation, then put in upstream's frames
+    (hand: the turned root; object: upstream's anchor) x3.1: upstream's values for the same rows (a left hand's rows
+    mirrored in x first, as upstream and the project's build both mirror them)."""
+    from hoisdf.data.upstream_augment import affine_transform
+
+    for key, want in GOLDEN[group].items():
+        _, _, rot = affine_transform(np.zeros(2), 100.0, golden_draw(want).rotation, np.eye(3))
+        root_turned, anchor = np.asarray(want["mano_root"]), np.asarray(want["obj_center_cam"])
+        root = root_turned @ rot.astype(np.float64)  # turned back: rot is orthonormal to float32 precision
+        for block, entry in want["sdf"].items():
+            xyz = np.asarray(entry["input_xyz"]) * ([-1, 1, 1] if group == "dexycb_left" else 1)  # upstream's flip
+            rel = (xyz - root).astype(np.float32)
+            turned = rel.dot(rot.T).astype(np.float64)
+            ours = turned if block.startswith("hand") else turned + root_turned - anchor
+            close(ours * SDF_SCALE, entry["output"], f"{key} {block}")
+
+
+@pytest.mark.slow  # imports torchvision (seconds)
+def test_draw_replays_every_field():
+    """A draw given explicitly is what the augmentation uses: two draws differing in one colour factor differ in
+    pixels after colour, not before."""
+    region = np.random.default_rng(0).integers(0, 256, (300, 300, 3), dtype=np.uint8)
+    K = np.array([[600.0, 0, 150], [0, 600, 150], [0, 0, 1]])
+    uv = np.array([[120, 120], [180, 170]], np.float32)
+    box = np.array([[140, 130], [170, 160]], np.float64)
+    joints = np.tile(np.array([0.0, 0.0, 0.5], np.float32), (21, 1))
+    a = augment_view(region, (0, 0), (300, 300), K, uv, box, joints, "dexycb", UpstreamDraw(brightness=1.2))
+    b = augment_view(region, (0, 0), (300, 300), K, uv, box, joints, "dexycb", UpstreamDraw(brightness=0.8))
+    assert np.array_equal(np.asarray(a.plain), np.asarray(b.plain))
+    assert not np.array_equal(np.asarray(a.image), np.asarray(b.image))
+    with pytest.raises(ValueError, match="permutation"):
+        UpstreamDraw(order=("hue", "hue", "contrast", "brightness"))
+
+
+@pytest.mark.parametrize("rotation", ["dexycb", "uniform"])
+def test_region_holds_every_pixel_the_warp_samples(rotation):
+    """train_region is large enough: the farthest draws (jitter +-1, scale 1.2, 45 degrees and the draws of a seeded
+    stream) sample only inside the square or outside the frame; a square 3 px smaller does not hold them all."""
+    hand = np.array([[300, 200], [360, 270]], np.float32)
+    obj = np.array([[320, 180], [400, 260]], np.float64)
+    centre, side = up.base_square(hand, obj, (640, 480))
+    x0, y0, n = up.train_region(centre, side)
+    draws = [UpstreamDraw((sx, sy), 1.2, np.pi / 4) for sx in (-1.0, 1.0) for sy in (-1.0, 1.0)]
+    rng = np.random.default_rng(5)
+    draws += [draw_upstream(rng, rotation) for _ in range(200)]
+    K = np.array([[600.0, 0, 320], [0, 600, 240], [0, 0, 1]])
+
+    def holds(x0, y0, n):
+        from hoisdf.data.upstream_augment import affine_transform
+
+        for d in draws:
+            c = centre + up.CENTER_JITTER * side * np.asarray(d.jitter)
+            affine, _, _ = affine_transform(c, side * np.float64(d.scale), d.rotation, K)
+            if not footprint_inside(affine, (x0, y0), n, (10 ** 4, 10 ** 4)):
+                return False
+        return True
+
+    assert holds(x0, y0, n)
+    assert not holds(x0 + 3, y0 + 3, n - 6)
+
+
+def test_color_order_is_a_permutation_per_sample():
+    """Each draw carries its own order (upstream shuffles per sample): 24 orders appear over 2000 draws."""
+    rng = np.random.default_rng(1)
+    orders = {draw_upstream(rng, "dexycb").order for _ in range(2000)}
+    assert len(orders) == 24 and all(sorted(o) == sorted(COLOR_OPS) for o in orders)
