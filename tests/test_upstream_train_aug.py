@@ -37,20 +37,26 @@ def close(got, want, what: str) -> None:
 
 
 @pytest.fixture(scope="module")
-def region_records(request, tmp_path_factory):
-    """{key: decoded record} of the golden frames, from stores built with record.upstream_region (one per toy)."""
+def region_stores(request, tmp_path_factory):
+    """{toy fixture name: store folder} built with record.upstream_region (its train split)."""
     from hoidata.pipeline.runner import build_store
     from hoidata.pipeline.settings import load_build_config
-    from hoidata.store import iter_records
 
     out = {}
-    for fixture, pipeline, overrides in {(f, p, tuple(o)) for f, p, o in GROUPS.values()}:
+    for fixture, pipeline, overrides in sorted({(f, p, tuple(o)) for f, p, o in GROUPS.values()}):
         root = request.getfixturevalue(fixture)
-        store_dir = tmp_path_factory.mktemp("region") / "store"
-        build_store(load_build_config(pipeline, list(overrides)), root, root / "mano", root / "models", store_dir,
+        out[fixture] = tmp_path_factory.mktemp("region") / "store"
+        build_store(load_build_config(pipeline, list(overrides)), root, root / "mano", root / "models", out[fixture],
                     progress=False)
-        out.update({rec[schema.META]["key"]: rec for rec in iter_records(store_dir)})
     return out
+
+
+@pytest.fixture(scope="module")
+def region_records(region_stores):
+    """{key: decoded record} of every record of the region stores."""
+    from hoidata.store import iter_records
+
+    return {rec[schema.META]["key"]: rec for store in region_stores.values() for rec in iter_records(store)}
 
 
 @pytest.mark.slow
@@ -175,3 +181,60 @@ def test_color_order_is_a_permutation_per_sample():
     rng = np.random.default_rng(1)
     orders = {draw_upstream(rng, "dexycb").order for _ in range(2000)}
     assert len(orders) == 24 and all(sorted(o) == sorted(COLOR_OPS) for o in orders)
+
+
+@pytest.mark.slow
+def test_loader_batches_are_upstream_augmented(region_stores):
+    """build_dataset(upstream=True) yields 256 px samples marked upstream_aug, seeded per (seed, epoch, key); the
+    batch passes augment_batch unchanged except the heatmap, masks and anchor it adds."""
+    import torch
+
+    from hoisdf.data.augment import AugmentSettings, augment_batch
+    from hoisdf.data.loader import StoreSpec, build_dataset
+
+    def first(epoch):
+        data = build_dataset([StoreSpec(region_stores["dexycb_s0"])], 4, None, 0, 8, 8, training=True,
+                             shuffle_buffer=0, upstream=True)
+        data.set_epoch(epoch)
+        return next(iter(data))
+
+    batch, again, other = first(0), first(0), first(1)
+    assert batch["img"].shape == (4, 3, 256, 256) and batch["img"].dtype == torch.uint8
+    assert bool(batch["upstream_aug"].all()) and batch["key"] == again["key"]
+    assert torch.equal(batch["img"], again["img"]) and not torch.equal(batch["img"], other["img"])
+    out = augment_batch(batch, AugmentSettings(input_size=256, upstream=True), None, train=True)
+    assert out["img"].shape == (4, 3, 256, 256) and out["seg"].shape == (4, 4, 128, 128)
+    assert out["heatmap"].shape == (4, 1, 128, 128) and torch.equal(out["obj_center"], batch["object_anchor"])
+    assert torch.equal(out["K"], batch["K"]) and torch.equal(out["hand_box"], batch["hand_box"])
+
+
+@pytest.mark.slow
+def test_each_augmentation_refuses_the_other_records(region_stores, tiny_store):
+    """A region record under the project's augmentation, a project record under augment.upstream: one DataError
+    naming the record."""
+    from hoidata.errors import DataError
+    from hoisdf.data.loader import StoreSpec, build_dataset
+
+    for store, upstream, words in ((region_stores["dexycb_s0"], False, "upstream_region"),
+                                   (tiny_store, True, "record.upstream_region")):
+        data = build_dataset([StoreSpec(store)], 2, None, 0, 8, 8, training=True, upstream=upstream)
+        data.set_epoch(0)
+        with pytest.raises(DataError, match=words):
+            next(iter(data))
+
+
+@pytest.mark.slow
+def test_region_codec_rules(region_records):
+    """A region record reads back as it was written; its fields come all together, with img.png only."""
+    from hoidata.errors import DataError
+    from hoidata.store import decode_record, encode_record
+
+    rec = next(r for r in region_records.values() if r[schema.META]["kind"] == schema.FULL)
+    meta = dict(rec[schema.META])
+    members = encode_record(meta["key"], rec[schema.IMG], rec[schema.SEG], rec[schema.HEATMAP], rec[schema.SDF], meta)
+    assert schema.IMG_LOSSLESS in members and schema.IMG not in members
+    back = decode_record(members, "<test>")
+    assert np.array_equal(back[schema.IMG], rec[schema.IMG]) and back[schema.META]["region"] == schema.UPSTREAM_REGION
+    for broken in ({k: v for k, v in meta.items() if k != "frame_size"}, {**meta, "region": "other"}):
+        with pytest.raises(DataError, match="region"):
+            encode_record(meta["key"], rec[schema.IMG], rec[schema.SEG], rec[schema.HEATMAP], rec[schema.SDF], broken)
