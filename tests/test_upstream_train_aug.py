@@ -238,3 +238,33 @@ def test_region_codec_rules(region_records):
     for broken in ({k: v for k, v in meta.items() if k != "frame_size"}, {**meta, "region": "other"}):
         with pytest.raises(DataError, match="region"):
             encode_record(meta["key"], rec[schema.IMG], rec[schema.SEG], rec[schema.HEATMAP], rec[schema.SDF], broken)
+
+
+DRAWS = json.loads((GOLDEN_DIR / "draws.json").read_text())
+ECDF_TOL = 0.03  # KS two-sample critical value for 10^4 + 10^4 draws at alpha 1e-3 is 0.0276; seeds fixed
+ORDER_TOL = 0.015  # per order frequency (1/24 each; the difference of two 10^4-draw estimates has SD 0.003)
+
+
+def draw_columns(draws: list[UpstreamDraw]) -> dict[str, np.ndarray]:
+    return {"jitter_x": np.array([d.jitter[0] for d in draws]), "jitter_y": np.array([d.jitter[1] for d in draws]),
+            **{k: np.array([getattr(d, k) for d in draws]) for k in ("scale", "blur", "brightness", "contrast",
+                                                                     "saturation", "hue", "rotation")}}
+
+
+@pytest.mark.parametrize("dataset, rule", [("dexycb", "dexycb"), ("ho3d", "uniform")])
+def test_draws_follow_upstreams(dataset, rule):
+    """10^4 draws of draw_upstream (fixed seed) against 10^4 recorded from upstream's own data_aug: the largest gap
+    between the two empirical CDFs on a 101-point grid of each quantity (the two-sample KS statistic there; the
+    grid holds DexYCB's atom at rotation 0 and the scale clip's atoms at 0.8 and 1.2) below ECDF_TOL, and the 24
+    colour orders' frequencies within ORDER_TOL."""
+    want = DRAWS["datasets"][dataset]
+    rng = np.random.default_rng(2026)
+    draws = [draw_upstream(rng, rule) for _ in range(DRAWS["draws"])]
+    for name, values in draw_columns(draws).items():
+        grid = np.linspace(*want["ecdf"][name]["range"], DRAWS["grid_points"])
+        ours = np.searchsorted(np.sort(values), grid, side="right") / len(values)
+        gap = np.abs(ours - np.asarray(want["ecdf"][name]["cdf"])).max()
+        assert gap < ECDF_TOL, (dataset, name, gap)
+    orders = [" ".join(d.order) for d in draws]
+    for order, freq in zip(want["orders"], want["order_freq"]):
+        assert abs(orders.count(order) / len(orders) - freq) < ORDER_TOL, (dataset, order)
