@@ -82,7 +82,7 @@ def upstream_sample(rec_img: np.ndarray, meta: dict, sample: dict, draw: Upstrea
             out[name] = out[name].dot(rot.T).astype(np.float32)
     out["object_pose"], out["mano_pose"] = rotate_pose(np.asarray(meta["object_pose"]), sample["mano_pose"], rot)
     out.update({
-        "img": np.asarray(view.image), "seg_bits": warp_mask_bits(sample["seg_bits"], view.affine, origin, frame_size),
+        "img": np.array(view.image), "seg_bits": warp_mask_bits(sample["seg_bits"], view.affine, origin, frame_size),
         "K": view.K.astype(np.float32), "joints_3d": view.joints_3d,
         "hand_root": np.asarray(sample["hand_root"], np.float32).dot(rot.T),
         "joints_2d": view.joints_uv.astype(np.float32), "hand_box": view.hand_box.astype(np.float32),
