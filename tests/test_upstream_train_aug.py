@@ -268,3 +268,16 @@ def test_draws_follow_upstreams(dataset, rule):
     orders = [" ".join(d.order) for d in draws]
     for order, freq in zip(want["orders"], want["order_freq"]):
         assert abs(orders.count(order) / len(orders) - freq) < ORDER_TOL, (dataset, order)
+
+
+def test_build_refuses_a_region_it_cannot_make():
+    """record.upstream_region on a dataset upstream never trained on, or on splits that are upstream test crops:
+    one DataError naming the key, before any frame is read."""
+    from hoidata.errors import DataError
+    from hoidata.pipeline.settings import load_build_config
+
+    assert load_build_config("toy", ['record.upstream_region=["train"]']).record.upstream_region == ("train",)
+    for overrides in (['dataset.name="hot3d_clips"', 'record.upstream_region=["train"]'],
+                      ['record.crop="upstream"', 'record.crop_splits=["train"]', 'record.upstream_region=["train"]']):
+        with pytest.raises(DataError, match="record.upstream_region"):
+            load_build_config("toy", overrides)

@@ -117,6 +117,13 @@ def _check_crop(record: RecordSettings, dataset: DatasetConfig, path: Path) -> N
     if record.crop == "upstream" and dataset.name == "ho3d" and odd:
         raise DataError(path, "record.crop_splits", f"upstream's HO-3D test crop exists for the evaluation split "
                                                     f"only, not for {odd}")
+    if record.upstream_region and dataset.name not in ("dexycb", "ho3d"):
+        raise DataError(path, "record.upstream_region", f"upstream's training augmentation exists for DexYCB and "
+                                                        f"HO-3D, not {dataset.name}")
+    both = sorted(set(record.upstream_region) & set(record.crop_splits)) if record.crop == "upstream" else []
+    if both:
+        raise DataError(path, "record.upstream_region", f"splits {both} are upstream test crops (record.crop_splits); "
+                                                        f"a record keeps one or the other")
 
 
 def _check_selection(dataset: DatasetConfig, path: Path) -> None:
