@@ -35,6 +35,10 @@ Upstream-crop records (``record.crop = "upstream"``, any kind): the test-time in
 losslessly as ``img.png``; ``K`` is upstream's crop intrinsics. Their ``meta.json`` also holds the
 :data:`CROP_FIELDS` (all of them; other records hold none): the 2D boxes that filter upstream's inference grid
 and its object anchor, which evaluation uses in place of its own.
+
+Upstream-region records (``record.upstream_region``, full records of the named splits): ``img.png`` is a square of the
+original frame at native resolution, lossless, large enough for upstream's training jitter, scale and rotation;
+their ``meta.json`` also holds the :data:`REGION_FIELDS` (upstream's frame-level inputs to its training warp).
 """
 
 from __future__ import annotations
@@ -109,6 +113,19 @@ CROP_FIELDS = {
                               "(projected 21-point box of points.xyz, x1.0)"),
     "object_anchor": ((3,), "camera frame, metres: upstream's object anchor (obj_center_cam: the integer centre of "
                             "grid_object_box back-projected at the hand root's depth; HO-3D: at 0.5244322 m)"),
+}
+
+# meta.json fields of a record.upstream_region record only (all or none): its img.png is a square of the original
+# frame at native resolution (upstream HOISDF's training warp samples it), K, joints_2d and boxes in its pixels
+UPSTREAM_REGION = "upstream_train"
+REGION_FIELDS = {
+    "region": (None, "'upstream_train': img.png is the square of the original frame (flipped for a left hand) at "
+                     "region_origin, black outside the frame, that upstream HOISDF's training augmentation samples"),
+    "region_origin": ((2,), "x0, y0 of img.png's top-left pixel in the (flipped) frame, pixels"),
+    "frame_size": ((2,), "width, height of the original frame, pixels"),
+    "frame_K": ((3, 3), "upstream's intrinsics of the (flipped) frame (DexYCB float64, HO-3D float32 values)"),
+    "frame_joints_2d": ((21, 2), "upstream's 2D joints in the (flipped) frame, float32 values"),
+    "frame_box21_2d": ((21, 2), "the object's 21 box points (points.xyz) projected into the (flipped) frame"),
 }
 
 OBJECT_IDS = range(1, 22)  # meta object_id: the DexYCB class ids

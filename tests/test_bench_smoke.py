@@ -54,6 +54,8 @@ SCRIPTS: dict[str, list[tuple[list[str], str]]] = {
     "bench_volume": [(["--frames", "1", "--split-frames", "2", "--workers", "1"], "mean seconds per frame: exact cells")],
     "bench_shuffle": [(["--store", "{store}", "--batch", "4", "--workers", "0", "--epochs", "1", "--rounds", "1"],
                        "load average (1 min):")],
+    "bench_upstream_aug": [(["--root", "{root}", "--batch", "2", "--batches", "1", "--rounds", "1", "--workers", "0"],
+                            "upstream __getitem__")],
     "bench_suite_disk": [(["--every", "0.5", "tests/test_safe_pickle.py"], "| the suite's settings |")],
 }
 # scripts that cannot run here, with the reason; the test checks the reason still holds

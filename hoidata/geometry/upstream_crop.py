@@ -164,3 +164,37 @@ def upstream_crop(image, K: np.ndarray, hand_uv: np.ndarray, object_uv: np.ndarr
     K_crop = (affine_k if k_about_pp else affine).dot(K)
     return UpstreamCrop(warp_nearest(image, affine, size), K_crop, grid_hand, grid_obj,
                         centre_camera(grid_obj, anchor_depth, K_crop), centre, float(side), affine)
+
+
+# upstream's training jitter (data/dexycb.py, data/ho3d.py ``__init__`` defaults and ``data_aug``)
+CENTER_JITTER = 0.1  # centre + CENTER_JITTER * side * U(-1, 1) per axis
+SCALE_JITTER = 0.2  # side * clip(SCALE_JITTER * N(0, 1) + 1, 1 - SCALE_JITTER, 1 + SCALE_JITTER)
+REGION_MARGIN = 2  # px beyond the farthest pixel a jittered, scaled and rotated crop can sample
+
+
+def base_square(hand_uv: np.ndarray, object_uv: np.ndarray, image_size: tuple[int, int]):
+    """(integer centre (2,), side) of upstream's crop square before any jitter: the union of the hand points' box
+    x1.5 and the object's 21-point box x1.5, clipped to the image (width, height) (``data_aug``'s first lines)."""
+    return fused_square(joints_box(hand_uv, CROP_FACTOR), joints_box(object_uv, CROP_FACTOR), image_size)
+
+
+
+def train_region(centre: np.ndarray, side: float) -> tuple[int, int, int]:
+    """(x0, y0, n): the square of n px at (x0, y0), source pixels, holding every pixel upstream's training warp can
+    sample about ``centre`` / ``side`` (:func:`base_square`): the centre moves by up to CENTER_JITTER * side per
+    axis, the side grows to (1 + SCALE_JITTER) * side and any rotation turns it, so it stays within
+    (CENTER_JITTER + (1 + SCALE_JITTER) / sqrt(2)) * side of the centre, plus REGION_MARGIN px for the rounding of
+    a nearest-neighbour pick."""
+    reach = (CENTER_JITTER + (1 + SCALE_JITTER) / np.sqrt(2)) * float(side) + REGION_MARGIN
+    x0, y0 = (int(np.floor(float(c) - reach)) for c in centre)
+    return x0, y0, int(np.ceil(2 * reach)) + 1
+
+
+def cut_region(image: np.ndarray, x0: int, y0: int, n: int) -> np.ndarray:
+    """(n, n, 3) uint8: the square of ``image`` (H, W, 3) at (x0, y0), black where it leaves the image."""
+    out = np.zeros((n, n, 3), np.uint8)
+    h, w = image.shape[:2]
+    sx0, sy0, sx1, sy1 = max(x0, 0), max(y0, 0), min(x0 + n, w), min(y0 + n, h)
+    if sx1 > sx0 and sy1 > sy0:
+        out[sy0 - y0:sy1 - y0, sx0 - x0:sx1 - x0] = image[sy0:sy1, sx0:sx1]
+    return out

@@ -29,7 +29,7 @@ from hoidata.geometry.mirror import (
     mirror_points,
     mirror_transform,
 )
-from hoidata.pipeline.upstream_records import crop_meta, upstream_view, uses_upstream_crop
+from hoidata.pipeline.upstream_records import crop_meta, region_view, upstream_view, uses_upstream_crop, uses_upstream_region
 from hoidata.pipeline.upstream_records import crop_box as upstream_crop_box
 
 
@@ -56,6 +56,9 @@ class RecordSettings:
     # n_object rows per entity in the frames' joint normalisation (hoidata.geometry.sampling_deepsdf, docs/stores.md)
     sdf_points: str = "project"  # "project" | "deepsdf"
     masks: str = "rendered"  # visible mask targets: "rendered" from the meshes | "dataset": the dataset's own masks
+    # splits whose full records keep, in place of the crop, the square of the original frame (lossless img.png, native
+    # resolution) that upstream HOISDF's training augmentation samples, and upstream's inputs to it (docs/stores.md)
+    upstream_region: tuple[str, ...] = ()  # e.g. ["train"]; empty: off
     LIMITS: ClassVar[dict] = {"crop_size": (">= 32", "<= 4096"), "context": ("> 0",), "n_hand": (">= 1",),
                               "n_object": (">= 1",), "uniform_fraction": (">= 0", "<= 1"), "cube": ("> 0",),
                               "sigmas": ("> 0",), "part_radius": ("> 0",), "heatmap_sigma": ("> 0",)}
@@ -197,6 +200,11 @@ def crop_view(raw: Frame, frame: Frame, obj: ObjectAsset, object_uv: np.ndarray,
         return {"img": view.image, "K": np.asarray(view.K, np.float64), "box": upstream_crop_box(view),
                 "to_pixels": pixel_affine(view.affine), "to_K": np.asarray(view.affine, np.float64),
                 "meta": crop_meta(view)}
+    if uses_upstream_region(raw, settings):
+        region = region_view(raw, obj.upstream_box21)
+        x0, y0 = region["meta"]["region_origin"]
+        return {**region, "K": region["to_pixels"] @ frame.K, "box": np.array([x0, y0, region["img"].shape[0]]),
+                "to_K": region["to_pixels"]}
     box = crop_ops.square_crop_box(hand_uv, object_uv, settings.context)
     to_crop = crop_ops.crop_affine(box, settings.crop_size)
     image = frame.load_image() if frame is raw else cv2.flip(raw.load_image(), 1)  # flip: image[:, ::-1], faster

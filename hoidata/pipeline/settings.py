@@ -103,7 +103,7 @@ def load_build_config(name_or_path: str, overrides: list[str] = ()) -> BuildConf
     _check_crop(record, dataset, path)
     _check_supervision(record, dataset, path, overrides)
     return BuildConfig(dataset,
-                       replace(record, sigmas=tuple(record.sigmas)),
+                       replace(record, sigmas=tuple(record.sigmas), upstream_region=tuple(record.upstream_region)),
                        section(StoreConfig, data.get("store", {}), path, "store", overrides))
 
 
@@ -118,6 +118,13 @@ def _check_crop(record: RecordSettings, dataset: DatasetConfig, path: Path) -> N
     if record.crop == "upstream" and dataset.name == "ho3d" and odd:
         raise DataError(path, "record.crop_splits", f"upstream's HO-3D test crop exists for the evaluation split "
                                                     f"only, not for {odd}")
+    if record.upstream_region and dataset.name not in ("dexycb", "ho3d"):
+        raise DataError(path, "record.upstream_region", f"upstream's training augmentation exists for DexYCB and "
+                                                        f"HO-3D, not {dataset.name}")
+    both = sorted(set(record.upstream_region) & set(record.crop_splits)) if record.crop == "upstream" else []
+    if both:
+        raise DataError(path, "record.upstream_region", f"splits {both} are upstream test crops (record.crop_splits); "
+                                                        f"a record keeps one or the other")
 
 
 SDF_POINTS = ("project", "deepsdf")  # record.sdf_points: the project's sets | the authors' AlignSDF/DeepSDF blocks

@@ -29,6 +29,7 @@ from hoidata.geometry import upstream_crop as up
 CROPS = ("project", "upstream")
 IMAGE_SIZE = (640, 480)  # both datasets' frames; upstream clips its crop to them
 HAND_GRID_FACTOR = {"dexycb": 1.1, "ho3d": 1.2}
+REGION_STEP = 64  # px: a record.upstream_region square's side is a multiple of this
 
 
 def uses_upstream_crop(frame: Frame, settings) -> bool:
@@ -36,9 +37,20 @@ def uses_upstream_crop(frame: Frame, settings) -> bool:
     return settings.crop == "upstream" and frame.split in settings.crop_splits
 
 
-def record_size(frame: Frame, settings) -> int:
-    """Side (px) of the frame's stored crop: upstream's 256 px input, or ``settings.crop_size``."""
-    return up.INPUT_SIZE if uses_upstream_crop(frame, settings) else settings.crop_size
+def uses_upstream_region(frame: Frame, settings) -> bool:
+    """Whether ``frame``'s record keeps the frame region upstream's training warp samples (``upstream_region``:
+    the splits; labelled frames only)."""
+    return frame.split in settings.upstream_region and frame.has_hand_pose
+
+
+def record_size(frame: Frame, settings, box3d: np.ndarray | None = None) -> int:
+    """Side (px) of the frame's stored crop: upstream's 256 px input, the frame region's side (record.upstream_region;
+    ``box3d``: the object's upstream 21-point box), or ``settings.crop_size``."""
+    if uses_upstream_crop(frame, settings):
+        return up.INPUT_SIZE
+    if uses_upstream_region(frame, settings):
+        return region_square(frame, box3d)[2]
+    return settings.crop_size
 
 
 def decode_as_upstream(frame: Frame):
@@ -98,6 +110,58 @@ def _ho3d_inputs(frame: Frame, box3d: np.ndarray) -> dict:
     hand = np.asarray(frame.hand_box, np.float32).reshape(2, 2)
     return {"K": K, "hand_uv": hand, "object_uv": up.project_posed(box3d, K, pose),
             "anchor_depth": up.HO3D_ANCHOR_DEPTH, "k_about_pp": False}
+
+
+def _ho3d_train_inputs(frame: Frame, box3d: np.ndarray) -> dict:
+    """HO-3D's training split as upstream's train loader holds it: K float32, the 2D joints projected from the
+    float32 3D joints, the 21 box points float32 (upstream reads them from its unreleased ``ho3d_train_data.json``;
+    here projected as its evaluation path projects them, then float32)."""
+    K = np.asarray(frame.K, np.float32)
+    uv = np.matmul(K, np.asarray(frame.joints_3d, np.float32).T).T
+    object_uv = up.project_posed(box3d, K, np.asarray(frame.object_pose, np.float64)).astype(np.float32)
+    return {"K": K, "hand_uv": uv[:, :2] / uv[:, -1:], "object_uv": object_uv}
+
+
+def train_inputs(frame: Frame, box3d: np.ndarray) -> dict:
+    """What upstream's training ``data_aug`` reads of a labelled frame, in its dtypes: K, hand_uv (the 2D joints),
+    object_uv (the projected 21-point box), flipped for a left hand (DexYCB)."""
+    if frame.dataset == "dexycb":
+        return _dexycb_inputs(frame, box3d, frame.image_size[0])
+    if frame.dataset == "ho3d":
+        return _ho3d_train_inputs(frame, box3d)
+    raise DataError(frame.image_path, "record.upstream_region", f"upstream's training crop exists for DexYCB and "
+                                                                f"HO-3D frames, not {frame.dataset}")
+
+
+def region_square(frame: Frame, box3d: np.ndarray | None) -> tuple[int, int, int]:
+    """(x0, y0, n) of the frame square a record.upstream_region record keeps (:func:`~hoidata.geometry.upstream_crop.
+    train_region`), its side rounded up to a multiple of REGION_STEP px (few mask renderer sizes)."""
+    if box3d is None:
+        raise DataError(frame.image_path, "record.upstream_region", f"no points.xyz box for {frame.object_name}")
+    inputs = train_inputs(frame, box3d)
+    centre, side = up.base_square(inputs["hand_uv"], inputs["object_uv"], tuple(frame.image_size))
+    if not np.isfinite(side) or side < 1:
+        raise ValueError(f"upstream's crop box is empty (side {side} px): hand and object outside the image")
+    x0, y0, n = up.train_region(centre, side)
+    grown = -(-n // REGION_STEP) * REGION_STEP
+    return x0 - (grown - n) // 2, y0 - (grown - n) // 2, grown
+
+
+def region_view(frame: Frame, box3d: np.ndarray) -> dict:
+    """A record.upstream_region record's image and fields: ``img`` (n, n, 3) uint8 the square of the original frame
+    (decoded as upstream decodes it, flipped for a left hand, black outside the frame), ``to_pixels`` (3, 3) the
+    frame -> region pixel map (a translation), ``meta``: schema.REGION_FIELDS."""
+    x0, y0, n = region_square(frame, box3d)
+    image = decode_as_upstream(frame)
+    image = flip_image(image) if frame.mirror else image
+    inputs = train_inputs(frame, box3d)
+    to_pixels = np.eye(3)
+    to_pixels[:2, 2] = -x0, -y0
+    meta = {"region": schema.UPSTREAM_REGION, "region_origin": np.array([x0, y0], np.float64),
+            "frame_size": np.array(image.size, np.float64), "frame_K": np.asarray(inputs["K"], np.float64),
+            "frame_joints_2d": np.asarray(inputs["hand_uv"], np.float64),
+            "frame_box21_2d": np.asarray(inputs["object_uv"], np.float64)}
+    return {"img": up.cut_region(np.asarray(image), x0, y0, n), "to_pixels": to_pixels, "meta": meta}
 
 
 def upstream_view(frame: Frame, box3d: np.ndarray) -> up.UpstreamCrop:

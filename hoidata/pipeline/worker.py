@@ -117,12 +117,13 @@ class RecordWorker:
         from hoidata.pipeline.records import build_eval_record, build_record
         from hoidata.pipeline.upstream_records import record_size
 
-        obj = self.object_asset(frame.object_name, settings.crop == "upstream")
+        obj = self.object_asset(frame.object_name, settings.crop == "upstream" or bool(settings.upstream_region))
         if not frame.has_hand_pose:  # e.g. HO-3D's evaluation split: no hand mesh, so no masks or SDF
             rec = build_eval_record(frame, obj, key, settings)
         else:
             mano = self.hand_model(frame.side, frame.fix_left_shapedirs)  # the model the labels were made with
-            rec = build_record(frame, mano, obj, self.renderer(record_size(frame, settings)), key, settings)
+            rec = build_record(frame, mano, obj, self.renderer(record_size(frame, settings, obj.upstream_box21)), key,
+                               settings)
         if source is not None:
             rec["meta"]["source"] = source
         return store.encode_record(key, rec["img"], rec["seg"], rec["heatmap"], rec["sdf"], rec["meta"])

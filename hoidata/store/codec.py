@@ -27,12 +27,14 @@ from hoidata.schema import (
     NO_PART,
     OBJECT_IDS,
     RECORD_KINDS,
+    REGION_FIELDS,
     SCHEMA_VERSION,
     SDF,
     SDF_COLUMNS,
     SDF_DTYPE,
     SEG,
     UPSTREAM_CROP,
+    UPSTREAM_REGION,
     check_key,
     image_member,
     kind_of_members,
@@ -133,16 +135,25 @@ def _check_meta(meta, where, key, n_sdf: int | None, kind: str | None = None, im
         if meta["crop"] != UPSTREAM_CROP:
             raise DataError(where, name, f"'crop': {meta['crop']!r}, expected {UPSTREAM_CROP!r}")
         fields = (*fields, *CROP_FIELDS)
-    if image is not None and bool(crop) != (image == IMG_LOSSLESS):
-        raise DataError(where, _field(key, image), f"an upstream-crop record ('crop' in {META}) stores its image "
-                                                   f"as {IMG_LOSSLESS}, any other record as {IMG}")
+    region = [f for f in REGION_FIELDS if f in meta]
+    if region:
+        if len(region) != len(REGION_FIELDS) or crop:
+            raise DataError(where, name, f"upstream-region fields {sorted(REGION_FIELDS)} come together, without "
+                                         f"upstream-crop fields; missing {sorted(set(REGION_FIELDS) - set(region))}")
+        if meta["region"] != UPSTREAM_REGION:
+            raise DataError(where, name, f"'region': {meta['region']!r}, expected {UPSTREAM_REGION!r}")
+        fields = (*fields, *REGION_FIELDS)
+    if image is not None and bool(crop or region) != (image == IMG_LOSSLESS):
+        raise DataError(where, _field(key, image), f"an upstream-crop or upstream-region record ('crop' or 'region' "
+                                                   f"in {META}) stores its image as {IMG_LOSSLESS}, any other record "
+                                                   f"as {IMG}")
     missing, extra = sorted(set(fields) - set(meta)), sorted(set(meta) - set(fields))
     if missing or extra:
         raise DataError(where, name, f"missing fields {missing}, unexpected fields {extra} (kind {given!r})")
     out = {}
     for field_name in fields:
-        shape, value = {**META_FIELDS, **CROP_FIELDS}[field_name][0], meta[field_name]
-        if field_name == "crop":
+        shape, value = {**META_FIELDS, **CROP_FIELDS, **REGION_FIELDS}[field_name][0], meta[field_name]
+        if field_name in ("crop", "region"):
             out[field_name] = value
             continue
         if shape is None:
@@ -191,7 +202,7 @@ def encode_record(key: str, img: np.ndarray, seg: np.ndarray | None, heatmap: np
     given = {IMG, META} | {m for m, arr in arrays.items() if arr is not None}
     if kind in RECORD_KINDS and given != set(members_of_kind):
         raise DataError(None, key, f"a {kind!r} record has members {list(members_of_kind)}, got {sorted(given)}")
-    image = IMG_LOSSLESS if isinstance(meta, dict) and "crop" in meta else IMG
+    image = IMG_LOSSLESS if isinstance(meta, dict) and ("crop" in meta or "region" in meta) else IMG
     _check_images(None, key, img, seg, heatmap, image)
     if sdf is not None:
         _check_sdf(None, key, sdf)

@@ -26,6 +26,7 @@ from hoidata.geometry.rotation import axis_angle_to_matrix, matrix_to_axis_angle
 
 POINT_KEYS = ("hand_points", "obj_points", "hand_near_points", "obj_near_points")
 ROTATIONS = ("dexycb", "uniform", "none")
+UPSTREAM_SIZE = 256  # upstream's input side (px), what augment.upstream samples come at
 _GREY = (0.299, 0.587, 0.114)  # ITU-R 601 luma, as in torchvision's rgb_to_grayscale
 _RGB_TO_YIQ = ((0.299, 0.587, 0.114), (0.595716, -0.274453, -0.321263), (0.211456, -0.522591, 0.311135))
 
@@ -45,6 +46,9 @@ class AugmentSettings:
     color: bool = True  # brightness, contrast, saturation U(0.5, 1.5), hue shift U(-0.15, 0.15) of a turn
     blur_max: float = 0.5  # Gaussian blur sigma U(0, blur_max), output pixels (0 disables)
     heatmap_sigma: float = 1.25  # px at the R // 2 resolution
+    # true: upstream HOISDF's augmentation, per sample in the loader's workers, from record.upstream_region records
+    # (hoisdf.data.upstream_augment: its fixed ranges and per-dataset rotation rule; the keys above do not apply)
+    upstream: bool = False
     LIMITS: ClassVar[dict] = {"input_size": (">= 32",), "context": ("> 0",), "center_jitter": (">= 0",),
                               "scale_sigma": (">= 0",), "scale_min": ("> 0",), "scale_max": ("> 0",),
                               "rot_prob": (">= 0", "<= 1"), "blur_max": (">= 0",), "heatmap_sigma": ("> 0",)}
@@ -54,6 +58,9 @@ class AugmentSettings:
             raise ValueError(f"rotation must be one of {ROTATIONS}, got {self.rotation!r}")
         if self.input_size < 2 or self.context <= 0:
             raise ValueError(f"need input_size >= 2 and context > 0, got {self.input_size}, {self.context}")
+        if self.upstream and self.input_size != UPSTREAM_SIZE:
+            raise ValueError(f"augment.upstream makes upstream's {UPSTREAM_SIZE} px inputs: input_size (model.image_size) "
+                             f"must be {UPSTREAM_SIZE}, got {self.input_size}")
 
 
 def draw_params(batch_size: int, settings: AugmentSettings, generator: torch.Generator | None,
@@ -243,6 +250,8 @@ def augment_batch(batch: dict, settings: AugmentSettings, generator: torch.Gener
     obj_center (B, 3) m (object box centre back-projected at the hand root's depth), rotation (B, 3, 3)
     and crop_scale (B,) = R / s. Every other entry is passed through unchanged.
     """
+    if _upstream_augmented(batch):
+        return upstream_batch(batch, settings)
     img = float_image(batch["img"])  # on the device: uint8 crosses the worker queue and the bus
     device, b, size = img.device, img.shape[0], settings.input_size
     half, store_size = size // 2, img.shape[-1]
@@ -311,3 +320,27 @@ def _use_upstream_crop(out: dict, batch: dict, M: torch.Tensor, rot: torch.Tenso
     if as_is.any():
         out["K"] = torch.where(as_is[:, None, None], batch["K"].float(), out["K"])
         out["img"] = torch.where(as_is[:, None, None, None], float_image(batch["img"]), out["img"])
+
+
+def _upstream_augmented(batch: dict) -> bool:
+    """Whether the loader augmented this batch as upstream does (``upstream_aug``: all samples or none)."""
+    flags = batch.get("upstream_aug")
+    if flags is None or not bool(flags.any()):
+        return False
+    if not bool(flags.all()):
+        raise ValueError("a batch mixes samples augmented by the loader (augment.upstream) with others")
+    return True
+
+
+def upstream_batch(batch: dict, settings: AugmentSettings) -> dict:
+    """A batch the loader augmented as upstream HOISDF does (:mod:`hoisdf.data.upstream_samples`) -> the network input
+    batch: images, K, joints, boxes and 3D labels as they are; seg from ``seg_bits``; the heatmap from the joints at
+    upstream's ``uv / 256 * 128``; obj_center = upstream's anchor; rotation the identity (already applied)."""
+    img = float_image(batch["img"])
+    size = img.shape[-1]
+    out = {k: v for k, v in batch.items() if k != "seg_bits"}
+    out["img"], out["seg"] = img, mask_planes(batch)
+    out["heatmap"] = render_heatmap(batch["joints_2d"].float() * (size // 2) / size, size // 2, settings.heatmap_sigma)
+    out["obj_center"] = batch["object_anchor"].float()
+    out["rotation"] = torch.eye(3, device=img.device).repeat(img.shape[0], 1, 1)
+    return out

@@ -13,16 +13,16 @@ How the pieces fit, per store::
     ReadShards    hoidata's strict tar reader, compared with the index (size, keys in order, count)
     -> _Shuffle (sample buffer) -> _Decode -> _ToArrays (SDF row sampling)
 
-then :class:`_Mix` draws the next sample from store ``i`` with probability ``weight_i / sum(weights)``
-and :class:`_Batch` stacks samples into tensors; ``with_epoch`` cuts every worker at the same number of
-batches.
+then :class:`_Mix` draws the next sample from store ``i`` with probability ``weight_i / sum(weights)`` and
+:class:`_Batch` stacks samples into tensors; ``with_epoch`` cuts every worker at the same number of batches.
+``augment.upstream``: _ToArrays ends with upstream's augmentation of each sample (:mod:`hoisdf.data.upstream_samples`).
 
-Why an endless repeated shard stream rather than a finite list split between workers: with fewer shards
-than ``world_size * num_workers`` a finite split leaves some workers with nothing, and ``with_epoch``
-then gives ranks different batch counts (DDP hangs on the missing all-reduce). Repeating the reshuffled
-list before splitting means worker ``w`` simply reads passes ``w, w + W, ...`` of the same shard: every
-worker has data, no sample is invented, and for large stores (many shards) it degrades to the usual
-"disjoint shards per worker". (``wds.ResampledShards`` draws shards with replacement: some read twice an epoch.)
+Why an endless repeated shard stream rather than a finite list split between workers: with fewer shards than
+``world_size * num_workers`` a finite split leaves some workers with nothing, and ``with_epoch`` then gives ranks
+different batch counts (DDP hangs on the missing all-reduce). Repeating the reshuffled list before splitting means
+worker ``w`` simply reads passes ``w, w + W, ...`` of the same shard: every worker has data, no sample is invented,
+and for large stores (many shards) it degrades to the usual "disjoint shards per worker".
+(``wds.ResampledShards`` draws shards with replacement: some read twice an epoch.)
 
 Shards are read by :func:`hoidata.store.read_checked_shard`, from local files or, for a store given as an explicit
 ``http(s)://`` / ``s3://`` / ``gs://`` URL, from fsspec streams (:mod:`hoisdf.data.shards`), never through
@@ -52,8 +52,9 @@ from hoidata.store import KEY, decode_record
 from hoisdf.data.global_shuffle import GlobalShuffle, record_table
 from hoisdf.data.kinds import check_trainable, fill_absent_labels
 from hoisdf.data.shards import Loader, ReadShards, ShardStream, errors_as_items, store_shards
+from hoisdf.data.upstream_samples import finish_sample
 
-_MIX_STREAM, _SHUFFLE_STREAM = 1, 2  # distinguish the RNG streams drawn from the same seed
+_MIX_STREAM, _SHUFFLE_STREAM, _AUGMENT_STREAM = 1, 2, 3  # distinguish the RNG streams drawn from the same seed
 SHUFFLES = ("stream", "global")  # train.shuffle: this module's streams, or global_shuffle's permutation
 
 
@@ -174,8 +175,9 @@ def _f32(value) -> np.ndarray:
 class _ToArrays:
     """Decoded record -> dict of per-sample numpy arrays in the final dtypes and layouts (see build_dataset)."""
 
-    def __init__(self, seed: int, state: _EpochState, n_hand: int, n_object: int, near: float | None):
-        self.seed, self.state = seed, state
+    def __init__(self, seed: int, state: _EpochState, n_hand: int, n_object: int, near: float | None,
+                 upstream: bool = False):
+        self.seed, self.state, self.upstream = seed, state, upstream
         self.n_hand, self.n_object, self.near = n_hand, n_object, near
 
     def __call__(self, src):
@@ -208,7 +210,8 @@ class _ToArrays:
             "is_synthetic": np.bool_(meta["dataset"] == "synthetic"),
             "key": key,
         })
-        return out
+        return finish_sample(rec[schema.IMG], meta, out, key, self.upstream and [self.seed, self.state.epoch,
+                                                                                  _key_seed(key), _AUGMENT_STREAM])
 
 
 def crop_entries(meta: dict) -> dict:
@@ -316,14 +319,8 @@ class MixedStores(wds.DataPipeline):
 def _store_pipeline(urls: list[str], expected: dict, number: int, seed: int, state: _EpochState, training: bool,
                     shuffle_buffer: int, to_arrays: _ToArrays) -> wds.DataPipeline:
     """One store's sample stream (see the module docstring for the stages)."""
-    return wds.DataPipeline(
-        ShardStream(urls, seed, state, repeat=training),
-        wds.split_by_worker,
-        ReadShards(expected),
-        _Shuffle(shuffle_buffer if training else 0, seed, state, number),
-        _Decode(),
-        to_arrays,
-    )
+    return wds.DataPipeline(ShardStream(urls, seed, state, repeat=training), wds.split_by_worker, ReadShards(expected),
+                            _Shuffle(shuffle_buffer if training else 0, seed, state, number), _Decode(), to_arrays)
 
 
 def _check_args(stores: list[StoreSpec], batch_size: int, n_hand: int, n_object: int) -> None:
@@ -338,7 +335,8 @@ def _check_args(stores: list[StoreSpec], batch_size: int, n_hand: int, n_object:
 
 def build_dataset(stores: list[StoreSpec], batch_size: int, epoch_samples: int | None = None, seed: int = 0,
                   n_hand: int = 600, n_object: int = 200, near: float = 0.05, shuffle_buffer: int = 64,
-                  training: bool = True, shuffle: str = "stream", progress: bool = True) -> MixedStores | GlobalShuffle:
+                  training: bool = True, shuffle: str = "stream", progress: bool = True,
+                  upstream: bool = False) -> MixedStores | GlobalShuffle:
     """A batched, weight-mixed, epoch-seeded IterableDataset over ``stores``.
 
     Each element is a dict (B = batch_size, S = crop size, H = S // 2, all tensors on the CPU):
@@ -388,12 +386,13 @@ def build_dataset(stores: list[StoreSpec], batch_size: int, epoch_samples: int |
     Call :meth:`MixedStores.set_epoch` before iterating each epoch (see the module docstring).
     ``shuffle="global"`` (training only): a :class:`~hoisdf.data.global_shuffle.GlobalShuffle`, one permutation per
     epoch over every store (weights: see there; ``progress``: a bar while it maps record offsets; no shuffle_buffer).
+    ``upstream`` (training): each sample augmented as upstream's in its worker (S = 256, ``upstream_aug``).
     """
     _check_args(stores, batch_size, n_hand, n_object)
     if shuffle not in SHUFFLES or shuffle == "global" and not training:
         raise ValueError(f"shuffle must be one of {SHUFFLES} (global: training only), got {shuffle!r}")
     state = _EpochState()
-    to_arrays = _ToArrays(seed, state, n_hand, n_object, near if training else None)
+    to_arrays = _ToArrays(seed, state, n_hand, n_object, near if training else None, upstream and training)
     pipes, sizes = [], []
     for number, spec in enumerate(stores):
         index, expected = store_shards(spec.path)

@@ -120,7 +120,8 @@ class Trainer:
         optimizer = {"adamw": torch.optim.AdamW, "adam": torch.optim.Adam}[t.optimizer]
         self.optimizer = optimizer(params, lr=t.lr, weight_decay=t.weight_decay)
         self.dataset = build_dataset(list(stores), t.batch_size, t.epoch_samples or None, t.seed, m.n_hand, m.n_object,
-                                     t.near, t.shuffle_buffer, training=True, shuffle=t.shuffle, progress=rank == 0)
+                                     t.near, t.shuffle_buffer, training=True, shuffle=t.shuffle, progress=rank == 0,
+                                     upstream=config.augment.upstream)
         self.loader = make_loader(self.dataset, t.workers, pin_memory=device.type == "cuda")
         self.val_stores = list(val_stores)
         # opened and checked now (index, every shard file), not at the end of the first epoch
