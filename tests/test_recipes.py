@@ -221,10 +221,11 @@ def test_train_with_a_preset_prints_its_recipe_and_validates_as_upstream(tiny_st
     assert done.returncode == 0, done.stderr[-3000:]
     out = done.stdout
     assert 'train.recipe = "upstream"' in out
-    for key, value in UPSTREAM.items():
-        if not key.startswith("model.") or key in ("model.normalize_input", "model.density_sign"):
-            assert any(line.split()[:2] == ["recipe", "upstream"] and f" {key} = " in line
-                       for line in out.splitlines()), key
+    given = {item.partition("=")[0] for item in argv if "=" in item}
+    for key in UPSTREAM:  # every key the recipe set, or the command line's value beside the recipe's
+        who = [["command", "line"]] if key in given else [["recipe", "upstream"], ["pipelines/dexycb.toml"]]
+        assert any(line.split()[:len(w)] == w and f" {key} = " in line and (key not in given or "(recipe upstream:" in line)
+                   for line in out.splitlines() for w in who), key
     assert any("command line" in line and "train.batch_size = 2  (recipe upstream: 22)" in line
                for line in out.splitlines())
     with open(run / "metrics.csv", newline="") as f:
