@@ -81,3 +81,20 @@ def test_synthetic_betas_zeros_supervises_rendered_frames_towards_zero(mano_dir)
     zeros = HOISDFLoss(replace(LossWeights(), synthetic_betas="zeros"), mano).mano_shape(out, batch, {})
     assert float(default) == pytest.approx(float(batch["mano_betas"].pow(2).mean()), rel=1e-6)
     assert float(zeros) == pytest.approx(float(batch["mano_betas"][1].pow(2).sum() / 20), rel=1e-6)
+
+
+def test_two_stores_of_weight_1_under_the_global_shuffle_are_upstreams_concatenation():
+    """ho3d_render: upstream appends every rendered frame to the real ones and shuffles the whole (data/ho3d.py:195-263,
+    DataLoader(shuffle=True)). Weight 1 for both stores: each record of both once per epoch, in one uniform
+    permutation (a rendered record is as likely at any position as a real one)."""
+    from hoisdf.data.global_shuffle import epoch_plan
+
+    sizes = [30, 12]
+    positions = []
+    for epoch in range(400):
+        plan = epoch_plan(sizes, [1.0, 1.0], sum(sizes), seed=0, epoch=epoch)
+        assert sorted(map(tuple, plan.tolist())) == [(s, r) for s in range(2) for r in range(sizes[s])]
+        positions.append(np.flatnonzero(plan[:, 0] == 1).mean())
+    # the mean position of the 12 rendered records is (42 - 1) / 2 under a uniform permutation; its standard error
+    # over 400 epochs is about 0.17
+    assert abs(np.mean(positions) - 20.5) < 1.0
