@@ -15,6 +15,7 @@ from hoidata.errors import DataError
 from hoidata.sections import (
     apply_overrides,
     check_sections,
+    origin,
     read_pipeline,
     refuse_unused,
     resolve_pipeline,
@@ -116,25 +117,57 @@ def _model_section(values: dict, path: Path) -> ModelSettings:
     return model
 
 
-RECIPES: dict[str, dict] = {
-    # upstream's released code (main/train.py, main/config.py of amathislab/HOISDF): what its checkpoints used
-    "released": {"optimizer": "adamw", "weight_decay": 0.01, "lr": 1e-4, "lr_drop": 9, "lr_gamma": 0.7,
-                 "epochs": 70, "batch_size": 22, "point_sampling_epoch": 40},
+# upstream's optimisation (main/train.py, main/config.py, common/base.py of amathislab/HOISDF @666e5b7)
+_UPSTREAM_OPTIMISER = {"optimizer": "adamw", "weight_decay": 0.01, "lr": 1e-4, "lr_drop": 9, "lr_gamma": 0.7,
+                       "epochs": 70, "batch_size": 22, "point_sampling_epoch": 40}
+RECIPES: dict[str, dict[str, dict]] = {
+    # upstream's training as its released code runs it; every key is checked against that code in
+    # docs/training.md ("Training as the authors did", with file:line). Keys other work adds go in their section.
+    "upstream": {
+        "model": {"normalize_input": False,  # raw [0, 1] input: ToTensor()/255 (data/dexycb.py:622)
+                  "density_sign": "code",  # sigmoid(+d/beta)/beta (main/model.py:125)
+                  "pixel_convention": "upstream",  # grid_sample(align_corners=True) (main/model.py:152-171)
+                  "sheared_grid": True,  # the sheared 64^3 lattice (main/model.py:260-273)
+                  "object_rotation": "axis_angle",  # mean of the per-point axis-angles (validation only)
+                  # pinned at upstream's values, today also the defaults (main/config.py)
+                  "image_size": 256, "n_hand": 600, "n_object": 200, "grid_resolution": 64, "dropout": 0.1,
+                  "sdf_dropout": 0.2, "freeze_bn_affine": True, "sampling": "absolute",
+                  "feature_augmentation": "density", "cross_field": "sdf", "test_boxes": "gt", "fixed_shape": False,
+                  "sdf_scale": 3.1, "sdf_clamp": 0.15, "beta_init": 0.1, "beta_min": 2e-3, "cls_dist": 0.04},
+        "train": {**_UPSTREAM_OPTIMISER, "lr_min": 1e-5, "field_prob": 0.6, "noise_ratios": (0.3, 0.7),
+                  "noise_dists": (0.03, 0.05, 0.07), "near": 0.05, "epoch_samples": 0,
+                  "bf16": False,  # fp32 throughout (main/train.py: no autocast)
+                  "shuffle": "global",  # DataLoader(shuffle=True, drop_last=True) (common/base.py:79-86)
+                  "val_schedule": "upstream",  # every 5 epochs before point_sampling_epoch, then every epoch
+                  "val_batches": 0},  # the whole validation store (main/train.py:164-169, 202)
+        "augment": {},
+        "loss": {"sdf_hand": 50.0, "sdf_obj": 25.0, "heatmap": 1e-3, "hand_seg": 1.0, "obj_seg": 1.0, "joint_vote": 0.1,
+                 "joint_cls": 1.0, "joint_all": 0.1, "mano_verts": 1e4, "mano_joints": 1e4, "mano_pose": 10.0,
+                 "mano_shape": 0.1, "shape_reg": 1e-6, "obj_rot": 0.7, "obj_trans": 100.0,  # main/config.py:136-151
+                 "left_hands": "right_layer",  # right MANO layer, left betas (common/nets/mano_head.py:257-266)
+                 "synthetic_betas": "zeros"},  # rendered frames' MANO targets are zeros (data/ho3d.py:249)
+    },
+    # upstream's optimisation with this project's own model, precision and data defaults (the dataclass defaults
+    # below): what "released" set before the upstream recipe existed; the toy and the bare defaults use it
+    "project": {"train": dict(_UPSTREAM_OPTIMISER)},
     # the paper's text ("Implementation and Training Details"): Adam, mini-batch 32, lr 1e-4 x0.7 every 5 epochs,
     # "about 40 epochs"; it gives no weight decay (Adam's default 0) and no field-sampling epoch: 23 keeps
-    # upstream's 40/70 ratio (our choice)
-    "paper_text": {"optimizer": "adam", "weight_decay": 0.0, "lr": 1e-4, "lr_drop": 5, "lr_gamma": 0.7,
-                   "epochs": 40, "batch_size": 32, "point_sampling_epoch": 23},
+    # upstream's 40/70 ratio (our choice); the project's model defaults
+    "paper_text": {"train": {"optimizer": "adam", "weight_decay": 0.0, "lr": 1e-4, "lr_drop": 5, "lr_gamma": 0.7,
+                             "epochs": 40, "batch_size": 32, "point_sampling_epoch": 23}},
 }
-"""``train.recipe`` presets: their values fill every ``[train]`` key the TOML and the overrides leave unset."""
+"""``train.recipe`` presets, per section: their values fill every key the TOML and the overrides leave unset
+(explicit TOML or override > recipe > the dataclass defaults)."""
+RENAMED_RECIPES = {"released": "project"}  # old name -> new name (checkpoints and run folders store the old one)
 OPTIMIZERS = ("adamw", "adam")
+VAL_SCHEDULES = ("every", "upstream")  # train.val_schedule (hoisdf.training.trainer.validates_after)
 
 
 @dataclass(frozen=True)
 class TrainSettings:
-    """Training settings; the defaults are upstream's released recipe (``RECIPES["released"]``)."""
+    """Training settings; the defaults are the ``project`` recipe: upstream's optimisation (``RECIPES``)."""
 
-    recipe: str = "released"  # released | paper_text: the preset the unset keys below come from
+    recipe: str = "project"  # upstream | project | paper_text: the preset the unset keys of every section come from
     optimizer: str = "adamw"  # adamw | adam
     epochs: int = 70  # epochs of the run (one epoch: epoch_samples or the stores' sizes times their weights)
     batch_size: int = 22  # per process (upstream: per GPU)
@@ -153,20 +186,23 @@ class TrainSettings:
     seed: int = 0  # seed of initialisation, data order, SDF row draws and augmentation
     bf16: bool = True  # autocast on CUDA (geometry stays fp32: hoisdf.model.precision)
     log_every: int = 20  # steps between TensorBoard scalars
-    val_every: int = 1  # epochs between validations (0: never)
-    val_batches: int = 50  # batches of each validation pass
+    val_every: int = 1  # epochs between validations (0: never; val_schedule = "every")
+    val_schedule: str = "every"  # every: each val_every epochs | upstream: every 5 epochs, each from point_sampling_epoch
+    val_batches: int = 50  # batches of each validation pass (0: the whole validation stores)
     ckpt_every: int = 1  # epochs between checkpoints
     max_steps: int = 0  # stop after this many steps in total (0: run all epochs)
     shuffle: str = "stream"  # stream: shards + shuffle_buffer | global: one permutation of all records (docs/training.md)
     shuffle_buffer: int = 64  # stream: records in each worker's shuffle buffer (beside the per-epoch shard reshuffle)
     record_keys: bool = False  # write the record keys each rank trained on (for checking DDP splits)
+    CHOICES: ClassVar[dict] = {"recipe": tuple(RECIPES), "optimizer": OPTIMIZERS, "shuffle": SHUFFLES,
+                               "val_schedule": VAL_SCHEDULES}
     LIMITS: ClassVar[dict] = {
         "epochs": (">= 1",), "batch_size": (">= 1",), "lr": ("> 0",), "weight_decay": (">= 0",), "lr_drop": (">= 1",),
         "lr_gamma": ("> 0",), "lr_min": (">= 0",), "point_sampling_epoch": (">= 0",), "field_prob": (">= 0", "<= 1"),
         "noise_ratios": (">= 0", "<= 1"), "noise_dists": (">= 0",), "near": ("> 0",),
         "epoch_samples": (">= 0",),  # 0: the stores' sizes times their weights
         "workers": (">= 0",),  # 0: load in the training process
-        "seed": (">= 0",), "log_every": (">= 1",), "val_every": (">= 0",), "val_batches": (">= 1",),
+        "seed": (">= 0",), "log_every": (">= 1",), "val_every": (">= 0",), "val_batches": (">= 0",),
         "ckpt_every": (">= 0",), "max_steps": (">= 0",), "shuffle_buffer": (">= 0",)}
 
 
@@ -196,59 +232,85 @@ def refuse_build_overrides(overrides: list[str], path: Path) -> None:
 def load_train_config(name_or_path: str | None, overrides: list[str] = ()) -> TrainConfig:
     """Pipeline TOML (or the defaults when None) + ``section.key=value`` overrides -> TrainConfig.
 
-    ``train.recipe`` (default "released") fills the ``[train]`` keys left unset from :data:`RECIPES`.
+    ``train.recipe`` (default "project") fills the keys of every section left unset from :data:`RECIPES`.
     ``augment.input_size`` follows ``model.image_size`` unless set; a mismatch is an error.
     """
+    return resolve_train_config(name_or_path, overrides)[0]
+
+
+def resolve_train_config(name_or_path: str | None, overrides: list[str] = ()) -> tuple[TrainConfig, dict[str, str]]:
+    """:func:`load_train_config` and where each key that is not its dataclass default came from:
+    ``{"section.key": "command line" | the file | "recipe NAME"}`` (precedence in that order)."""
     where = resolve_pipeline(name_or_path) if name_or_path else Path("<defaults>")
     refuse_build_overrides(overrides, where)
     if name_or_path:
         path, data = read_pipeline(name_or_path, overrides)
+        file_data = read_pipeline(name_or_path)[1]
     else:
-        path = where
+        path, file_data = where, {}
         data = apply_overrides({}, overrides, path)
     check_sections(data, path, TRAIN_SECTIONS, BUILD_SECTIONS)  # training knows every reader of the file
-    model = _model_section(data.get("model", {}), path)
-    train = section(TrainSettings, with_recipe(data.get("train", {}), path), path, "train")
-    augment_values = dict(data.get("augment", {}))
-    augment_values.setdefault("input_size", model.image_size)
-    augment = section(AugmentSettings, augment_values, path, "augment")
+    name = data.get("train", {}).get("recipe", TrainSettings.recipe)
+    recipe = recipe_sections(name, origin(path, overrides, "train.recipe"))
+    merged = {s: {**recipe.get(s, {}), **data.get(s, {})} for s in TRAIN_SECTIONS}
+    model = _model_section(merged["model"], path)
+    train = section(TrainSettings, merged["train"], path, "train")
+    check_choices(train, path, "train")
+    merged["augment"].setdefault("input_size", model.image_size)
+    augment = section(AugmentSettings, merged["augment"], path, "augment")
     if augment.input_size != model.image_size:
         raise DataError(path, "augment.input_size", f"must equal model.image_size ({model.image_size})")
-    loss = section(LossWeights, data.get("loss", {}), path, "loss")
-    return TrainConfig(model, replace(train, noise_ratios=tuple(train.noise_ratios),
-                                      noise_dists=tuple(train.noise_dists)), augment, loss)
+    loss = section(LossWeights, merged["loss"], path, "loss")
+    check_choices(loss, path, "loss")
+    given = {item.partition("=")[0].strip() for item in overrides}
+    label = str(path) if Path(str(name_or_path)).suffix == ".toml" else f"pipelines/{path.name}"
+    sources = {}
+    for s in TRAIN_SECTIONS:
+        for key in merged[s]:
+            sources[f"{s}.{key}"] = ("command line" if f"{s}.{key}" in given else label
+                                     if key in file_data.get(s, {}) else f"recipe {name}" if key in recipe.get(s, {})
+                                     else "derived")  # augment.input_size from model.image_size
+    config = TrainConfig(model, replace(train, noise_ratios=tuple(train.noise_ratios),
+                                        noise_dists=tuple(train.noise_dists)), augment, loss)
+    return config, sources
 
 
-def with_recipe(values: dict, path: Path) -> dict:
-    """``[train]`` values over their recipe's preset; an unknown recipe or optimizer is a DataError."""
-    recipe = values.get("recipe", "released")
-    if recipe not in RECIPES:
-        raise DataError(path, "train.recipe", f"unknown recipe {recipe!r}; expected one of {sorted(RECIPES)}")
-    merged = {**RECIPES[recipe], **values}
-    check_shuffle(merged.get("shuffle", "stream"), path)
-    if merged["optimizer"] not in OPTIMIZERS:
-        raise DataError(path, "train.optimizer",
-                        f"unknown optimizer {merged['optimizer']!r}; expected one of {OPTIMIZERS}")
-    return merged
+def recipe_sections(name, where) -> dict[str, dict]:
+    """The sections :data:`RECIPES` sets for ``name``; an unknown or renamed recipe is a DataError naming ``where``
+    (the file, and the command line's override of ``train.recipe`` when there is one) and ``train.recipe``."""
+    if name in RENAMED_RECIPES:
+        raise DataError(where, "train.recipe", (
+            f"{name!r} is now {RENAMED_RECIPES[name]!r} (upstream's optimiser with this project's model and precision "
+            f"defaults, what {name!r} set); 'upstream' trains as upstream's code (docs/training.md)"))
+    if name not in RECIPES:
+        raise DataError(where, "train.recipe", f"unknown recipe {name!r}; expected one of {sorted(RECIPES)}")
+    return RECIPES[name]
 
 
-def check_shuffle(value, path: Path) -> None:
-    """``train.shuffle`` is one of SHUFFLES, else a DataError naming ``path`` and the key."""
-    if value not in SHUFFLES:
-        raise DataError(path, "train.shuffle", f"unknown shuffle {value!r}; expected one of {SHUFFLES}")
+def check_choices(settings, path: Path, name: str) -> None:
+    """Every key of ``settings`` named in its class's ``CHOICES`` holds one of them, else a DataError naming
+    ``path`` and ``name.key``."""
+    for key, allowed in getattr(settings, "CHOICES", {}).items():
+        if getattr(settings, key) not in allowed:
+            raise DataError(path, f"{name}.{key}", f"unknown {key} {getattr(settings, key)!r}; expected one of {allowed}")
 
 
 def config_from_dict(data: dict, path: Path | str = "<checkpoint>") -> TrainConfig:
     """Inverse of :meth:`TrainConfig.as_dict` (checkpoints store the resolved config as a dict); errors name
-    ``path`` (the checkpoint file)."""
+    ``path`` (the checkpoint file). The values are resolved, so no recipe is applied; a renamed recipe's old name
+    (``released``, in checkpoints written before ``upstream`` existed) reads as its new one."""
     path = Path(path)
     if not isinstance(data, dict) or not all(isinstance(data.get(k, {}), dict) for k in ("model", "train", "augment", "loss")):
         raise DataError(path, "config", "expected a dict of settings sections")
     model = _model_section(data.get("model", {}), path)
-    train = section(TrainSettings, data.get("train", {}), path, "train")
-    check_shuffle(train.shuffle, path)
-    return TrainConfig(model, train, section(AugmentSettings, data.get("augment", {}), path, "augment"),
-                       section(LossWeights, data.get("loss", {}), path, "loss"))
+    train_values = dict(data.get("train", {}))
+    if train_values.get("recipe") in RENAMED_RECIPES:
+        train_values["recipe"] = RENAMED_RECIPES[train_values["recipe"]]
+    train = section(TrainSettings, train_values, path, "train")
+    check_choices(train, path, "train")
+    loss = section(LossWeights, data.get("loss", {}), path, "loss")
+    check_choices(loss, path, "loss")
+    return TrainConfig(model, train, section(AugmentSettings, data.get("augment", {}), path, "augment"), loss)
 
 
 def overridden_config(data: dict, overrides: list[str], path: Path | str) -> TrainConfig:
@@ -258,4 +320,36 @@ def overridden_config(data: dict, overrides: list[str], path: Path | str) -> Tra
     import copy
 
     refuse_build_overrides(list(overrides), Path(path))
+    if any(item.partition("=")[0].strip() == "train.recipe" for item in overrides):
+        raise DataError(path, "train.recipe", "a recipe fills a run's settings when it starts; a saved run holds "
+                                              "them resolved: override the keys themselves")
     return config_from_dict(apply_overrides(copy.deepcopy(data), list(overrides), Path(path)), path)
+
+
+def describe_config(config: TrainConfig, sources: dict[str, str]) -> list[str]:
+    """Lines for the start of a run: the recipe, then every key not at its dataclass default by where it came from
+    (the recipe, the file, the command line); a recipe key that the file or the command line replaced shows the
+    recipe's value beside it."""
+    recipe = RECIPES.get(config.train.recipe, {})
+    values = config.as_dict()
+    lines = [f'train.recipe = "{config.train.recipe}"; settings not listed are hoisdf/config.py defaults']
+    width = max((len(s) for s in sources.values()), default=0)
+    for key, source in sources.items():
+        section_name, name = key.split(".", 1)
+        value = values[section_name][name]
+        note = ""
+        if name in recipe.get(section_name, {}) and not source.startswith("recipe"):
+            note = f"  (recipe {config.train.recipe}: {_toml(recipe[section_name][name])})"
+        lines.append(f"  {source:<{width}}  {key} = {_toml(value)}{note}")
+    return lines
+
+
+def _toml(value) -> str:
+    """A setting's value as it is written in a TOML file."""
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, str):
+        return f'"{value}"'
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml(v) for v in value) + "]"
+    return repr(value)

@@ -27,7 +27,7 @@ from hoidata.provenance import git_commit
 from hoidata.store import resolve_store
 from hoidata.store.paths import refuse_repeated_stores
 from hoidata.store.remote import url_authority
-from hoisdf.config import TrainConfig, load_train_config, overridden_config
+from hoisdf.config import TrainConfig, describe_config, overridden_config, resolve_train_config
 from hoisdf.data import StoreSpec
 from hoisdf.training.checkpoint import CHECKPOINTS, LAST, find_checkpoint, load_checkpoint, load_weights
 from hoisdf.training.trainer import CURVE, Trainer, unwrap
@@ -112,7 +112,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="training stores: folders or http(s)://, s3://, gs:// URLs")
     p.add_argument("--val-shards", nargs="*", default=[], metavar="STORE", help="validation stores (folders or URLs)")
     p.add_argument("--mano", required=True, type=Path, help="folder with MANO_RIGHT.pkl")
-    p.add_argument("--config", default=None, help="pipelines/<name>.toml or a path (default: upstream's released settings)")
+    p.add_argument("--config", default=None, help="pipelines/<name>.toml or a path (default: hoisdf/config.py's "
+                                                  "defaults, the project recipe; the dataset presets train as upstream)")
     p.add_argument("--out", type=local_path, default=None, help="run folder (default runs/<config>)")
     p.add_argument("--resume", action="store_true", help="continue the run folder's last checkpoint")
     p.add_argument("--init", type=Path, default=None, metavar="RUN_OR_CKPT",
@@ -142,16 +143,18 @@ def run(args, argv: list[str]) -> int:
     run_dir = args.out or Path("runs") / Path(args.config or "default").stem
     checkpoint = find_checkpoint(run_dir) if args.resume else None
     payload = load_checkpoint(checkpoint) if args.resume else None
+    sources = None
     if payload:  # the run's own config; overrides (e.g. a later train.max_steps) still apply
         config = overridden_config(payload["config"], args.overrides, checkpoint)
     else:
         if (run_dir / CHECKPOINTS / LAST).exists():
             raise DataError(run_dir, None, "the run folder already holds a checkpoint: pass --resume or another --out")
-        config = load_train_config(args.config, args.overrides)
+        config, sources = resolve_train_config(args.config, args.overrides)
     init = load_checkpoint(args.init) if args.init and not payload else None
     if init:  # the weights' own model settings (model.* overrides still apply); the rest from --config
         model_overrides = [o for o in args.overrides if o.startswith("model.")]
         config = replace(config, model=overridden_config(init["config"], model_overrides, args.init).model)
+        sources = {k: v for k, v in (sources or {}).items() if not k.startswith("model.")}  # printed apart
     rank, world, device = distributed_setup(args.device)
     torch.manual_seed(config.train.seed + rank)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -165,6 +168,12 @@ def run(args, argv: list[str]) -> int:
     if rank == 0 and not payload:
         write_run_info(run_dir, config, stores, val_stores, world, argv)
     if rank == 0:
+        if sources is not None:
+            print("\n".join(describe_config(config, sources)), flush=True)
+        else:
+            print(f"resumed: the run's own resolved settings ({run_dir}/config.json, recipe {config.train.recipe})")
+        if init:
+            print(f"model settings: {args.init}'s own (--init), with the command line's model.* overrides")
         p = trainer.progress
         print(f"training {config.model.depth}-layer HOISDF on {device} x{world}: epoch {p.epoch} step {p.step}, "
               f"{len(trainer.dataset)} batches/epoch, run folder {run_dir}", flush=True)

@@ -21,6 +21,10 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 SMALL_SDF = ["--frames", "1", "--rounds", "1", "--n-hand", "256", "--n-object", "128"]
 TOY_MODEL = ["--config", "toy", "--store", "{store}", "--mano", "{mano}", "--device", "cpu"]
+TINY_RECIPE = ["model.depth=18", "model.image_size=64", "model.d_model=64", "model.ff=128", "model.hand_layers=1",
+               "model.decoder_layers=1", "model.object_layers=1", "model.sdf_features=32", "model.sdf_hidden=96",
+               "model.token_hidden=[48]", "model.n_hand=32", "model.n_object=16", "model.grid_resolution=12",
+               "model.chunk=1000", "train.batch_size=2"]
 
 # module -> list of (arguments, a piece of the table it prints); several entries run one after the other
 SCRIPTS: dict[str, list[tuple[list[str], str]]] = {
@@ -50,6 +54,11 @@ SCRIPTS: dict[str, list[tuple[list[str], str]]] = {
                    "inputs.pt"),
                   (["run", "--inputs", "{tmp}/gpu", "--backend", "eager", "--frames", "2", "--warmup", "1",
                     "--steps", "1", "--precision", "fp32"], "compiled fixed")],
+    # the upstream recipe's steps: dexycb's settings with a tiny model; no CUDA here, so the CPU-only rows
+    "bench_recipe_gpu": [(["prepare", "--store", "{store}", "--mano", "{mano}", "--out", "{tmp}/recipe", "--batches", "1",
+                           *TINY_RECIPE], "inputs.pt"),
+                         (["run", "--inputs", "{tmp}/recipe", "--steps", "1", "--warmup", "0", "--compare", "1"],
+                          "projected 70 epochs")],
     "bench_cluster": [(["--root", "{root}", "--rounds", "1", "--records-per-shard", "8"], "ray (running)")],
     "bench_volume": [(["--frames", "1", "--split-frames", "2", "--workers", "1"], "mean seconds per frame: exact cells")],
     "bench_shuffle": [(["--store", "{store}", "--batch", "4", "--workers", "0", "--epochs", "1", "--rounds", "1"],

@@ -8,7 +8,7 @@ object-encoder layers (the layer axis L of the model outputs).
 from __future__ import annotations
 
 import copy
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import ClassVar
 
 import torch
@@ -37,9 +37,13 @@ class LossWeights:
     shape_reg: float = 1e-6  # IK variant: betas towards 0
     obj_rot: float = 0.7  # SmoothL1 of per-point axis-angles
     obj_trans: float = 100.0  # SmoothL1 of per-point translations, metres
-    LIMITS: ClassVar[dict] = {name: (">= 0",) for name in (
-        "sdf_hand", "sdf_obj", "heatmap", "hand_seg", "obj_seg", "joint_vote", "joint_cls", "joint_all", "mano_verts",
-        "mano_joints", "mano_pose", "mano_shape", "shape_reg", "obj_rot", "obj_trans")}
+    left_hands: str = "mirrored"  # MANO targets of mirrored (left) hands: mirrored layer | right_layer (upstream)
+    synthetic_betas: str = "record"  # MANO shape target of synthetic records: record | zeros (upstream's renders)
+    TERMS: ClassVar[tuple] = ("sdf_hand", "sdf_obj", "heatmap", "hand_seg", "obj_seg", "joint_vote", "joint_cls",
+                              "joint_all", "mano_verts", "mano_joints", "mano_pose", "mano_shape", "shape_reg",
+                              "obj_rot", "obj_trans")  # the weighted terms (the fields above the two choices)
+    LIMITS: ClassVar[dict] = {name: (">= 0",) for name in TERMS}
+    CHOICES: ClassVar[dict] = {"left_hands": ("mirrored", "right_layer"), "synthetic_betas": ("record", "zeros")}
 
 
 def mirrored_shape_mano(mano) -> nn.Module:
@@ -80,8 +84,11 @@ class HOISDFLoss(nn.Module):
     def __init__(self, weights: LossWeights, mano, sdf_scale: float = 3.1, sdf_clamp: float = 0.15,
                  cls_dist: float = 0.04, mirrored_mano: nn.Module | None = None):
         super().__init__()
-        self.weights = {f.name: getattr(weights, f.name) for f in fields(weights)}
+        self.weights = {name: getattr(weights, name) for name in weights.TERMS}
+        if weights.left_hands == "right_layer":  # upstream: the right layer with the left hand's betas
+            mirrored_mano = mano
         self._mano = [mano, mirrored_mano if mirrored_mano is not None else mirrored_shape_mano(mano)]
+        self.synthetic_zero_betas = weights.synthetic_betas == "zeros"
         self.scale, self.clamp, self.cls_dist = sdf_scale, sdf_clamp, cls_dist
 
     def forward(self, out: dict, batch: dict) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
@@ -184,7 +191,10 @@ class HOISDFLoss(nn.Module):
         return self._layers_mse(out["rotations"], gt["rotations"])
 
     def mano_shape(self, out, batch, gt):
-        return self._layers_mse(out["betas"], batch["mano_betas"])
+        target = batch["mano_betas"]
+        if self.synthetic_zero_betas and "is_synthetic" in batch:  # upstream's rendered frames: MANO params all 0
+            target = torch.where(batch["is_synthetic"].to(target.device)[:, None], torch.zeros_like(target), target)
+        return self._layers_mse(out["betas"], target)
 
     def shape_reg(self, out, batch, gt):
         return out["betas"].float().pow(2).mean()

@@ -62,6 +62,30 @@ def epoch_lr(epoch: int, lr: float, drop: int, gamma: float, lr_min: float) -> f
     return max(lr * gamma ** (epoch // drop), lr_min)
 
 
+def validates_after(epoch: int, schedule: str, every: int, point_sampling_epoch: int) -> bool:
+    """Whether validation runs after (0-based) ``epoch``: ``every``, after each ``every``-th epoch (0: never);
+    ``upstream``, after epochs 0, 5, 10, ... before ``point_sampling_epoch`` and after every epoch from it
+    (upstream's main/train.py:164-169)."""
+    if schedule == "upstream":
+        return epoch >= point_sampling_epoch or epoch % 5 == 0
+    return bool(every) and (epoch + 1) % every == 0
+
+
+def pa_mje(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    """(B,) mean joint error (input units) after aligning each (J, 3) prediction onto its ground truth by a
+    similarity transform with a proper rotation (upstream's ``rigid_align``, common/metrics.py:188-210)."""
+    pred, gt = pred.double(), gt.double()
+    x, y = pred - pred.mean(1, keepdim=True), gt - gt.mean(1, keepdim=True)
+    u, s, vt = torch.linalg.svd(x.transpose(1, 2) @ y / pred.shape[1])  # (B, 3, 3): pred x gt
+    d = torch.ones_like(s)
+    d[:, -1] = torch.sign(torch.linalg.det(vt.transpose(1, 2) @ u.transpose(1, 2)))
+    d[d == 0] = 1.0
+    rot = vt.transpose(1, 2) @ torch.diag_embed(d) @ u.transpose(1, 2)  # maps x onto y
+    scale = (s * d).sum(1) / x.pow(2).mean(1).sum(1).clamp_min(1e-12)
+    aligned = scale[:, None, None] * x @ rot.transpose(1, 2) + gt.mean(1, keepdim=True)
+    return (aligned - gt).norm(dim=-1).mean(1)
+
+
 def unwrap(model: nn.Module) -> nn.Module:
     return model.module if hasattr(model, "module") else model
 
@@ -253,7 +277,8 @@ class Trainer:
             p.epoch, p.step = p.epoch + 1, 0
             if t.ckpt_every and p.epoch % t.ckpt_every == 0:
                 self.save(f"epoch-{epoch:03d}.pt")
-            if t.val_every and self.val_data is not None and p.epoch % t.val_every == 0 and self.rank == 0:
+            due = validates_after(epoch, t.val_schedule, t.val_every, t.point_sampling_epoch)
+            if due and self.val_data is not None and self.rank == 0:
                 self.log("val", self.validate())
         if self._done():
             self.save()
@@ -272,14 +297,15 @@ class Trainer:
     # --- validation and logs --------------------------------------------------------------------------------
     @torch.no_grad()
     def validate(self) -> dict[str, float]:
-        """Mean loss terms, root-relative MJE and object centre error (mm) on up to ``val_batches`` batches."""
+        """Mean loss terms, root-relative MJE and PA-MJE and object centre error (mm) on up to ``val_batches``
+        batches (0: every batch of the validation stores)."""
         t, m = self.config.train, self.config.model
         model = unwrap(self.model)
         model.eval()
         sums: dict[str, float] = {}
         count = 0
         for i, batch in enumerate(self.val_data):
-            if i == t.val_batches:
+            if i == t.val_batches and t.val_batches:
                 break
             batch = augment_batch(to_device(batch, self.device), self.config.augment, None, train=False)
             with torch.autocast("cuda", dtype=torch.bfloat16, enabled=self.autocast):
@@ -288,13 +314,14 @@ class Trainer:
             gt = batch["joints_3d"] - batch["hand_root"][:, None]
             values = {**{k: float(v) for k, v in terms.items()}, "total": float(total),
                       "mje_mm": float((out["joints"].float() - gt).norm(dim=-1).mean()) * 1000,
+                      "pa_mje_mm": float(pa_mje(out["joints"].float(), gt).mean()) * 1000,
                       "oce_mm": float((out["obj_translation"] - batch["object_pose"][:, :3, 3]).norm(dim=-1).mean()) * 1000}
             n = len(batch["key"])
             for k, v in values.items():
                 sums[k] = sums.get(k, 0.0) + v * n
             count += n
         model.train()
-        return {k: v / max(count, 1) for k, v in sums.items()}
+        return {**{k: v / max(count, 1) for k, v in sums.items()}, "samples": float(count)}
 
     def log(self, split: str, values: dict[str, float]) -> None:
         if self.rank != 0:
