@@ -60,12 +60,16 @@ class HOISDF(nn.Module):
         n_freq: Fourier frequencies per axis.
         beta_init: initial learned density width (scaled units; only if ``token_features.learns_beta``).
         project_grid: rank the grid through ``project_pyramid`` (exact; fewer channels to sample with a big decoder).
+        beta_floor: None, or project the learned density widths onto [beta_floor, inf) in place at each forward
+            (the reference's ``beta.data.copy_(max(beta.data, 2e-3))``; the token features clamp in any case).
     """
 
     def __init__(self, mano, backbone, sdf_in, token_in, hand_sdf, obj_sdf, hand_encoder, obj_encoder,
                  hand_heads: dict, obj_head, regressor, sampler, camera, token_features, cross, boxes,
-                 object_rotation, scale: float, clamp: float, n_freq: int, beta_init: float, project_grid: bool):
+                 object_rotation, scale: float, clamp: float, n_freq: int, beta_init: float, project_grid: bool,
+                 beta_floor: float | None = None):
         super().__init__()
+        self.beta_floor = beta_floor
         self._mano = [mano]  # a list: not a registered submodule, so not in state_dict()
         self.scale, self.clamp, self.n_freq, self.project_grid = scale, clamp, n_freq, project_grid
         self.camera, self.token_features, self.cross, self.regressor = camera, token_features, cross, regressor
@@ -194,6 +198,10 @@ class HOISDF(nn.Module):
             d_ho = self.field(self.obj_sdf, sdf_in_h, hand_in_obj * self.scale)  # hand points, object field
             d_oh = self.field(self.hand_sdf, sdf_in_o, obj_in_hand * self.scale)  # object points, hand field
         betas = getattr(self, "hand_beta", None), getattr(self, "obj_beta", None)
+        if self.beta_floor is not None and betas[0] is not None:
+            with torch.no_grad():
+                for beta in betas:
+                    beta.clamp_(min=self.beta_floor)
         hand_tokens = self._token(hp / self.scale, self.token_features(tok_h, d_h, betas[0]))
         obj_tokens = self._token(op / self.scale, self.token_features(tok_o, d_o, betas[1]))
         if self.cross is not None:

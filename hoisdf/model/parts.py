@@ -152,11 +152,12 @@ class PlainFeatures:
 class DensityScaled:
     """``"density"``: feature (B, N, F) x the volume density of the detached scaled SDF (B, N).
 
-    ``sign``: -1 the paper's sigmoid(-d/beta)/beta, +1 the released code's; ``beta_min``: floor of the width.
+    ``sign``: -1 the paper's sigmoid(-d/beta)/beta, +1 the released code's; ``beta_min``: floor of the width (None:
+    none here, the model projects the width itself).
     """
 
     sign: float
-    beta_min: float
+    beta_min: float | None
     extra, learns_beta = 0, True
 
     def __call__(self, feat: torch.Tensor, sdf: torch.Tensor | None, beta: torch.Tensor) -> torch.Tensor:
@@ -173,7 +174,7 @@ class Concatenated:
 
     density: bool
     sign: float
-    beta_min: float
+    beta_min: float | None
     extra, learns_beta = 1, True
 
     def __call__(self, feat: torch.Tensor, sdf: torch.Tensor | None, beta: torch.Tensor) -> torch.Tensor:
