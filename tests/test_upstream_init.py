@@ -44,7 +44,7 @@ def test_build_model_gives_the_sdf_decoders_upstreams_init():
     """Upstream's ``apply(init_weights)``: zero biases, N(0, 0.01) output layer. Before it was wired, the decoders
     kept PyTorch's default init (biases up to +-1/sqrt(fan_in), output weights ~0.04)."""
     torch.manual_seed(0)
-    model = build_model(ModelSettings(), None)
+    model = build_model(_tiny(), None)
     for decoder in (model.hand_sdf, model.obj_sdf):
         assert all(float(layer.bias.detach().abs().max()) == 0.0 for layer in decoder.hidden_layers)
         assert float(decoder.out_layer.bias.detach().abs().max()) == 0.0
@@ -61,6 +61,7 @@ def test_other_modules_keep_the_weights_their_seed_gave_them():
     assert all(torch.equal(a[k], b[k]) for k in a)
 
 
+@pytest.mark.slow
 def test_raw_6d_is_the_offset_head_with_the_identity_in_its_bias(mano_dir):
     mano = load_mano(mano_dir, side="right")
     torch.manual_seed(1)
@@ -80,6 +81,7 @@ def test_raw_6d_is_the_offset_head_with_the_identity_in_its_bias(mano_dir):
     assert float(raw.mano_head.identity_6d.abs().max()) == 0.0 and "identity_6d" not in raw.state_dict()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("floor", ["clamp", "project"])
 def test_beta_below_its_floor(floor, mano_dir):
     """Upstream projects the width itself (``beta.data.copy_(max(beta.data, 2e-3))``), so it keeps a gradient;
@@ -112,3 +114,33 @@ def test_upstream_heatmap_target_sums_on_the_integer_grid():
     expected = torch.exp(-((grid[None, :] - x) / 1.25) ** 2 / 2 - ((grid[:, None] - y) / 1.25) ** 2 / 2)
     assert torch.allclose(up[0, 0] - render_heatmap(uv[:, :2] * 0.5, 128, 1.25, clip=False)[0, 0], expected, atol=1e-6)
     assert replace(AugmentSettings(), heatmap_target="upstream").heatmap_target == "upstream"
+
+
+@pytest.mark.slow
+def test_field_tokens_can_take_the_ranking_pass_sdf(mano_dir):
+    """``model.field_density = "ranking"``: the field-guided tokens carry the SDF of the ranking pass, dropout mask
+    included (upstream's ``sdf_infer`` values); "fresh" decodes the points again with a new mask. In eval mode
+    (no dropout) both give the same values."""
+    mano = load_mano(mano_dir, side="right")
+    for mode in ("fresh", "ranking"):
+        torch.manual_seed(4)
+        model = build_model(_tiny(f'model.field_density="{mode}"', "model.sdf_dropout=0.5"), mano).train()
+        ranked = []
+        field_points = model.sampler.field_points
+
+        def spy(*args, **kwargs):
+            points, sdf = field_points(*args, **kwargs)
+            ranked.append(sdf)
+            return points, sdf
+
+        model.sampler.field_points = spy
+        with torch.no_grad():
+            out = model(_batch(), points="field")
+            expected = ranked[0][0].clamp(-model.clamp, model.clamp) / model.scale
+            same = torch.allclose(out["hand_query_sdf"], expected, atol=1e-7)
+            assert same == (mode == "ranking"), mode
+            model.eval()
+            ranked.clear()
+            out = model(_batch(), points="field")
+            assert torch.allclose(out["hand_query_sdf"], ranked[0][0].clamp(-model.clamp, model.clamp) / model.scale,
+                                  atol=1e-6)

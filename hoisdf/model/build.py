@@ -31,6 +31,9 @@ DENSITY_SIGNS = {"paper": -1.0, "code": 1.0}
 """``model.density_sign`` -> the sign inside the density's sigmoid."""
 RAW_6D = {"offset": False, "raw": True}
 """``model.rot6d`` -> whether the MANO head predicts the raw 6D code (the reference) instead of an identity offset."""
+REUSE_RANKING_SDF = {"fresh": False, "ranking": True}
+"""``model.field_density`` -> whether field-guided tokens take the ranking pass's SDF (the reference, with its dropout
+mask) instead of a second decoder pass."""
 PROJECT_BETA = {"clamp": False, "project": True}
 """``model.beta_floor`` -> whether the density widths themselves are projected onto [beta_min, inf) at each use
 (the reference, ``beta.data.copy_(max(beta.data, 2e-3))``) instead of clamped in the forward only."""
@@ -102,4 +105,5 @@ def build_model(settings, mano) -> HOISDF:
     beta_floor = s.beta_min if choose(PROJECT_BETA, s, "beta_floor") else None
     return HOISDF(mano, backbone, sdf_in, token_in, hand_sdf, obj_sdf, hand_encoder, obj_encoder, hand_heads,
                   obj_head, regressor, sampler, camera, features, choose(CROSS_FIELDS, s, "cross_field"), boxes,
-                  object_rotation, s.sdf_scale, s.sdf_clamp, s.n_freq, s.beta_init, project_grid, beta_floor)
+                  object_rotation, s.sdf_scale, s.sdf_clamp, s.n_freq, s.beta_init, project_grid, beta_floor,
+                  choose(REUSE_RANKING_SDF, s, "field_density"))
