@@ -51,14 +51,23 @@ def test_build_model_gives_the_sdf_decoders_upstreams_init():
         assert 0.008 < float(decoder.out_layer.weight.detach().std()) < 0.012
 
 
-def test_other_modules_keep_the_weights_their_seed_gave_them():
-    """The decoder init is drawn last: wiring it changed no other module's initial weights for a seed."""
+def test_other_modules_keep_the_weights_their_seed_gave_them(monkeypatch):
+    """The decoder init is drawn last: wiring it changed no other initial weight of a seed (the build without it
+    is the build before it was wired); the new settings draw nothing."""
     torch.manual_seed(3)
-    a = build_model(_tiny(), None).state_dict()
+    wired = build_model(_tiny(), None).state_dict()
     torch.manual_seed(3)
-    b = build_model(_tiny('model.rot6d="raw"', 'model.beta_floor="project"'), None).state_dict()
-    assert a.keys() == b.keys()
-    assert all(torch.equal(a[k], b[k]) for k in a)
+    other = build_model(_tiny('model.rot6d="raw"', 'model.beta_floor="project"', 'model.field_density="ranking"'),
+                        None).state_dict()
+    monkeypatch.setattr(B, "init_sdf_decoder_weights", lambda decoder: None)
+    torch.manual_seed(3)
+    before = build_model(_tiny(), None).state_dict()
+    assert wired.keys() == other.keys() == before.keys()
+    assert all(torch.equal(wired[k], other[k]) for k in wired)
+    changed = {k for k in wired if not torch.equal(wired[k], before[k])}
+    assert changed == {f"{d}_sdf.{p}" for d in ("hand", "obj") for p in
+                       ("hidden_layers.0.bias", "hidden_layers.1.bias", "hidden_layers.2.bias", "hidden_layers.3.bias",
+                        "out_layer.weight", "out_layer.bias")}
 
 
 @pytest.mark.slow
