@@ -155,9 +155,13 @@ class HOISDF(nn.Module):
         return self.sampler.field_points(K, root, center, boxes, fns, newton, generator)
 
     def _query_points(self, batch, pyramid, K, root, center, boxes, mode, noise, generator):
-        """Scaled query points (hand rel. root (B, Nh, 3), object rel. centre (B, No, 3)) and their SDFs (B, Nh),
-        (B, No) from the ranking pass (None: "gt" points, or not ``reuse_ranking_sdf``); ``mode``: "gt" (training
-        rows + uniform noise of half-width ``noise``) or "field"."""
+        """Scaled query points (hand rel. root (B, Nh, 3), object rel. centre (B, No, 3)); ``mode``: "gt"
+        (training rows + uniform noise of half-width ``noise``) or "field"."""
+        return self._queries(batch, pyramid, K, root, center, boxes, mode, noise, generator)[:2]
+
+    def _queries(self, batch, pyramid, K, root, center, boxes, mode, noise, generator):
+        """As :meth:`_query_points`, and the points' SDFs (B, Nh), (B, No) from the ranking pass (None: "gt"
+        points, or not ``reuse_ranking_sdf``)."""
         if mode not in POINT_MODES:
             raise ValueError(f"points must be one of {tuple(POINT_MODES)}, got {mode!r}")
         if POINT_MODES[mode]:
@@ -186,8 +190,8 @@ class HOISDF(nn.Module):
             out["hand_sdf"] = self._sdf_fn(self.hand_sdf, pyramid, K, root)(batch["hand_points"] + root[:, None])
         if "obj_points" in batch:
             out["obj_sdf"] = self._sdf_fn(self.obj_sdf, pyramid, K, center)(batch["obj_points"] + root[:, None])
-        hp, op, ranked = self._query_points(batch, pyramid, K, root, center, self.boxes(batch, maps), points, noise,
-                                            generator)
+        hp, op, ranked = self._queries(batch, pyramid, K, root, center, self.boxes(batch, maps), points, noise,
+                                       generator)
         out.update(self._pose(pyramid, K, root, center, hp, op, ranked))
         return out
 
