@@ -43,7 +43,8 @@ DECODER = {"dexycb": "small", "ho3d": "big"}
 TERMS = {"sdfhand_loss": "sdf_hand", "sdfobj_loss": "sdf_obj", "joint_heatmap": "heatmap", "hand_seg": "hand_seg",
          "obj_seg": "obj_seg", "loss_joint_3d": "joint_vote", "loss_joint_cls": "joint_cls",
          "loss_all_joint_3d": "joint_all", "mano_mesh_loss": "mano_verts", "mano_joint_loss": "mano_joints",
-         "pose_param_loss": "mano_pose", "shape_param_loss": "mano_shape", "obj_rot": "obj_rot", "obj_trans": "obj_trans"}
+         "pose_param_loss": "mano_pose", "shape_param_loss": "mano_shape", "obj_rot": "obj_rot",
+         "obj_trans": "obj_trans"}
 
 
 def plan(name: str, numel: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
