@@ -71,6 +71,9 @@ class ModelSettings:
     chunk: int = 32768  # grid points per SDF-decoder call at inference
     cls_dist: float = 0.04  # m: voting classification radius
     pixel_convention: str = "centers"  # centers (align_corners=False) | upstream (released code: align_corners=True)
+    rot6d: str = "offset"  # offset: 6D code = identity + head output (a flat hand at init) | raw: upstream's raw code
+    beta_floor: str = "clamp"  # clamp: beta_min applied in the forward | project: the parameter itself (upstream)
+    field_density: str = "fresh"  # field-guided tokens' SDF: fresh (a second pass) | ranking (upstream: the ranking's)
     LIMITS: ClassVar[dict] = {
         "image_size": (">= 32",), "sdf_scale": ("> 0",), "sdf_clamp": ("> 0",), "n_freq": (">= 0",),
         **{k: (">= 1",) for k in ("d_model", "heads", "ff", "hand_layers", "decoder_layers", "object_layers",
@@ -85,7 +88,10 @@ class ModelSettings:
         "density_sign": ("paper", "code"),
         "object_rotation": ("chordal", "axis_angle"),
         "test_boxes": ("gt", "predicted"),
-        "pixel_convention": PIXEL_CONVENTIONS}
+        "pixel_convention": PIXEL_CONVENTIONS,
+        "rot6d": ("offset", "raw"),
+        "beta_floor": ("clamp", "project"),
+        "field_density": ("fresh", "ranking")}
     POINT_DIM: ClassVar[int] = 33  # xyz (3) + Fourier code (30) of every transformer token
 
 

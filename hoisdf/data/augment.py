@@ -27,6 +27,7 @@ from hoidata.geometry.rotation import axis_angle_to_matrix, matrix_to_axis_angle
 POINT_KEYS = ("hand_points", "obj_points", "hand_near_points", "obj_near_points")
 ROTATIONS = ("dexycb", "uniform", "none")
 UPSTREAM_SIZE = 256  # upstream's input side (px), what augment.upstream samples come at
+HEATMAP_TARGETS = ("clipped", "upstream")
 _GREY = (0.299, 0.587, 0.114)  # ITU-R 601 luma, as in torchvision's rgb_to_grayscale
 _RGB_TO_YIQ = ((0.299, 0.587, 0.114), (0.595716, -0.274453, -0.321263), (0.211456, -0.522591, 0.311135))
 
@@ -49,6 +50,7 @@ class AugmentSettings:
     # true: upstream HOISDF's augmentation, per sample in the loader's workers, from record.upstream_region records
     # (hoisdf.data.upstream_augment: its fixed ranges and per-dataset rotation rule; the keys above do not apply)
     upstream: bool = False
+    heatmap_target: str = "clipped"  # clipped: sum of Gaussians clipped at 1, pixel centres | upstream (see below)
     LIMITS: ClassVar[dict] = {"input_size": (">= 32",), "context": ("> 0",), "center_jitter": (">= 0",),
                               "scale_sigma": (">= 0",), "scale_min": ("> 0",), "scale_max": ("> 0",),
                               "rot_prob": (">= 0", "<= 1"), "blur_max": (">= 0",), "heatmap_sigma": ("> 0",)}
@@ -56,6 +58,8 @@ class AugmentSettings:
     def __post_init__(self):
         if self.rotation not in ROTATIONS:
             raise ValueError(f"rotation must be one of {ROTATIONS}, got {self.rotation!r}")
+        if self.heatmap_target not in HEATMAP_TARGETS:
+            raise ValueError(f"heatmap_target must be one of {HEATMAP_TARGETS}, got {self.heatmap_target!r}")
         if self.input_size < 2 or self.context <= 0:
             raise ValueError(f"need input_size >= 2 and context > 0, got {self.input_size}, {self.context}")
         if self.upstream and self.input_size != UPSTREAM_SIZE:
@@ -159,12 +163,27 @@ def warp(images: torch.Tensor, theta: torch.Tensor, size: int) -> torch.Tensor:
     return F.grid_sample(images, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
 
 
-def render_heatmap(uv: torch.Tensor, size: int, sigma: float) -> torch.Tensor:
-    """Joints (B, J, 2) in heatmap pixels -> (B, 1, size, size): sum of Gaussians (peak 1), clipped to 1."""
+def render_heatmap(uv: torch.Tensor, size: int, sigma: float, clip: bool = True) -> torch.Tensor:
+    """Joints (B, J, 2) in heatmap pixels -> (B, 1, size, size): sum of Gaussians (peak 1 each), clipped to 1
+    unless ``clip=False`` (the reference's target / 255: where two joints are close the sum exceeds 1)."""
     grid = torch.arange(size, dtype=uv.dtype, device=uv.device)
     gx = torch.exp(-(grid - uv[..., :1]) ** 2 / (2 * sigma ** 2))  # (B, J, size)
     gy = torch.exp(-(grid - uv[..., 1:]) ** 2 / (2 * sigma ** 2))
-    return torch.einsum("bjy,bjx->byx", gy, gx).clamp(max=1.0)[:, None]
+    total = torch.einsum("bjy,bjx->byx", gy, gx)
+    return (total.clamp(max=1.0) if clip else total)[:, None]
+
+
+def heatmap_target(uv: torch.Tensor, size: int, half: int, sigma: float, target: str) -> torch.Tensor:
+    """The heatmap target (B, 1, half, half) of joints (B, J, 2) in output pixels of a ``size`` image.
+
+    ``"clipped"``: pixel centres map to pixel centres (``u_half = a u + (a - 1) / 2``, a = half / size) and the
+    sum is clipped at 1. ``"upstream"``: the reference's ``uv / 256 * 128`` on the integer grid (0.25 heatmap px
+    from the centres mapping) and the sum of the Gaussians not clipped (``Model.render_gaussian_heatmap`` / 255).
+    """
+    a = half / size
+    if target == "upstream":
+        return render_heatmap(a * uv, half, sigma, clip=False)
+    return render_heatmap(a * uv + (a - 1) / 2, half, sigma)
 
 
 def _grey(img: torch.Tensor) -> torch.Tensor:
@@ -276,8 +295,7 @@ def augment_batch(batch: dict, settings: AugmentSettings, generator: torch.Gener
     out["K"] = K_new
     out["joints_3d"] = batch["joints_3d"].float() @ rot.transpose(1, 2)
     out["joints_2d"] = transform_pixels(M, batch["joints_2d"].float())
-    a_half = half / size  # output full -> half pixels, centres to centres
-    out["heatmap"] = render_heatmap(a_half * out["joints_2d"] + (a_half - 1) / 2, half, settings.heatmap_sigma)
+    out["heatmap"] = heatmap_target(out["joints_2d"], size, half, settings.heatmap_sigma, settings.heatmap_target)
     out["hand_root"] = (rot @ batch["hand_root"].float()[..., None])[..., 0]
     for key in POINT_KEYS:
         if key in batch:

@@ -17,7 +17,7 @@ from hoisdf.model.hoisdf import HOISDF, POINT_DIM
 from hoisdf.model.layers import MLP
 from hoisdf.model.regressors import REGRESSORS
 from hoisdf.model.sampling import grid_points
-from hoisdf.model.sdf_decoder import SDFDecoder
+from hoisdf.model.sdf_decoder import SDFDecoder, init_sdf_decoder_weights
 from hoisdf.model.transformer import TokenEncoder, init_transformer_weights
 
 TRAINING_ROWS = {"absolute": P.near_surface_rows, "gradient": P.near_surface_rows, "signed": P.inside_mesh_rows,
@@ -29,6 +29,14 @@ OBJECT_ROTATIONS = {"chordal": "chordal", "axis_angle": "axis_angle"}
 """``model.object_rotation`` -> the :func:`hoisdf.model.heads.mean_rotation` mode."""
 DENSITY_SIGNS = {"paper": -1.0, "code": 1.0}
 """``model.density_sign`` -> the sign inside the density's sigmoid."""
+RAW_6D = {"offset": False, "raw": True}
+"""``model.rot6d`` -> whether the MANO head predicts the raw 6D code (the reference) instead of an identity offset."""
+REUSE_RANKING_SDF = {"fresh": False, "ranking": True}
+"""``model.field_density`` -> whether field-guided tokens take the ranking pass's SDF (the reference, with its dropout
+mask) instead of a second decoder pass."""
+PROJECT_BETA = {"clamp": False, "project": True}
+"""``model.beta_floor`` -> whether the density widths themselves are projected onto [beta_min, inf) at each use
+(the reference, ``beta.data.copy_(max(beta.data, 2e-3))``) instead of clamped in the forward only."""
 
 
 def choose(table: dict, s, key: str):
@@ -43,9 +51,11 @@ def choose(table: dict, s, key: str):
 def token_features(s):
     """The ``model.feature_augmentation`` variant (:mod:`hoisdf.model.parts`) of settings ``s``."""
     sign = choose(DENSITY_SIGNS, s, "density_sign")
-    variants = {"none": P.PlainFeatures(), "density": P.DensityScaled(sign, s.beta_min),
-                "density_concat": P.Concatenated(True, sign, s.beta_min),
-                "distance_concat": P.Concatenated(False, sign, s.beta_min)}
+    # projected widths are at the floor or above when used: no clamp (whose gradient at the floor itself is zero)
+    floor = None if choose(PROJECT_BETA, s, "beta_floor") else s.beta_min
+    variants = {"none": P.PlainFeatures(), "density": P.DensityScaled(sign, floor),
+                "density_concat": P.Concatenated(True, sign, floor),
+                "distance_concat": P.Concatenated(False, sign, floor)}
     return choose(variants, s, "feature_augmentation")
 
 
@@ -83,9 +93,17 @@ def build_model(settings, mano) -> HOISDF:
     for module in (hand_encoder, obj_encoder, hand_heads.get("hand_decoder")):
         if module is not None:
             init_transformer_weights(module)
+    if choose(RAW_6D, s, "rot6d") and "mano_head" in hand_heads:
+        hand_heads["mano_head"].predict_raw_6d()
     boxes = choose({"gt": P.ground_truth_boxes, "predicted": P.PredictedBoxes(camera, s.mask_threshold)}, s,
                    "test_boxes")
     object_rotation = partial(H.mean_rotation, mode=choose(OBJECT_ROTATIONS, s, "object_rotation"))
+    # upstream's training init of the SDF decoders (zero biases, N(0, 0.01) output layer), drawn last so that every
+    # other module keeps the weights a seed gave it before this was wired
+    for decoder in (hand_sdf, obj_sdf):
+        init_sdf_decoder_weights(decoder)
+    beta_floor = s.beta_min if choose(PROJECT_BETA, s, "beta_floor") else None
     return HOISDF(mano, backbone, sdf_in, token_in, hand_sdf, obj_sdf, hand_encoder, obj_encoder, hand_heads,
                   obj_head, regressor, sampler, camera, features, choose(CROSS_FIELDS, s, "cross_field"), boxes,
-                  object_rotation, s.sdf_scale, s.sdf_clamp, s.n_freq, s.beta_init, project_grid)
+                  object_rotation, s.sdf_scale, s.sdf_clamp, s.n_freq, s.beta_init, project_grid, beta_floor,
+                  choose(REUSE_RANKING_SDF, s, "field_density"))

@@ -30,7 +30,9 @@ class ManoHead(nn.Module):
 
     The 6D rotations are predicted as offsets from the identity's 6D code, so an untrained head starts at
     the flat hand instead of random rotations (the reference predicts the raw 6D code; same expressiveness,
-    much faster early training).
+    much faster early training). :meth:`predict_raw_6d` switches to the reference's raw code (``model.rot6d =
+    "raw"``): the same function for weights whose last bias is larger by the identity's code, but weight decay
+    then pulls the code towards zero, not towards the identity.
 
     Returns ``rotations`` (L, B, 16, 3, 3), ``betas`` (L, B, 10), ``verts`` (L, B, 778, 3) and ``joints``
     (L, B, 21, 3, DexYCB order), wrist-centred metres.
@@ -41,6 +43,10 @@ class ManoHead(nn.Module):
         self.pose = MLP(d_model, [d_model, d_model], 6, full_precision_out=True)
         self.shape = MLP(d_model, [d_model, d_model], 10, full_precision_out=True)
         self.register_buffer("identity_6d", torch.tensor([1.0, 0.0, 0.0, 0.0, 1.0, 0.0]), persistent=False)
+
+    def predict_raw_6d(self) -> None:
+        """Predict the raw 6D code (the reference's head) instead of an offset from the identity's code."""
+        self.identity_6d.zero_()
 
     def forward(self, queries: torch.Tensor, mano) -> dict[str, torch.Tensor]:
         L, B = queries.shape[:2]
@@ -124,9 +130,10 @@ class ObjectHead(nn.Module):
         return {"rot": self.rot(tokens), "trans": self.trans(tokens)}
 
 
-def density(sdf: torch.Tensor, beta: torch.Tensor, sign: float, beta_min: float) -> torch.Tensor:
-    """Volume density sigmoid(sign * d / beta) / beta of scaled SDF values; beta floored at beta_min."""
-    b = beta.clamp(min=beta_min)
+def density(sdf: torch.Tensor, beta: torch.Tensor, sign: float, beta_min: float | None) -> torch.Tensor:
+    """Volume density sigmoid(sign * d / beta) / beta of scaled SDF values; beta floored at beta_min (None: as it is,
+    for widths projected onto the floor in place, ``model.beta_floor = "project"``)."""
+    b = beta if beta_min is None else beta.clamp(min=beta_min)
     return torch.sigmoid(sign * sdf / b) / b
 
 

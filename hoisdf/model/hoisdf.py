@@ -60,12 +60,18 @@ class HOISDF(nn.Module):
         n_freq: Fourier frequencies per axis.
         beta_init: initial learned density width (scaled units; only if ``token_features.learns_beta``).
         project_grid: rank the grid through ``project_pyramid`` (exact; fewer channels to sample with a big decoder).
+        beta_floor: None, or project the learned density widths onto [beta_floor, inf) in place at each forward
+            (the reference's ``beta.data.copy_(max(beta.data, 2e-3))``).
+        reuse_ranking_sdf: field-guided points carry into their tokens the SDF of the ranking pass (the reference:
+            its dropout mask in training) instead of a second pass.
     """
 
     def __init__(self, mano, backbone, sdf_in, token_in, hand_sdf, obj_sdf, hand_encoder, obj_encoder,
                  hand_heads: dict, obj_head, regressor, sampler, camera, token_features, cross, boxes,
-                 object_rotation, scale: float, clamp: float, n_freq: int, beta_init: float, project_grid: bool):
+                 object_rotation, scale: float, clamp: float, n_freq: int, beta_init: float, project_grid: bool,
+                 beta_floor: float | None = None, reuse_ranking_sdf: bool = False):
         super().__init__()
+        self.beta_floor, self.reuse_ranking_sdf = beta_floor, reuse_ranking_sdf
         self._mano = [mano]  # a list: not a registered submodule, so not in state_dict()
         self.scale, self.clamp, self.n_freq, self.project_grid = scale, clamp, n_freq, project_grid
         self.camera, self.token_features, self.cross, self.regressor = camera, token_features, cross, regressor
@@ -151,12 +157,18 @@ class HOISDF(nn.Module):
     def _query_points(self, batch, pyramid, K, root, center, boxes, mode, noise, generator):
         """Scaled query points (hand rel. root (B, Nh, 3), object rel. centre (B, No, 3)); ``mode``: "gt"
         (training rows + uniform noise of half-width ``noise``) or "field"."""
+        return self._queries(batch, pyramid, K, root, center, boxes, mode, noise, generator)[:2]
+
+    def _queries(self, batch, pyramid, K, root, center, boxes, mode, noise, generator):
+        """As :meth:`_query_points`, and the points' SDFs (B, Nh), (B, No) from the ranking pass (None: "gt"
+        points, or not ``reuse_ranking_sdf``)."""
         if mode not in POINT_MODES:
             raise ValueError(f"points must be one of {tuple(POINT_MODES)}, got {mode!r}")
         if POINT_MODES[mode]:
             hand, obj = self._training_points(batch, K, root, center, boxes, generator)
-            return jitter(hand, noise, generator), jitter(obj, noise, generator)
-        return self._field_points(pyramid, K, root, center, boxes, generator)
+            return jitter(hand, noise, generator), jitter(obj, noise, generator), None
+        (hand, obj), ranked = self._field_points(pyramid, K, root, center, boxes, generator)
+        return hand, obj, (ranked if self.reuse_ranking_sdf else None)
 
     # --- forward ------------------------------------------------------------------------------------------
     def forward(self, batch: dict, points: str = "field", noise: float = 0.0,
@@ -178,22 +190,30 @@ class HOISDF(nn.Module):
             out["hand_sdf"] = self._sdf_fn(self.hand_sdf, pyramid, K, root)(batch["hand_points"] + root[:, None])
         if "obj_points" in batch:
             out["obj_sdf"] = self._sdf_fn(self.obj_sdf, pyramid, K, center)(batch["obj_points"] + root[:, None])
-        hp, op = self._query_points(batch, pyramid, K, root, center, self.boxes(batch, maps), points, noise, generator)
-        out.update(self._pose(pyramid, K, root, center, hp, op))
+        hp, op, ranked = self._queries(batch, pyramid, K, root, center, self.boxes(batch, maps), points, noise,
+                                       generator)
+        out.update(self._pose(pyramid, K, root, center, hp, op, ranked))
         return out
 
-    def _pose(self, pyramid, K, root, center, hp, op) -> dict[str, torch.Tensor]:
+    def _pose(self, pyramid, K, root, center, hp, op, ranked=None) -> dict[str, torch.Tensor]:
         hand_cam, obj_cam = hp / self.scale + root[:, None], op / self.scale + center[:, None]
         f_hand, f_obj = self.camera.features(pyramid, hand_cam, K), self.camera.features(pyramid, obj_cam, K)
         sdf_in_h, sdf_in_o = self.sdf_in(f_hand), self.sdf_in(f_obj)
         tok_h, tok_o = self.token_in(f_hand), self.token_in(f_obj)
         hand_in_obj, obj_in_hand = (hand_cam - center[:, None]), (obj_cam - root[:, None])
         with torch.no_grad():
-            d_h = self.field(self.hand_sdf, sdf_in_h, hp)
-            d_o = self.field(self.obj_sdf, sdf_in_o, op)
+            if ranked is None:
+                d_h = self.field(self.hand_sdf, sdf_in_h, hp)
+                d_o = self.field(self.obj_sdf, sdf_in_o, op)
+            else:  # the ranking pass's values, clamped as the field's
+                d_h, d_o = (full(d).clamp(-self.clamp, self.clamp) for d in ranked)
             d_ho = self.field(self.obj_sdf, sdf_in_h, hand_in_obj * self.scale)  # hand points, object field
             d_oh = self.field(self.hand_sdf, sdf_in_o, obj_in_hand * self.scale)  # object points, hand field
         betas = getattr(self, "hand_beta", None), getattr(self, "obj_beta", None)
+        if self.beta_floor is not None and betas[0] is not None:
+            with torch.no_grad():
+                for beta in betas:
+                    beta.clamp_(min=self.beta_floor)
         hand_tokens = self._token(hp / self.scale, self.token_features(tok_h, d_h, betas[0]))
         obj_tokens = self._token(op / self.scale, self.token_features(tok_o, d_o, betas[1]))
         if self.cross is not None:

@@ -123,15 +123,16 @@ class QuerySampler(nn.Module):
         return self.rows(self, batch, K, root, center, boxes, generator)
 
     def field_points(self, K, root, center, boxes, fns, newton_fns, generator):
-        """Scaled field-guided points (hand (B, Nh, 3), object (B, No, 3)); ``fns``: (hand, object) SDF functions
-        of camera points that rank the grid; ``newton_fns``: (hand, object) full-gradient fields (or None)."""
+        """Scaled field-guided points ((hand (B, Nh, 3), object (B, No, 3)), (their SDFs (B, Nh), (B, No) from the
+        ranking pass, unclamped)); ``fns``: (hand, object) SDF functions of camera points that rank the grid;
+        ``newton_fns``: (hand, object) full-gradient fields (or None)."""
         strategy = self.strategies[self.training]
         newton_fns = newton_fns if self.newton and not self.training else (None, None)
-        hand, _ = field_guided_points(self.grid, root, self.scale, K, boxes[0], fns[0], self.n_hand, strategy,
-                                      self.chunk, generator, self.fixed_shape, newton_fns[0])
-        obj, _ = field_guided_points(self.grid, center, self.scale, K, boxes[1], fns[1], self.n_object, strategy,
-                                     self.chunk, generator, self.fixed_shape, newton_fns[1])
-        return hand, obj
+        hand, hand_sdf = field_guided_points(self.grid, root, self.scale, K, boxes[0], fns[0], self.n_hand, strategy,
+                                             self.chunk, generator, self.fixed_shape, newton_fns[0])
+        obj, obj_sdf = field_guided_points(self.grid, center, self.scale, K, boxes[1], fns[1], self.n_object,
+                                           strategy, self.chunk, generator, self.fixed_shape, newton_fns[1])
+        return (hand, obj), (hand_sdf, obj_sdf)
 
     def uses_newton(self) -> bool:
         """Whether :meth:`field_points` would use the full-gradient fields now (build them only then)."""
@@ -152,11 +153,12 @@ class PlainFeatures:
 class DensityScaled:
     """``"density"``: feature (B, N, F) x the volume density of the detached scaled SDF (B, N).
 
-    ``sign``: -1 the paper's sigmoid(-d/beta)/beta, +1 the released code's; ``beta_min``: floor of the width.
+    ``sign``: -1 the paper's sigmoid(-d/beta)/beta, +1 the released code's; ``beta_min``: floor of the width (None:
+    none here, the model projects the width itself).
     """
 
     sign: float
-    beta_min: float
+    beta_min: float | None
     extra, learns_beta = 0, True
 
     def __call__(self, feat: torch.Tensor, sdf: torch.Tensor | None, beta: torch.Tensor) -> torch.Tensor:
@@ -173,7 +175,7 @@ class Concatenated:
 
     density: bool
     sign: float
-    beta_min: float
+    beta_min: float | None
     extra, learns_beta = 1, True
 
     def __call__(self, feat: torch.Tensor, sdf: torch.Tensor | None, beta: torch.Tensor) -> torch.Tensor:

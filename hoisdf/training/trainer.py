@@ -86,6 +86,26 @@ def pa_mje(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
     return (aligned - gt).norm(dim=-1).mean(1)
 
 
+def make_optimizer(model: nn.Module, optimizer: str, lr: float, weight_decay: float) -> torch.optim.Optimizer:
+    """``train.optimizer`` over the model's trainable parameters, one group (upstream's ``get_optimizer``: PyTorch's
+    betas and eps; a parameter that gets no gradient in a step is skipped by the optimizer, weight decay included)."""
+    params = [p for p in model.parameters() if p.requires_grad]
+    return {"adamw": torch.optim.AdamW, "adam": torch.optim.Adam}[optimizer](params, lr=lr, weight_decay=weight_decay)
+
+
+def optimisation_step(model: nn.Module, loss: nn.Module, optimizer: torch.optim.Optimizer, batch: dict, points: str,
+                      noise: float, generator: torch.Generator | None, autocast: bool = False):
+    """One step on an augmented batch: forward, weighted loss terms, backward, optimizer step; returns (total,
+    terms) (tensors). ``autocast``: bf16 autocast on CUDA for the forward."""
+    with torch.autocast("cuda", dtype=torch.bfloat16, enabled=autocast):
+        out = model(batch, points=points, noise=noise, generator=generator)
+    total, terms = loss(out, batch)
+    optimizer.zero_grad(set_to_none=True)
+    total.backward()
+    optimizer.step()
+    return total, terms
+
+
 def unwrap(model: nn.Module) -> nn.Module:
     return model.module if hasattr(model, "module") else model
 
@@ -140,9 +160,7 @@ class Trainer:
             model = nn.parallel.DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None)
         self.model = model
         self.loss = HOISDFLoss(config.loss, mano, m.sdf_scale, m.sdf_clamp, m.cls_dist)
-        params = [p for p in model.parameters() if p.requires_grad]
-        optimizer = {"adamw": torch.optim.AdamW, "adam": torch.optim.Adam}[t.optimizer]
-        self.optimizer = optimizer(params, lr=t.lr, weight_decay=t.weight_decay)
+        self.optimizer = make_optimizer(model, t.optimizer, t.lr, t.weight_decay)
         self.dataset = build_dataset(list(stores), t.batch_size, t.epoch_samples or None, t.seed, m.n_hand, m.n_object,
                                      t.near, t.shuffle_buffer, training=True, shuffle=t.shuffle, progress=rank == 0,
                                      upstream=config.augment.upstream)
@@ -205,12 +223,8 @@ class Trainer:
     # --- one step -------------------------------------------------------------------------------------------
     def train_step(self, batch: dict, points: str, noise: float) -> dict[str, float]:
         batch = augment_batch(to_device(batch, self.device), self.config.augment, self.generator, train=True)
-        with torch.autocast("cuda", dtype=torch.bfloat16, enabled=self.autocast):
-            out = self.model(batch, points=points, noise=noise, generator=self.generator)
-        total, terms = self.loss(out, batch)
-        self.optimizer.zero_grad(set_to_none=True)
-        total.backward()
-        self.optimizer.step()
+        total, terms = optimisation_step(self.model, self.loss, self.optimizer, batch, points, noise, self.generator,
+                                         self.autocast)
         logged = {name: float(v.detach()) for name, v in terms.items()}
         logged["total"] = float(total.detach())
         return logged

@@ -153,8 +153,11 @@ def check_mano(network: dict, mano_dir, path) -> None:
                                          "the snapshot was trained with other MANO files")
 
 
-def convert_network(network: dict, expected: dict, path, ik: bool = False) -> dict:
+def convert_network(network: dict, expected: dict, path, ik: bool = False, raw_6d: bool = False) -> dict:
     """Upstream ``network`` (``module.`` prefix optional) -> the project's state dict.
+
+    ``raw_6d``: for a model that predicts the raw 6D code (``model.rot6d = "raw"``): ``linear_pose``'s last bias is
+    copied as it is.
 
     ``expected``: the target model's ``state_dict()`` (keys and shapes). Unexpected keys (no rule, not dropped,
     or a name the target model lacks), missing ones and shape mismatches are one DataError naming the key.
@@ -171,7 +174,7 @@ def convert_network(network: dict, expected: dict, path, ik: bool = False) -> di
         value = value.detach().clone()
         if key.endswith("sigmoid_beta"):
             value = value.reshape(())
-        if re.fullmatch(r"linear_pose\.layers\.2\.bias", key):
+        if re.fullmatch(r"linear_pose\.layers\.2\.bias", key) and not raw_6d:
             value = value - torch.tensor(IDENTITY_6D, dtype=value.dtype)
         if value.shape != expected[new].shape:
             raise DataError(path, f"network[{raw!r}]", f"shape {tuple(value.shape)}, the model expects "
