@@ -153,3 +153,18 @@ def test_field_tokens_can_take_the_ranking_pass_sdf(mano_dir):
             out = model(_batch(), points="field")
             assert torch.allclose(out["hand_query_sdf"], ranked[0][0].clamp(-model.clamp, model.clamp) / model.scale,
                                   atol=1e-6)
+
+
+@pytest.mark.parametrize("target, peak", [("upstream", 2.0), ("clipped", 1.0)])
+def test_loader_augmented_batches_take_the_heatmap_target_setting(target, peak):
+    """Batches augmented in the loader (augment.upstream) get the heatmap target the settings name: two joints on
+    one pixel of upstream's uv / 256 * 128 grid sum to 2 under "upstream" (they were clipped at 1 before the fix)."""
+    from hoisdf.data.augment import AugmentSettings, upstream_batch
+
+    joints = torch.full((1, 21, 2), 300.0)  # far outside the 128 px map: contributes nothing
+    joints[0, :2] = torch.tensor([100.0, 60.0])  # two joints on the heatmap pixel (50, 30)
+    batch = {"img": torch.zeros(1, 3, 256, 256, dtype=torch.uint8), "seg": torch.zeros(1, 4, 128, 128),
+             "joints_2d": joints, "object_anchor": torch.zeros(1, 3), "upstream_aug": torch.ones(1, dtype=torch.bool)}
+    out = upstream_batch(batch, AugmentSettings(upstream=True, heatmap_target=target))
+    assert out["heatmap"].shape == (1, 1, 128, 128)
+    assert float(out["heatmap"][0, 0, 30, 50]) == pytest.approx(peak, rel=1e-6)

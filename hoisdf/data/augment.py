@@ -352,13 +352,14 @@ def _upstream_augmented(batch: dict) -> bool:
 
 def upstream_batch(batch: dict, settings: AugmentSettings) -> dict:
     """A batch the loader augmented as upstream HOISDF does (:mod:`hoisdf.data.upstream_samples`) -> the network input
-    batch: images, K, joints, boxes and 3D labels as they are; seg from ``seg_bits``; the heatmap from the joints at
-    upstream's ``uv / 256 * 128``; obj_center = upstream's anchor; rotation the identity (already applied)."""
+    batch: images, K, joints, boxes and 3D labels as they are; seg from ``seg_bits``; the heatmap from the joints
+    (``augment.heatmap_target``; ``"upstream"`` is upstream's ``uv / 256 * 128`` summed); obj_center = upstream's anchor; rotation the identity (already applied)."""
     img = float_image(batch["img"])
     size = img.shape[-1]
     out = {k: v for k, v in batch.items() if k != "seg_bits"}
     out["img"], out["seg"] = img, mask_planes(batch)
-    out["heatmap"] = render_heatmap(batch["joints_2d"].float() * (size // 2) / size, size // 2, settings.heatmap_sigma)
+    out["heatmap"] = heatmap_target(batch["joints_2d"].float(), size, size // 2, settings.heatmap_sigma,
+                                    settings.heatmap_target)
     out["obj_center"] = batch["object_anchor"].float()
     out["rotation"] = torch.eye(3, device=img.device).repeat(img.shape[0], 1, 1)
     return out
