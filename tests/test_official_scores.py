@@ -1,4 +1,4 @@
-"""The official evaluators' scores (hoisdf.evaluation.official) on hand-made hands whose answers follow from the
+"""The official evaluators' scores (hoisdf.scoring.official) on hand-made hands whose answers follow from the
 construction: identical, moved by 1 cm, scaled about the wrist, another topology; and the hoisdf command's
 dispatch. The fast tier's check of the scoring code; tests/test_score.py holds the golden numbers of the evaluators'
 own scripts on toy data (slow)."""
@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hoisdf.evaluation.official import HO3D_SCORES, dexycb_hpe_scores, ho3d_challenge_scores
+from hoisdf.scoring.official import HO3D_SCORES, dexycb_hpe_scores, ho3d_challenge_scores
 
 SHIFT = np.array([0.01, 0.0, 0.0])  # metres
 STEP = 1 / 99  # one step of the AUC's 100 thresholds, as a share of its range

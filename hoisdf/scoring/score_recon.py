@@ -4,11 +4,11 @@
                        [--drop-failures] [--parts hand,obj] [--ids FILE] [--workers N]
 
 Protocols (docs/scoring.md, "Reconstruction"): ``gsdf`` is gSDF's ``_evaluate`` operation for operation
-(:mod:`hoisdf.evaluation.recon_gsdf`), its draws seeded per frame by ``--seed`` (``--repeats K``: K seeds, the
+(:mod:`hoisdf.scoring.recon_gsdf`), its draws seeded per frame by ``--seed`` (``--repeats K``: K seeds, the
 spread of the unseeded protocol); ``exact`` is the same quantities as surface integrals with a rigorous bound
-(:mod:`hoisdf.evaluation.recon_exact`). Every frame of the ground truth counts: a missing, unreadable or empty
+(:mod:`hoisdf.scoring.recon_exact`). Every frame of the ground truth counts: a missing, unreadable or empty
 prediction is a failure scored with F = 0 and the Chamfer of a prediction collapsed to the ground truth's
-centroid (:func:`~hoisdf.evaluation.recon_exact.centroid_penalty`); ``--drop-failures`` reports the old survivor
+centroid (:func:`~hoisdf.scoring.recon_exact.centroid_penalty`); ``--drop-failures`` reports the old survivor
 mean instead, labelled so. Imports no model code.
 """
 
@@ -22,8 +22,8 @@ import numpy as np
 
 from hoidata.cli_types import non_negative_int, positive_int
 from hoidata.errors import DataError
-from hoisdf.evaluation import recon_exact, recon_gsdf
-from hoisdf.evaluation.recon_files import PARTS, check_mesh, gt_files, gt_mesh, named_files, read_ids
+from hoisdf.scoring import recon_exact, recon_gsdf
+from hoisdf.scoring.recon_files import PARTS, check_mesh, gt_files, gt_mesh, named_files, read_ids
 
 HELP = "hand and object Chamfer distance and F-scores of any method's meshes (gSDF's protocol, or exact)"
 CHAMFER_TOLERANCE = 1e-3  # cm^2, half-width aimed at by the exact protocol
