@@ -231,6 +231,8 @@ def _small_case(root):
     ("unknown_id", ["ids.txt", "'line 2'", "nope"]),
     ("bad_parts", ["--parts", "'hand,foot'"]),
     ("no_match", ["pred", "no prediction for any"]),
+    ("two_truths", ["--gt/--gt-store", "one way"]),
+    ("no_truth", ["--gt/--gt-store", "one way"]),
 ])
 def test_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys, breaks, words):
     pred, gt = _small_case(tmp_path)
@@ -250,6 +252,10 @@ def test_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys, breaks, word
         args += ["--ids", tmp_path / "ids.txt"]
     elif breaks == "bad_parts":
         args += ["--parts", "hand,foot"]
+    elif breaks == "two_truths":
+        args += ["--gt-store", tmp_path / "store"]
+    elif breaks == "no_truth":
+        del args[3:5]
     elif breaks == "no_match":
         for p in pred.iterdir():
             p.rename(pred / p.name.replace("f0", "g0"))
