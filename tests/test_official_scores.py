@@ -85,6 +85,6 @@ def test_the_hoisdf_command_dispatches_score_and_refuses_the_unknown(tmp_path, c
     assert main(["--help"]) == 0 and "usage: hoisdf {score}" in capsys.readouterr().out
     assert main(["nonsense"]) == 2 and "usage: hoisdf {score}" in capsys.readouterr().err
     missing = tmp_path / "pred.json"
-    assert main(["score", "ho3d", "--pred", str(missing), "--gt", str(tmp_path)]) == 2  # reached hoisdf.score
+    assert main(["score", "ho3d", "--pred", str(missing), "--gt", str(tmp_path)]) == 2  # reached hoisdf.scoring.cli
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("hoisdf score ho3d: error: ") and str(missing) in err[0]
