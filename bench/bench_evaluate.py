@@ -15,7 +15,7 @@ Measured, in one run, on the first ``--frames`` records of the store:
 2. infer: ``hoisdf.evaluate.infer`` (loader workers decode, test-time crop, batched forward with
    field-guided points, no_grad, bf16 autocast on CUDA, ground-truth MANO of every frame), after a
    warm-up ``infer`` of one batch: frames/s;
-3. metrics, apart from inference: ``score`` + ``hoisdf.evaluation.metrics.summarize`` (overall and per object),
+3. metrics, apart from inference: ``score`` + ``hoisdf.scoring.metrics.summarize`` (overall and per object),
    and the mean-pose baseline (``mean_hand`` + ``score``) that evaluate prints beside it;
 4. end to end: ``evaluate(..., plausibility=0)`` (all of the above plus the result files), frames/s.
    The plausibility report (off here) is separate and per sample.
@@ -37,10 +37,10 @@ import torch
 from bench.common import resolve_device, store_and_mano, sync
 from hoisdf.config import load_train_config
 from hoisdf.evaluate import evaluate
-from hoisdf.evaluation import metrics as M
 from hoisdf.evaluation.inference import infer, load_for_eval
-from hoisdf.evaluation.scoring import mean_hand, score
+from hoisdf.evaluation.model_scores import mean_hand, score
 from hoisdf.model import build_model
+from hoisdf.scoring import metrics as M
 from hoisdf.training.checkpoint import CHECKPOINTS, LAST, save_checkpoint
 
 PAPER_FPS = 30.7  # HOISDF paper, TITAN RTX

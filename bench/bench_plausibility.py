@@ -1,6 +1,6 @@
 """Speed of the plausibility report, side by side in one run: every centre asked (the baseline) against children
-inheriting their parent's inside/outside (:func:`hoisdf.evaluation.solids._child_hints`), on one process and on
-``--workers`` processes (:func:`hoisdf.evaluation.plausibility.frame_metrics_many`).
+inheriting their parent's inside/outside (:func:`hoisdf.scoring.solids._child_hints`), on one process and on
+``--workers`` processes (:func:`hoisdf.scoring.plausibility.frame_metrics_many`).
 
 Frames: the three analytic cases of :mod:`bench.analytic_solids` (a sphere, a cube, a cylinder standing for the
 hand) shifted by a few millimetres, ``--frames`` in all, at ``--tolerance`` m^3. Every variant must report the
@@ -18,8 +18,8 @@ import time
 import numpy as np
 
 from bench.analytic_solids import cases
-from hoisdf.evaluation import solids
-from hoisdf.evaluation.plausibility import frame_metrics_many
+from hoisdf.scoring import solids
+from hoisdf.scoring.plausibility import frame_metrics_many
 
 
 def frames(count: int) -> list[tuple]:

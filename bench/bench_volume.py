@@ -1,14 +1,14 @@
 """Intersection volume of the toy's deeply penetrating hands, side by side in one run: the octree with exact cells
-(:func:`hoisdf.evaluation.solids.region_volume`, ``exact_cells`` on) at ``--rel`` (1 %), the same octree with the
+(:func:`hoisdf.scoring.solids.region_volume`, ``exact_cells`` on) at ``--rel`` (1 %), the same octree with the
 ball bound only (the method before exact cells) within the evaluator's budget, and the literature's surface-voxel
 script at 5 mm on MANO's open mesh (obman_train / GraspTTA ``intersect_vox``, restated in
-:func:`hoisdf.evaluation.contact_legacy.surface_voxel_volume`).
+:func:`hoisdf.scoring.contact_legacy.surface_voxel_volume`).
 
 Frames: the toy MANO hand (``hoidata make-toy``'s procedural hand, closed with its wrist cap) at a random global
 rotation and 0.6-1.4 times the toy grasp mean, with a toy object (each of the five in turn) centred at the palm:
 whole objects sunk into the hand, 10-200 cm^3 of overlap. Each row: seconds per frame (wall, one process) and the
 volume with its rigorous bound. A reference at 0.1 % (exact cells) checks that the 1 % results are within 1 %.
-Then ``--split-frames`` other frames, every metric at the scorer's settings (:func:`~hoisdf.evaluation.plausibility.
+Then ``--split-frames`` other frames, every metric at the scorer's settings (:func:`~hoisdf.scoring.plausibility.
 frame_metrics`), give the extrapolation to an HO-3D evaluation split (11,524 frames): CPU seconds per frame in this
 process (what two free cores divide), and wall time on ``--workers`` processes (``frame_metrics_many``) at the
 machine's load.
@@ -30,9 +30,9 @@ from scipy.spatial.transform import Rotation
 from hoidata.hand import load_mano
 from hoidata.toy.hand import write_toy_mano
 from hoidata.toy.objects import TOY_OBJECTS, build_toy_object
-from hoisdf.evaluation import plausibility
-from hoisdf.evaluation.contact_legacy import surface_voxel_volume
-from hoisdf.evaluation.solids import MeshSolid, Part, region_volume
+from hoisdf.scoring import plausibility
+from hoisdf.scoring.contact_legacy import surface_voxel_volume
+from hoisdf.scoring.solids import MeshSolid, Part, region_volume
 
 HO3D_EVALUATION_FRAMES = 11_524
 

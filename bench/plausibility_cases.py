@@ -1,4 +1,4 @@
-"""Intersection volume on analytic cases: exact value, :func:`hoisdf.evaluation.plausibility.intersection_bounds`,
+"""Intersection volume on analytic cases: exact value, :func:`hoisdf.scoring.plausibility.intersection_bounds`,
 and what the surface-voxel script of the hand-object literature reports on the same meshes.
 
 The surface-voxel script (obman_train ``mano_train/netscripts/intersect.py`` ``intersect_vox``, copied by GanHand
@@ -52,7 +52,7 @@ def surface_voxel_volume(hand, obj, pitch: float) -> float:
 
 def table(tolerance: float, pitches=(0.005, 0.001)) -> list[dict]:
     """One row per case: volumes in cm^3 (analytic, polyhedral, ours with its bound, surface-voxel per pitch)."""
-    from hoisdf.evaluation.plausibility import intersection_bounds
+    from hoisdf.scoring.plausibility import intersection_bounds
 
     rows = []
     for name, case in cases().items():

@@ -1,11 +1,11 @@
-"""The ``hoisdf`` console script: ``hoisdf score ...`` (:mod:`hoisdf.score`). Training and evaluation keep their
+"""The ``hoisdf`` console script: ``hoisdf score ...`` (:mod:`hoisdf.scoring.cli`). Training and evaluation keep their
 ``python -m hoisdf.train`` / ``python -m hoisdf.evaluate`` entry points."""
 
 from __future__ import annotations
 
 import sys
 
-COMMANDS = {"score": "hoisdf.score"}  # command -> module with main(argv) -> exit code
+COMMANDS = {"score": "hoisdf.scoring.cli"}  # command -> module with main(argv) -> exit code
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,13 +1,13 @@
 """``python -m hoisdf.evaluate --ckpt RUN --shards STORE [STORE ...] --mano DIR [--out DIR] [--vis N] ...``
 
 Runs a trained HOISDF on stores (batched, no gradients; fp32, or bf16 autocast with ``--precision bf16``), scores
-it with the published protocols (:mod:`hoisdf.evaluation.metrics`), prints the paper's table layout beside a
+it with the published protocols (:mod:`hoisdf.scoring.metrics`), prints the paper's table layout beside a
 mean-pose baseline, and writes
 ``OUT/metrics.json``, ``OUT/per_object.csv``, per DexYCB split the HPE result file ``dexycb_hpe_<split>.txt`` with
 the toolkit's sample ids (``dexycb_hpe_<split>_subset.txt`` when it lacks some of the split's valid samples, which
 the toolkit's evaluator refuses), with ``--ho3d-order evaluation.txt`` HO-3D's ``pred.json`` / ``pred.zip``, and
 with ``--vis N`` result pictures ``OUT/vis/<key>.png``. ``OUT`` defaults to ``RUN/eval-<store name>``.
-``metrics.json["dexycb_hpe"]`` holds the toolkit's numbers for each HPE file (:mod:`hoisdf.evaluation.official`).
+``metrics.json["dexycb_hpe"]`` holds the toolkit's numbers for each HPE file (:mod:`hoisdf.scoring.official`).
 
 Protocol: the network sees the deterministic central crop; hand outputs are wrist-relative and placed with the
 ground-truth wrist (as HOISDF; so MJE and root-relative MJE coincide up to the predicted wrist, which is 0).
@@ -32,26 +32,26 @@ from hoidata.errors import DataError, run_cli
 from hoidata.schema import FULL
 from hoidata.store import RemoteStore, read_index, resolve_store
 from hoidata.store.paths import refuse_repeated_stores
-from hoisdf.evaluation import metrics as M
 from hoisdf.evaluation.inference import infer, load_for_eval, resolve_device, run_folder
-from hoisdf.evaluation.official import format_ho3d_scores
-from hoisdf.evaluation.outputs import (
-    checked_ho3d_order,
-    clear_results,
-    export,
-    format_table,
-    json_safe,
-    score_ho3d_files,
-    write_per_object,
-    write_vis,
-)
-from hoisdf.evaluation.scoring import (
+from hoisdf.evaluation.model_scores import (
     BASELINE_ROWS,
     baseline_scores,
     plausibility_summary,
     sample_meshes,
     score,
 )
+from hoisdf.evaluation.outputs import (
+    checked_ho3d_order,
+    clear_results,
+    export,
+    format_table,
+    score_ho3d_files,
+    write_per_object,
+    write_vis,
+)
+from hoisdf.scoring import metrics as M
+from hoisdf.scoring.official import format_ho3d_scores
+from hoisdf.scoring.results_json import json_safe
 
 UNSEEN_HO3D = "019_pitcher_base"  # excluded from HO-3D object metrics (upstream test.py)
 
@@ -73,7 +73,7 @@ def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=No
         boxes: override the model's ``test_boxes`` ("gt" | "predicted").
         plausibility: samples (the first ones) for the plausibility report (0: none).
         ho3d_order: HO-3D ``evaluation.txt`` -> pred.json / pred.zip; checked before any work against every HO-3D
-            store (:mod:`hoisdf.evaluation.ho3d_list`); a store or list that cannot give a complete submission is
+            store (:mod:`hoisdf.scoring.ho3d_list`); a store or list that cannot give a complete submission is
             a DataError, never a missing file. baseline_store: store whose labels
             give the mean pose (default: the first evaluated store). workers: loader processes, and processes for the
             plausibility report.

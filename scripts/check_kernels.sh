@@ -18,7 +18,8 @@ PY=${PYTHON:-$REPO/.venv/bin/python}
 cd "$REPO"
 FILES=("$@")
 [ ${#FILES[@]} -gt 0 ] || FILES=(tests/test_import_upstream.py tests/test_upstream_crop.py tests/test_sampling.py
-                                 tests/test_score.py tests/test_official_scores.py tests/test_toy_hand.py)
+                                 tests/test_score.py tests/test_official_scores.py tests/test_toy_hand.py
+                                 tests/test_score_recon.py tests/test_contact_definitions.py)
 export PYTHONPATH="$REPO${PYTHONPATH:+:$PYTHONPATH}" PYOPENGL_PLATFORM=${PYOPENGL_PLATFORM:-egl}
 
 flags=" $(grep -m1 '^flags' /proc/cpuinfo | cut -d: -f2) "

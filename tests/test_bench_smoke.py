@@ -61,6 +61,8 @@ SCRIPTS: dict[str, list[tuple[list[str], str]]] = {
                           "projected 70 epochs")],
     "bench_cluster": [(["--root", "{root}", "--rounds", "1", "--records-per-shard", "8"], "ray (running)")],
     "bench_volume": [(["--frames", "1", "--split-frames", "2", "--workers", "1"], "mean seconds per frame: exact cells")],
+    "bench_recon": [(["--frames", "1", "--tolerance", "0.1", "--max-queries", "100000"],
+                     "mean CPU seconds per frame: gsdf")],
     "bench_shuffle": [(["--store", "{store}", "--batch", "4", "--workers", "0", "--epochs", "1", "--rounds", "1"],
                        "load average (1 min):")],
     "bench_upstream_aug": [(["--root", "{root}", "--batch", "2", "--batches", "1", "--rounds", "1", "--workers", "0"],

@@ -1,4 +1,4 @@
-"""The older contact definitions (hoisdf.evaluation.contact_legacy) against the numbers gSDF's and GraspTTA's own
+"""The older contact definitions (hoisdf.scoring.contact_legacy) against the numbers gSDF's and GraspTTA's own
 scripts gave on the same toy meshes (tests/golden/contact/README.md says how they were made)."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hoisdf.evaluation.contact_legacy import gsdf_frame, gsdf_grid, grasptta_frame, legacy_frame, legacy_summary
+from hoisdf.scoring.contact_legacy import gsdf_frame, gsdf_grid, grasptta_frame, legacy_frame, legacy_summary
 
 GOLDEN = Path(__file__).parent / "golden" / "contact" / "legacy_toy.json"
 CELL = 0.125  # cm^3: one grid point (gSDF) or voxel (GraspTTA)

@@ -65,9 +65,9 @@ def test_every_writer_names_its_file(full, tiny_store, mano_dir, tmp_path):
     from hoidata.store.index import write_index
     from hoidata.store.inspect import inspect_store
     from hoidata.store.shards import write_shard
-    from hoisdf.evaluation.official import write_scores_txt
+    from hoisdf.scoring.official import write_scores_txt
     from hoisdf.evaluation.outputs import write_per_object
-    from hoisdf.evaluation.submissions import write_dexycb_hpe, write_ho3d_pred
+    from hoisdf.scoring.submissions import write_dexycb_hpe, write_ho3d_pred
 
     _names(full / "a.bin", lambda: write_atomic(full / "a.bin", bytes(9000)))
     _names(full / "b.json", lambda: write_json_atomic(full / "b.json", {"x": list(range(3000))}))
@@ -86,7 +86,7 @@ def test_every_writer_names_its_file(full, tiny_store, mano_dir, tmp_path):
     _names(full / "pred.zip", lambda: write_ho3d_pred(full / "pred.zip", ["A/1", "A/2", "A/3"], joints * -1, verts))
     _names(full / "h.txt", lambda: write_dexycb_hpe(full / "h.txt", [0, 1, 2], joints))
     scores = dict.fromkeys(json.loads(json.dumps(["xyz_mean3d"])), 1.0)
-    from hoisdf.evaluation.official import HO3D_SCORES
+    from hoisdf.scoring.official import HO3D_SCORES
 
     _names(full / "scores.txt", lambda: write_scores_txt(full / "scores.txt", {**scores, **dict.fromkeys(HO3D_SCORES, 1.0)}))
     summary = {"all": {f"m{i}": 1.0 for i in range(400)}}

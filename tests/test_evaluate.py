@@ -79,7 +79,7 @@ def test_evaluate_writes_finite_metrics_for_every_sample(evaluated, tiny_store):
 def test_hpe_file_reads_back_to_the_predicted_joints(evaluated, run_dir, tiny_store, mano_dir):
     from hoidata.hand import load_mano
     from hoisdf.evaluation.inference import infer, load_for_eval
-    from hoisdf.evaluation.submissions import read_dexycb_hpe
+    from hoisdf.scoring.submissions import read_dexycb_hpe
 
     out, _ = evaluated
     from hoidata.store import read_index
@@ -140,7 +140,7 @@ def test_oracle_predictions_score_zero_and_the_baseline_does_not(run_dir, tiny_s
     assert result["plausibility"] == {"skipped": "--plausibility 0"}
     # the HPE file holds the dataset's own labels: left hands un-mirrored
     from hoidata.store import read_index
-    from hoisdf.evaluation.submissions import read_dexycb_hpe
+    from hoisdf.scoring.submissions import read_dexycb_hpe
 
     lab = read_index(tiny_store).labels
     ids, joints = read_dexycb_hpe(tmp_path / "dexycb_hpe_s0_train_subset.txt")
@@ -155,7 +155,7 @@ def test_mirrored_records_get_the_mirrored_object_mesh():
     import trimesh
 
     from hoidata.geometry.rotation import axis_angle_to_matrix
-    from hoisdf.evaluation.scoring import sample_meshes
+    from hoisdf.evaluation.model_scores import sample_meshes
 
     box = trimesh.creation.box(extents=(0.05, 0.08, 0.1))
     box.apply_translation((0.03, 0.01, -0.02))  # not symmetric in x
@@ -199,7 +199,7 @@ def test_cli_default_out_limit_and_ho3d_skip(run_dir, tiny_store, mano_dir, tmp_
 def test_ho3d_export_follows_the_evaluation_list(tiny_store, tmp_path):
     from hoisdf.evaluation.inference import Collected
     from hoisdf.evaluation.outputs import export
-    from hoisdf.evaluation.submissions import read_dexycb_hpe, read_ho3d_pred
+    from hoisdf.scoring.submissions import read_dexycb_hpe, read_ho3d_pred
 
     rng = np.random.default_rng(0)
     joints = rng.normal(size=(3, 21, 3)) * 0.05 + [0, 0, 0.6]

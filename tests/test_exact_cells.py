@@ -1,4 +1,4 @@
-"""Exact cells of the volume octree (hoisdf.evaluation.cell_volume, solids.region_volume's ``exact_cells``): the
+"""Exact cells of the volume octree (hoisdf.scoring.cell_volume, solids.region_volume's ``exact_cells``): the
 column integral of a cube against closed forms, 1 % relative bounds on large smooth overlaps against manifold3d's
 exact boolean of the same meshes, and rigour where a mesh passes through itself (irregular faces)."""
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from hoisdf.evaluation.plausibility import intersection_bounds
-from hoisdf.evaluation.solids import MeshSolid, Part, region_volume
+from hoisdf.scoring.plausibility import intersection_bounds
+from hoisdf.scoring.solids import MeshSolid, Part, region_volume
 
 ROUNDING = 1e-8  # relative slack on manifold3d's volumes
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from hoidata.errors import DataError
-from hoisdf.evaluation import submissions as E
+from hoisdf.scoring import submissions as E
 
 
 @pytest.fixture

@@ -154,7 +154,7 @@ def test_a_url_where_a_folder_is_needed_is_one_line_before_anything_is_written(u
     assert not list(tmp_path.iterdir())  # no folder named 'http:', 's3:', 'o1', ...
 
 
-@pytest.mark.parametrize("module", ["hoisdf.train", "hoisdf.evaluate", "hoisdf.toy", "hoisdf.score"])
+@pytest.mark.parametrize("module", ["hoisdf.train", "hoisdf.evaluate", "hoisdf.toy", "hoisdf.scoring.cli"])
 def test_the_model_commands_refuse_a_url_as_out(module, tmp_path, monkeypatch, capsys):
     import importlib
 
@@ -162,7 +162,7 @@ def test_the_model_commands_refuse_a_url_as_out(module, tmp_path, monkeypatch, c
     main = importlib.import_module(module).main
     args = {"hoisdf.train": ["--shards", "s", "--mano", "m"], "hoisdf.evaluate": ["--ckpt", "c", "--shards", "s",
                                                                                    "--mano", "m"],
-            "hoisdf.score": ["ho3d", "--pred", "p.json", "--gt", "g"]}.get(module, [])
+            "hoisdf.scoring.cli": ["ho3d", "--pred", "p.json", "--gt", "g"]}.get(module, [])
     for url in ("s3://bucket/run", "gs://b/run", "https://host/run"):
         with pytest.raises(SystemExit) as stop:
             main([*args, "--out", url])

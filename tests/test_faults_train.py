@@ -287,7 +287,7 @@ def test_result_files_are_readable_by_others(run_dir, tiny_store, mano_dir, tmp_
         assert evaluate(["--ckpt", str(run_dir), "--shards", str(tiny_store), "--mano", str(mano_dir), "--out", str(out),
                          "--vis", "1", "--workers", "0", "--no-progress", "--plausibility", "0", "--limit", "4"]) == 0
         from hoidata.store.inspect import inspect_store
-        from hoisdf.evaluation.submissions import write_ho3d_pred
+        from hoisdf.scoring.submissions import write_ho3d_pred
 
         inspect_store(tiny_store, n=2, out=tmp_path / "grid.png")
         write_ho3d_pred(tmp_path / "pred.json", ["a/0"], np.zeros((1, 21, 3)), np.zeros((1, 778, 3)))

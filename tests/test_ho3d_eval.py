@@ -3,7 +3,7 @@
 ``challenge_eval`` restates the server's script (shreyashampali/ho3d eval.py ``main`` with FreiHAND's EvalUtil): the
 ground-truth lists and the prediction are read and checked as it reads them, and the 14 scores.txt values computed as
 it computes them (plain SVD Procrustes, align_sc_tr on HO-3D joints 0 and 4, a separate vertex Procrustes for the
-mesh, brute-force F-scores with strict '<'). Our own scorer (hoisdf.evaluation.official) must give its numbers.
+mesh, brute-force F-scores with strict '<'). Our own scorer (hoisdf.scoring.official) must give its numbers.
 """
 
 from __future__ import annotations
@@ -169,7 +169,7 @@ def challenge_eval(gt_path, pred_path) -> dict:
 def test_toy_writes_the_challenge_ground_truth(ho3d_root):
     import pickle
 
-    from hoisdf.evaluation.submissions import HO3D_TIP_VERTICES
+    from hoisdf.scoring.submissions import HO3D_TIP_VERTICES
 
     order = (ho3d_root / "evaluation.txt").read_text().split()
     xyz = np.array(json.loads((ho3d_root / "evaluation_xyz.json").read_text()))
@@ -188,7 +188,7 @@ def test_toy_writes_the_challenge_ground_truth(ho3d_root):
 def _oracle(ho3d_root, offset=(0.0, 0.0, 0.0), noise: float = 0.0):
     """A forward pass returning the challenge's ground truth (optionally offset by `offset` metres in OpenCV and
     with per-point noise seeded by the key), in the model's output format."""
-    from hoisdf.evaluation.submissions import from_ho3d
+    from hoisdf.scoring.submissions import from_ho3d
 
     order = (ho3d_root / "evaluation.txt").read_text().split()
     gt_j, gt_v = from_ho3d(np.array(json.loads((ho3d_root / "evaluation_xyz.json").read_text())),
@@ -270,8 +270,8 @@ def test_submission_files_are_what_eval_py_reads_and_scores(untrained_run, eval_
 
 def test_ho3d_gt_needs_the_order_and_matching_lengths(untrained_run, eval_store, ho3d_root, mano_dir, tmp_path):
     from hoisdf.evaluate import evaluate
-    from hoisdf.evaluation.official import score_ho3d_submission
-    from hoisdf.evaluation.submissions import write_ho3d_pred
+    from hoisdf.scoring.official import score_ho3d_submission
+    from hoisdf.scoring.submissions import write_ho3d_pred
 
     with pytest.raises(ValueError, match="--ho3d-order"):
         evaluate(untrained_run, [eval_store], mano_dir, tmp_path, progress=False, ho3d_gt=ho3d_root)

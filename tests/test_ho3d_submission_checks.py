@@ -15,7 +15,7 @@ import json
 import pytest
 
 from hoidata.errors import DataError
-from hoisdf.evaluation.ho3d_list import check_against_ground_truth, check_against_store, read_evaluation_list
+from hoisdf.scoring.ho3d_list import check_against_ground_truth, check_against_store, read_evaluation_list
 
 FRAMES = ["SM1_0000", "SM1_0001", "SM1_0002"]  # a store's frame_id labels (SEQ_id)
 GOOD = b"SM1/0000\nSM1/0001\nSM1/0002\n"

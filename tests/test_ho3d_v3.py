@@ -65,7 +65,7 @@ def test_v3_built_evaluated_and_scored(v3_root, untrained_run, mano_dir, tmp_pat
     from hoidata.pipeline.settings import load_build_config
     from hoisdf.evaluate import evaluate
     from hoisdf.model.hoisdf import HOISDF
-    from hoisdf.score import main as score_main
+    from hoisdf.scoring.cli import main as score_main
 
     small = ["record.crop_size=64", "record.n_hand=64", "record.n_object=32"]
     train = build_store(load_build_config("ho3d_v3", small), v3_root, v3_root / "mano", v3_root / "models",

@@ -11,6 +11,8 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("hoidata", "hoisdf")
 MAX_LINES = 420  # "files under about 400 lines" (docs/development.md, "Style")
@@ -146,18 +148,19 @@ def test_hoidata_imports_only_its_own_layer_and_below():
     assert not up, f"imports that run up a layer: {up}"
 
 
-# hoisdf's layers, bottom first, the same rule: the network's parts; the data they eat; the loss math; the settings
-# (which gather the parts' settings dataclasses); the trainer and checkpoints, which read the settings; evaluation,
-# which loads checkpoints; the command lines on top.
+# hoisdf's layers, bottom first, the same rule: the scoring of result files (any method's; its own command
+# ``hoisdf score`` included), which stands on nothing of the model; the network's parts; the data they eat; the loss
+# math; the settings (which gather the parts' settings dataclasses); the trainer and checkpoints, which read the
+# settings; evaluation, which loads checkpoints; the command lines on top.
 HOISDF_LAYERS = (
+    ("hoisdf.scoring",),
     ("hoisdf", "hoisdf.model"),
     ("hoisdf.data",),
     ("hoisdf.training.losses",),
     ("hoisdf.config",),
     ("hoisdf.training",),
     ("hoisdf.evaluation",),
-    ("hoisdf.train", "hoisdf.evaluate", "hoisdf.score", "hoisdf.import_upstream", "hoisdf.ablation", "hoisdf.toy",
-     "hoisdf.cli"),
+    ("hoisdf.train", "hoisdf.evaluate", "hoisdf.import_upstream", "hoisdf.ablation", "hoisdf.toy", "hoisdf.cli"),
 )
 # What hoisdf may import of hoidata: its library layers (prefixes), never the build (pipeline, export, synth, toy
 # writers, render) nor its command line. hoisdf stands beside the build, not on it.
@@ -205,6 +208,61 @@ def _hoisdf_problems(graph: dict[str, set[str]]) -> list[str]:
     problems += [f"hoisdf reaches {t}" for t in sorted(reached)
                  if any(t == p or t.startswith(p + ".") for p in HOISDF_NEVER)]
     return problems
+
+
+def _foreign_imports(path: Path, lazy: bool = True) -> set[str]:
+    """The top-level names of every module ``path`` imports; with ``lazy``, function-level imports included."""
+    found = set()
+    tree = ast.parse(path.read_text(), str(path))
+    for node in ast.walk(tree) if lazy else tree.body:
+        if isinstance(node, ast.Import):
+            found.update(alias.name.split(".")[0] for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+            found.add(node.module.split(".")[0])
+    return found
+
+
+# the scoring modules that drive the MANO layer themselves (posing ground-truth hands from a store's labels): torch
+# inside the function that does it, never at import
+SCORING_POSES_MANO = ("hoisdf.scoring.recon_store",)
+
+
+def _scoring_problems(graph: dict[str, set[str]], paths: dict[str, Path]) -> list[str]:
+    """Ways the scoring floor (``hoisdf.scoring``) stands on the model: an import of a hoisdf module outside it
+    (model, data, training, config, evaluation, the commands), or of torch itself (at import anywhere; inside a
+    function outside :data:`SCORING_POSES_MANO`)."""
+    problems = []
+    for m in sorted(m for m in graph if m == "hoisdf.scoring" or m.startswith("hoisdf.scoring.")):
+        problems += [f"{m} imports {t}" for t in sorted(graph[m])
+                     if t.split(".")[0] == "hoisdf" and not t.startswith("hoisdf.scoring")]
+        if "torch" in _foreign_imports(paths[m], lazy=m not in SCORING_POSES_MANO):
+            problems.append(f"{m} imports torch")
+    return problems
+
+
+def test_the_scoring_floor_imports_no_model_code_and_no_torch():
+    # a user who scores files reads hoisdf/scoring/ alone; torch is reached only through hoidata.hand (the MANO
+    # layer: the wrist cap of ``hoisdf score contact``, the ground-truth hands of ``score recon --gt-store``, and
+    # the joint orders)
+    problems = _scoring_problems(_graph(), _modules())
+    assert not problems, problems
+
+
+def test_the_scoring_check_finds_a_model_import_and_a_lazy_torch(tmp_path):
+    a, b = tmp_path / "a.py", tmp_path / "b.py"
+    a.write_text("from hoisdf.training.losses import hand_targets\n")
+    b.write_text("def f():\n    import torch.nn\n    return torch\n")
+    graph = {"hoisdf.scoring.a": {"hoisdf.training.losses", "hoisdf.scoring.b"}, "hoisdf.scoring.b": set(),
+             "hoisdf.evaluation.x": {"hoisdf.model"}}
+    paths = {"hoisdf.scoring.a": a, "hoisdf.scoring.b": b}
+    assert _scoring_problems(graph, paths) == ["hoisdf.scoring.a imports hoisdf.training.losses",
+                                               "hoisdf.scoring.b imports torch"]
+    posing = tmp_path / "recon_store.py"
+    posing.write_text("import numpy\n\n\ndef f():\n    import torch\n")
+    assert _scoring_problems({"hoisdf.scoring.recon_store": set()}, {"hoisdf.scoring.recon_store": posing}) == []
+    posing.write_text("import torch\n")
+    assert _scoring_problems({"hoisdf.scoring.recon_store": set()}, {"hoisdf.scoring.recon_store": posing}) == [
+        "hoisdf.scoring.recon_store imports torch"]
 
 
 def test_hoisdf_imports_only_the_allowed_hoidata_layers_and_never_the_build_or_its_cli():
@@ -306,8 +364,9 @@ def _dotted(node) -> str | None:
     return None
 
 
-def test_no_module_uses_another_modules_private_names():
-    assert not _private_uses(ROOT / "hoidata"), _private_uses(ROOT / "hoidata")
+@pytest.mark.parametrize("package", PACKAGES)
+def test_no_module_uses_another_modules_private_names(package):
+    assert not _private_uses(ROOT / package), _private_uses(ROOT / package)
 
 
 def test_the_private_name_check_finds_imports_and_attributes(tmp_path):

@@ -7,7 +7,7 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from hoisdf.evaluation import metrics as M
+from hoisdf.scoring import metrics as M
 
 
 @pytest.fixture
@@ -198,7 +198,7 @@ def test_per_group_mean_and_summarize():
         M.per_group_mean([1.0], ["a", "b"])
 
 
-# ---------------------------------------------------------------- physical plausibility (hoisdf.evaluation.plausibility)
+# ---------------------------------------------------------------- physical plausibility (hoisdf.scoring.plausibility)
 
 def _box(extents, centre):
     mesh = trimesh.creation.box(extents=extents)
@@ -211,7 +211,7 @@ def _sphere(radius, centre):
 
 
 def test_penetration_depth_of_sphere_pushed_into_box():
-    from hoisdf.evaluation.plausibility import contact, penetration_depth
+    from hoisdf.scoring.plausibility import contact, penetration_depth
 
     box_v, box_f = _box((0.1, 0.1, 0.1), (0, 0, 0))  # top face at z = 0.05
     # The sphere's lowest vertex (a pole of the icosphere) sits 7 mm below the top face.
@@ -221,7 +221,7 @@ def test_penetration_depth_of_sphere_pushed_into_box():
 
 
 def test_intersection_volume_of_overlapping_boxes():
-    from hoisdf.evaluation.plausibility import intersection_bounds, intersection_volume
+    from hoisdf.scoring.plausibility import intersection_bounds, intersection_volume
 
     a_v, a_f = _box((0.1, 0.1, 0.1), (0, 0, 0))
     b_v, b_f = _box((0.1, 0.08, 0.06), (0.0637, 0.013, -0.021))  # b: x 13.7..113.7, y -27..53, z -51..9 mm
@@ -238,7 +238,7 @@ def test_intersection_volume_of_overlapping_boxes():
 
 @pytest.mark.slow
 def test_separated_and_touching_meshes():
-    from hoisdf.evaluation.plausibility import (
+    from hoisdf.scoring.plausibility import (
         contact,
         intersection_volume,
         penetration_depth,
@@ -266,7 +266,7 @@ def test_separated_and_touching_meshes():
 
 
 def test_intersection_volume_converges_to_exact_boolean():
-    from hoisdf.evaluation.plausibility import intersection_bounds
+    from hoisdf.scoring.plausibility import intersection_bounds
 
     box = trimesh.creation.box(extents=(0.1, 0.1, 0.1))
     ball = trimesh.creation.icosphere(subdivisions=3, radius=0.02)

@@ -1,4 +1,4 @@
-"""The official evaluators' scores (hoisdf.evaluation.official) on hand-made hands whose answers follow from the
+"""The official evaluators' scores (hoisdf.scoring.official) on hand-made hands whose answers follow from the
 construction: identical, moved by 1 cm, scaled about the wrist, another topology; and the hoisdf command's
 dispatch. The fast tier's check of the scoring code; tests/test_score.py holds the golden numbers of the evaluators'
 own scripts on toy data (slow)."""
@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hoisdf.evaluation.official import HO3D_SCORES, dexycb_hpe_scores, ho3d_challenge_scores
+from hoisdf.scoring.official import HO3D_SCORES, dexycb_hpe_scores, ho3d_challenge_scores
 
 SHIFT = np.array([0.01, 0.0, 0.0])  # metres
 STEP = 1 / 99  # one step of the AUC's 100 thresholds, as a share of its range
@@ -85,6 +85,6 @@ def test_the_hoisdf_command_dispatches_score_and_refuses_the_unknown(tmp_path, c
     assert main(["--help"]) == 0 and "usage: hoisdf {score}" in capsys.readouterr().out
     assert main(["nonsense"]) == 2 and "usage: hoisdf {score}" in capsys.readouterr().err
     missing = tmp_path / "pred.json"
-    assert main(["score", "ho3d", "--pred", str(missing), "--gt", str(tmp_path)]) == 2  # reached hoisdf.score
+    assert main(["score", "ho3d", "--pred", str(missing), "--gt", str(tmp_path)]) == 2  # reached hoisdf.scoring.cli
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("hoisdf score ho3d: error: ") and str(missing) in err[0]

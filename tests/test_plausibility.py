@@ -1,4 +1,4 @@
-"""Exact plausibility metrics (hoisdf.evaluation.plausibility, hoisdf.evaluation.solids) against analytic cases,
+"""Exact plausibility metrics (hoisdf.scoring.plausibility, hoisdf.scoring.solids) against analytic cases,
 a brute-force reference on a posed (self-intersecting) toy MANO hand, and the literature's surface-voxel script
 (restated in bench/plausibility_cases.py, the table of docs/plausibility.md)."""
 
@@ -12,14 +12,14 @@ import pytest
 import trimesh
 
 from hoidata.geometry.sdf import brute_force_signed_distance, signed_distance
-from hoisdf.evaluation.plausibility import (
+from hoisdf.scoring.plausibility import (
     frame_metrics,
     intersection_bounds,
     self_penetration_bounds,
     summarize,
     vertex_areas,
 )
-from hoisdf.evaluation.solids import MeshSolid, self_crossing_faces, tangled_surface
+from hoisdf.scoring.solids import MeshSolid, self_crossing_faces, tangled_surface
 from tests.test_sdf import posed_hand
 
 TOL = 3e-7  # m^3 (0.3 cm^3) for the analytic cases (0.65-1.8 cm^3): a few seconds in all on one core
@@ -81,7 +81,7 @@ def test_relative_tolerance_and_budget(bench):
     case = bench.cases()["cylinder through box"]
     est = intersection_bounds(*case["hand"], *case["object"], tolerance=1e-12, rel_tolerance=0.1)
     assert est.error_bound <= 0.1 * est.lower and est.lower <= case["analytic"] <= est.upper
-    from hoisdf.evaluation.solids import MeshSolid, Part, region_volume
+    from hoisdf.scoring.solids import MeshSolid, Part, region_volume
 
     a, b = MeshSolid(*case["hand"]), MeshSolid(*case["object"])
     with pytest.raises(ValueError, match="larger tolerance"):
@@ -205,8 +205,8 @@ def test_depth_and_contact_on_posed_hand_match_brute_force(mano_right):
 
 def test_inherited_membership_changes_no_number(bench, monkeypatch):
     """Children inside a parent's decided ball take its inside/outside instead of casting rays
-    (hoisdf.evaluation.solids._child_hints): the bounds and the estimate are the same as with every centre asked."""
-    from hoisdf.evaluation import solids
+    (hoisdf.scoring.solids._child_hints): the bounds and the estimate are the same as with every centre asked."""
+    from hoisdf.scoring import solids
 
     cases = bench.cases()
     pairs = [(cases["two spheres (lens)"]["hand"], cases["two spheres (lens)"]["object"]),
@@ -229,7 +229,7 @@ def test_inherited_membership_changes_no_number(bench, monkeypatch):
 
 def test_frames_on_worker_processes_equal_frames_here(bench):
     """frame_metrics_many on 2 spawned processes: the same numbers, in the samples' order."""
-    from hoisdf.evaluation.plausibility import frame_metrics_many
+    from hoisdf.scoring.plausibility import frame_metrics_many
 
     box_v, box_f = bench.cases()["box and sphere (cap)"]["object"]
     ball = trimesh.creation.icosphere(subdivisions=2, radius=0.01)
@@ -245,8 +245,8 @@ def test_frames_on_worker_processes_equal_frames_here(bench):
 def test_the_evaluator_report_and_the_scorer_share_one_budget(mano_right, monkeypatch):
     """The evaluator's report (scoring.plausibility_of) spends at most the scorer's cell budget per volume, with the
     same tolerances (docs/plausibility.md, "How exact"): one constant, not two that drift apart."""
-    from hoisdf.evaluation import plausibility, score_contact
-    from hoisdf.evaluation.scoring import plausibility_of
+    from hoisdf.scoring import plausibility, score_contact
+    from hoisdf.evaluation.model_scores import plausibility_of
 
     seen = []
 

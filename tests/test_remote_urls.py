@@ -139,7 +139,7 @@ def test_a_url_password_never_reaches_config_results_or_error_lines(served, mano
 
     from hoidata.cli import main as hoidata
     from hoisdf.evaluate import main as evaluate
-    from hoisdf.score import main as score
+    from hoisdf.scoring.cli import main as score
     from hoisdf.train import main as train
 
     monkeypatch.chdir(tmp_path)  # a file written to the working folder is grepped too

@@ -23,8 +23,8 @@ import zipfile
 import numpy as np
 import pytest
 
-from hoisdf.evaluation.official import HO3D_SCORES
-from hoisdf.score import main as score_main
+from hoisdf.scoring.official import HO3D_SCORES
+from hoisdf.scoring.cli import main as score_main
 
 pytestmark = pytest.mark.slow  # scores result files against toy DexYCB and HO-3D trees and stores
 
@@ -142,7 +142,7 @@ def test_golden_ho3d_file_written_by_hand(points, ho3d_small, tmp_path, capsys):
 
 
 def test_subset_scores_the_rows_and_says_so(ho3d_small, tmp_path, capsys):
-    from hoisdf.evaluation.official import ho3d_challenge_scores
+    from hoisdf.scoring.official import ho3d_challenge_scores
 
     xyz, verts = _gt(ho3d_small)
     pred = by_hand(xyz, verts)
@@ -243,7 +243,7 @@ def test_zip_member_found_as_the_server_does(ho3d_small, tmp_path, capsys):
 def hpe_by_hand(root, path) -> None:
     """A result file written without our writer: every sample of the toy's s0_train (invalid ones included, which
     the toolkit ignores), in reverse order, GT joints in mm moved by a fixed formula, '%.4f' text."""
-    from hoisdf.evaluation.score_dexycb import toolkit_ground_truth
+    from hoisdf.scoring.score_dexycb import toolkit_ground_truth
 
     gt, size, _, _ = toolkit_ground_truth(root, "s0_train")
     lines = []
@@ -273,7 +273,7 @@ def test_golden_dexycb_file_written_by_hand(dexycb_8cam, tmp_path, capsys):
 def test_golden_dexycb_file_written_by_our_writer(dexycb_8cam, tmp_path, capsys):
     """hpe_by_hand's joints, moved by up to 0.3 mm more, written by write_dexycb_hpe (the writer evaluate uses:
     metres in, 6 decimals of mm out), in index order."""
-    from hoisdf.evaluation.submissions import write_dexycb_hpe
+    from hoisdf.scoring.submissions import write_dexycb_hpe
 
     hpe_by_hand(dexycb_8cam, tmp_path / "hand.txt")
     rows = [ln.split(",") for ln in (tmp_path / "hand.txt").read_text().splitlines()]

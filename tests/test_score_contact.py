@@ -1,4 +1,4 @@
-"""``hoisdf score contact`` (hoisdf.evaluation.score_contact) end to end on a toy HO-3D v2 evaluation split: a pred.json
+"""``hoisdf score contact`` (hoisdf.scoring.score_contact) end to end on a toy HO-3D v2 evaluation split: a pred.json
 written by hand in the challenge layout (the JSON list [xyz_list, verts_list], OpenGL, metres, evaluation.txt order;
 shreyashampali/ho3d eval.py reads it so) and an .npz of the same hands; object poses from the store's index, checked
 against the dataset's own annotations; bad files give one line naming file, entry and field."""
@@ -10,7 +10,7 @@ import json
 import numpy as np
 import pytest
 
-from hoisdf.score import main
+from hoisdf.scoring.cli import main
 
 pytestmark = pytest.mark.slow  # scores a toy HO-3D evaluation store end to end
 
@@ -41,7 +41,7 @@ def test_scores_hand_written_pred_json_and_npz_alike(split, tmp_path, capsys):
     from hoidata.datasets.ho3d import HO3DReader
     from hoidata.hand import load_mano
     from hoidata.store import read_index
-    from hoisdf.evaluation.plausibility import frame_metrics
+    from hoisdf.scoring.plausibility import frame_metrics
 
     root, store = split
     xyz, verts = _truth(root)
@@ -140,7 +140,7 @@ def test_older_contact_definitions_beside_the_exact_ones(split, tmp_path, capsys
     contact_legacy, checked against the scripts themselves in tests/test_contact_definitions.py), the means are
     printed beside the exact ones, and the exact numbers are unchanged."""
     from hoidata.hand import load_mano
-    from hoisdf.evaluation.contact_legacy import gsdf_frame
+    from hoisdf.scoring.contact_legacy import gsdf_frame
 
     root, store = split
     xyz, verts = _truth(root)
@@ -160,7 +160,7 @@ def test_older_contact_definitions_beside_the_exact_ones(split, tmp_path, capsys
         assert result["legacy"]["mean"]["contact_ratio"] == pytest.approx(np.mean(contact))
     # gSDF's numbers per frame, recomputed from the closed hands and the store's posed objects
     from hoidata.store import read_index
-    from hoisdf.evaluation.score_contact import match_records, posed_objects
+    from hoisdf.scoring.score_contact import match_records, posed_objects
 
     mano = load_mano(root / "mano", side="right")
     cv = verts * np.array([1.0, -1.0, -1.0])

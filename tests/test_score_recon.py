@@ -1,4 +1,4 @@
-"""``hoisdf score recon`` (hoisdf.evaluation.score_recon): gSDF's protocol against numbers gSDF's own
+"""``hoisdf score recon`` (hoisdf.scoring.score_recon): gSDF's protocol against numbers gSDF's own
 ``_evaluate`` and ``tools/eval.py`` gave on the same meshes (tests/golden/recon/), every frame counted, the exact
 protocol against closed forms, and bad input as one line naming the file."""
 
@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from hoisdf.evaluation.score_recon import score_recon
-from hoisdf.score import main
+from hoisdf.scoring.score_recon import score_recon
+from hoisdf.scoring.cli import main
 
 GOLDEN = __import__("pathlib").Path(__file__).parent / "golden" / "recon" / "gsdf_parity.json"
 
@@ -129,7 +129,7 @@ def test_exact_protocol_on_shifted_plates_closed_form():
     """Two parallel L x L plates h apart, one shifted by s along x: from either, the distance is h over the overlap
     and sqrt(h^2 + u^2) at u past the other's edge, so each direction's mean squared distance is h^2 + s^3 / (3 L)
     and the fraction within t is ((L - s) + min(s, sqrt(t^2 - h^2))) / L (0 when h >= t)."""
-    from hoisdf.evaluation.recon_exact import pair_scores
+    from hoisdf.scoring.recon_exact import pair_scores
 
     length, s, h, taus = 10.0, 2.0, 0.3, [0.5, 1.0, 0.2]
     result = pair_scores(_plate(0.0, 0.0, length), _plate(s, h, length), taus, ["a", "b", "c"], 2e-3, 2e-3)
@@ -164,7 +164,7 @@ def test_exact_protocol_on_spheres_within_bound_and_discretisation():
     mesh -> sphere has area ratio in [rho / r, r^2 / rho^2], so its measure is within total variation
     (k - 1) / (k + 1), k = (r / rho)^3, of the sphere's. The exact protocol's interval must meet the interval
     this leaves around the closed form (docs/scoring.md, "The exact protocol and its bound")."""
-    from hoisdf.evaluation.recon_exact import fscore, pair_scores
+    from hoisdf.scoring.recon_exact import fscore, pair_scores
 
     a, b, c, taus = 4.0, 3.9, 0.3, [0.1, 0.5]
     ma, mb = trimesh.creation.icosphere(4, a), trimesh.creation.icosphere(4, b)
@@ -199,7 +199,7 @@ def test_exact_protocol_on_spheres_within_bound_and_discretisation():
 
 def test_exact_protocol_identical_meshes_and_failures(tmp_path):
     """A mesh against itself: Chamfer 0 and F 1 within the bound (gSDF's sampled protocol gives neither)."""
-    from hoisdf.evaluation.recon_exact import centroid_penalty, pair_scores
+    from hoisdf.scoring.recon_exact import centroid_penalty, pair_scores
 
     m = trimesh.creation.icosphere(2, 3.0)
     result = pair_scores(_mesh_cm(m), _mesh_cm(m), [0.1], ["f1"], 1e-3, 1e-3)
@@ -231,6 +231,8 @@ def _small_case(root):
     ("unknown_id", ["ids.txt", "'line 2'", "nope"]),
     ("bad_parts", ["--parts", "'hand,foot'"]),
     ("no_match", ["pred", "no prediction for any"]),
+    ("two_truths", ["--gt/--gt-store", "one way"]),
+    ("no_truth", ["--gt/--gt-store", "one way"]),
 ])
 def test_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys, breaks, words):
     pred, gt = _small_case(tmp_path)
@@ -250,6 +252,10 @@ def test_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys, breaks, word
         args += ["--ids", tmp_path / "ids.txt"]
     elif breaks == "bad_parts":
         args += ["--parts", "hand,foot"]
+    elif breaks == "two_truths":
+        args += ["--gt-store", tmp_path / "store"]
+    elif breaks == "no_truth":
+        del args[3:5]
     elif breaks == "no_match":
         for p in pred.iterdir():
             p.rename(pred / p.name.replace("f0", "g0"))

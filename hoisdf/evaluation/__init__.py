@@ -1,5 +1,5 @@
-"""Evaluation: :mod:`~hoisdf.evaluation.inference` (a checkpoint over stores), :mod:`~hoisdf.evaluation.metrics`
-and :mod:`~hoisdf.evaluation.scoring` (the paper's numbers), :mod:`~hoisdf.evaluation.plausibility`
-(with :mod:`~hoisdf.evaluation.solids`; any method's files: :mod:`~hoisdf.evaluation.score_contact`),
-:mod:`~hoisdf.evaluation.submissions` (the official evaluators' files), :mod:`~hoisdf.evaluation.outputs`
-and :mod:`~hoisdf.evaluation.visualize` (what a run writes). The CLI is :mod:`hoisdf.evaluate`."""
+"""Evaluation of a checkpoint, on top of :mod:`hoisdf.scoring` (which scores any method's files and imports no
+model code): :mod:`~hoisdf.evaluation.inference` (the model over stores), :mod:`~hoisdf.evaluation.model_scores`
+(the paper's numbers of the collected predictions, the mean-pose baseline, plausibility of the model's hands),
+:mod:`~hoisdf.evaluation.outputs` and :mod:`~hoisdf.evaluation.visualize` (what a run writes). The CLI is
+:mod:`hoisdf.evaluate`."""

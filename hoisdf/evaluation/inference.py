@@ -19,7 +19,7 @@ from hoidata.store import read_index
 from hoisdf.config import config_from_dict
 from hoisdf.data import StoreSpec, build_dataset, make_loader
 from hoisdf.data.augment import augment_batch
-from hoisdf.evaluation.submissions import DEXYCB_TIP_JOINTS, HO3D_TIP_VERTICES
+from hoisdf.scoring.submissions import DEXYCB_TIP_JOINTS, HO3D_TIP_VERTICES
 from hoisdf.model.precision import autocast, trace_dtypes
 from hoisdf.training.checkpoint import CHECKPOINTS, find_checkpoint, load_checkpoint, load_weights
 from hoisdf.training.losses import hand_targets, mirrored_shape_mano
@@ -84,7 +84,7 @@ def load_for_eval(run, mano, device: torch.device, boxes: str | None = None):
     return model.to(device).eval(), config, info
 
 
-def _np(t: torch.Tensor) -> np.ndarray:
+def to_numpy(t: torch.Tensor) -> np.ndarray:
     return t.detach().float().cpu().numpy()
 
 
@@ -94,8 +94,8 @@ def _keep_vis(col: Collected, batch: dict, out: dict, limit: int) -> None:
         img = (batch["img"][i].permute(1, 2, 0).clamp(0, 1) * 255).round().byte().cpu().numpy()
         points = [out["hand_query"][i] + batch["hand_root"][i], out["obj_query"][i] + batch["obj_center"][i]]
         sdf = [out["hand_query_sdf"][i], out["obj_query_sdf"][i]]
-        col.vis[batch["key"][i]] = {"img": img, "K": _np(batch["K"][i]), "points": _np(torch.cat(points)),
-                                    "sdf": _np(torch.cat(sdf))}
+        col.vis[batch["key"][i]] = {"img": img, "K": to_numpy(batch["K"][i]), "points": to_numpy(torch.cat(points)),
+                                    "sdf": to_numpy(torch.cat(sdf))}
 
 
 def predict_batch(model, mano, mirrored, batch: dict, config,
@@ -120,7 +120,7 @@ def predict_batch(model, mano, mirrored, batch: dict, config,
         arrays["verts"] = out["verts"].float() + root
     if "upstream_crop" in batch:  # the record is upstream's test crop (hoidata record.crop = "upstream")
         arrays["upstream_crop"] = batch["upstream_crop"]
-    return (batch, out), {k: _np(v) for k, v in arrays.items()}
+    return (batch, out), {k: to_numpy(v) for k, v in arrays.items()}
 
 
 def infer(model, mano, config, stores: list, batch_size: int, device: torch.device, limit: int | None = None,

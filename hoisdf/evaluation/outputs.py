@@ -13,15 +13,15 @@ from hoidata.atomic import write_atomic
 from hoidata.errors import DataError
 from hoidata.geometry.mirror import mirror_points
 from hoidata.store import read_index
-from hoisdf.evaluation.ho3d_list import (
+from hoisdf.evaluation.inference import Collected
+from hoisdf.scoring.ho3d_list import (
     check_against_ground_truth,
     check_against_store,
     ho3d_entry,
     read_evaluation_list,
 )
-from hoisdf.evaluation.inference import Collected
-from hoisdf.evaluation.official import HO3D_EVALUATION_SIZES, dexycb_hpe_scores, toolkit_gt_mm
-from hoisdf.evaluation.submissions import hpe_missing_ids, read_dexycb_hpe, write_dexycb_hpe, write_ho3d_pred
+from hoisdf.scoring.official import HO3D_EVALUATION_SIZES, dexycb_hpe_scores, toolkit_gt_mm
+from hoisdf.scoring.submissions import hpe_missing_ids, read_dexycb_hpe, write_dexycb_hpe, write_ho3d_pred
 
 TABLE = (("MJE", "rr_mje"), ("PA-MJE", "pa_mje"), ("OCE", "oce"), ("MCE", "mce"), ("ADD-S", "add_s"))
 MESH_TABLE = (("MME", "mme"), ("PA-MME", "pa_mme"), ("F@5", "f5"), ("F@15", "f15"))
@@ -41,17 +41,6 @@ def format_table(rows: dict[str, dict[str, float]], mesh: bool, ho3d: bool = Fal
         cells = (f"{values.get(key, float('nan')):9.{3 if key in ('f5', 'f15') else 2}f}" for _, key in cols)
         lines.append(f"{name:<{width}}" + "".join(cells))
     return "\n".join(lines)
-
-
-def json_safe(x):
-    """JSON-safe copy: NaN/inf -> None, numpy scalars -> Python."""
-    if isinstance(x, dict):
-        return {str(k): json_safe(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [json_safe(v) for v in x]
-    if isinstance(x, (float, np.floating)):
-        return float(x) if np.isfinite(x) else None
-    return x.item() if isinstance(x, np.generic) else x
 
 
 def write_per_object(path: Path, summary: dict, counts: dict[str, int]) -> None:
@@ -153,7 +142,7 @@ def _export_ho3d(col: Collected, sel: np.ndarray, joints: np.ndarray, path, out_
 
 
 def checked_ho3d_order(path, gt_folder, indexes: dict, limit: int | None = None) -> list[str]:
-    """``--ho3d-order``'s list, checked before any work (:mod:`hoisdf.evaluation.ho3d_list`): well-formed, exactly
+    """``--ho3d-order``'s list, checked before any work (:mod:`hoisdf.scoring.ho3d_list`): well-formed, exactly
     the frames of every HO-3D store among ``indexes`` (store -> StoreIndex, in evaluation order), not cut by
     ``limit``, and with ``gt_folder`` the ground truth's own list in its order. Returns its entries."""
     order = read_evaluation_list(path)
@@ -190,7 +179,7 @@ def clear_results(out_dir: Path) -> None:
 def score_ho3d_files(files: dict[str, str], gt_folder, out_dir: Path) -> dict:
     """Score the pred.json among ``files`` (export's result) against the challenge's ground truth in ``gt_folder``
     and write ``out_dir/scores.txt`` as the server's eval.py does; returns the scores plus the pred file's name."""
-    from hoisdf.evaluation.official import score_ho3d_submission, write_scores_txt
+    from hoisdf.scoring.official import score_ho3d_submission, write_scores_txt
 
     preds = [path for key, path in files.items() if key.startswith("ho3d.json:")]
     if len(preds) != 1:

@@ -4,8 +4,8 @@ Ground truth (``HPEEvaluator._generate_anno_file``): every sample of the toolkit
 enumerated as ``DexYCBDataset`` does: :func:`hoidata.datasets.dexycb_layout.toolkit_split`), its
 ``labels_%06d.npz`` ``joint_3d`` times 1000 in float32, then float64; samples whose joints are all -1 are left out.
 Result file (``_load_results``): one line per sample, the integer sample index and 63 millimetre coordinates
-(:func:`hoisdf.evaluation.submissions.read_dexycb_hpe`). Every valid sample must be in it (the toolkit's assert);
-lines may come in any order. Numbers: :func:`hoisdf.evaluation.official.dexycb_hpe_scores`, the toolkit's
+(:func:`hoisdf.scoring.submissions.read_dexycb_hpe`). Every valid sample must be in it (the toolkit's assert);
+lines may come in any order. Numbers: :func:`hoisdf.scoring.official.dexycb_hpe_scores`, the toolkit's
 MPJPE (mm) and AUC (0-50 mm) for ``absolute``, ``root-relative`` and ``procrustes``.
 
 Stricter than the toolkit, each as one line naming the file and line: a duplicate index (the toolkit keeps the
@@ -29,8 +29,8 @@ from hoidata.datasets.dexycb_layout import (
     toolkit_split,
 )
 from hoidata.errors import DataError
-from hoisdf.evaluation.official import HPE_ALIGNMENTS, dexycb_hpe_scores, toolkit_gt_mm
-from hoisdf.evaluation.submissions import read_dexycb_hpe
+from hoisdf.scoring.official import HPE_ALIGNMENTS, dexycb_hpe_scores, toolkit_gt_mm
+from hoisdf.scoring.submissions import read_dexycb_hpe
 
 HELP = "DexYCB HPE result file (dex-ycb-toolkit format) against a DexYCB folder's labels (hpe_eval.py's numbers)"
 
@@ -90,7 +90,7 @@ def match_results(path: Path, ids: np.ndarray, gt: dict, size: int, where: dict)
 
 def score(args) -> dict:
     """The toolkit's numbers for ``args.pred`` on ``args.split`` of ``args.root``: ``{alignment: {"mpjpe": mm,
-    "auc": ratio}}`` for :data:`~hoisdf.evaluation.official.HPE_ALIGNMENTS`, plus ``split``, ``samples`` (valid
+    "auc": ratio}}`` for :data:`~hoisdf.scoring.official.HPE_ALIGNMENTS`, plus ``split``, ``samples`` (valid
     samples scored), ``ignored`` (lines of invalid samples), ``official``, ``note``, ``pred_file``, ``root``."""
     gt, size, where, complete = toolkit_ground_truth(args.root, args.split)
     if not gt:

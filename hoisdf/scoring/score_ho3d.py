@@ -1,9 +1,9 @@
 """``hoisdf score ho3d``: any method's HO-3D challenge submission scored offline, as the server's eval.py scores it.
 
 Inputs: a ``pred.json`` (or the ``pred.zip`` holding it) in the challenge layout (``[xyz_list, verts_list]``,
-metres, OpenGL frame, HO-3D joint order, ``evaluation.txt`` order; :mod:`hoisdf.evaluation.submissions`) and the
+metres, OpenGL frame, HO-3D joint order, ``evaluation.txt`` order; :mod:`hoisdf.scoring.submissions`) and the
 folder of the released ground truth, ``evaluation_xyz.json`` / ``evaluation_verts.json`` (plus ``evaluation.txt``
-for a subset). The 14 numbers are :func:`hoisdf.evaluation.official.ho3d_challenge_scores`, the ones eval.py
+for a subset). The 14 numbers are :func:`hoisdf.scoring.official.ho3d_challenge_scores`, the ones eval.py
 writes to ``scores.txt``, under its names and in its units.
 
 A result is ``official`` only when the whole evaluation split of the version was scored (11,524 samples for v2,
@@ -19,14 +19,14 @@ import numpy as np
 
 from hoidata.errors import DataError
 from hoidata.hand import DEXYCB_TO_MANO
-from hoisdf.evaluation.official import (
+from hoisdf.scoring.official import (
     HO3D_EVALUATION_SIZES,
     HO3D_SCORES,
     HO3D_UNITS,
     ho3d_challenge_scores,
     read_ho3d_gt,
 )
-from hoisdf.evaluation.submissions import read_ho3d_lists
+from hoisdf.scoring.submissions import read_ho3d_lists
 
 HELP = "HO-3D challenge pred.json / pred.zip against the released evaluation ground truth (scores.txt's 14 numbers)"
 WRIST_WARNING_M = 0.2  # a median wrist error above this is far beyond any method: a wrong frame or order
@@ -124,7 +124,7 @@ def _warnings(pred_xyz: np.ndarray, gt_xyz: np.ndarray) -> list[str]:
 
 def score(args) -> dict:
     """The scores of ``args.pred`` against ``args.gt`` (see the module docstring): the 14 names of
-    :data:`~hoisdf.evaluation.official.HO3D_SCORES` plus ``samples``, ``official``, ``note``, ``warnings``,
+    :data:`~hoisdf.scoring.official.HO3D_SCORES` plus ``samples``, ``official``, ``note``, ``warnings``,
     ``units``, ``version``, ``pred_file`` and ``ground_truth``. Raises DataError naming the file, entry and field of
     a malformed submission."""
     pred = read_ho3d_lists(args.pred)

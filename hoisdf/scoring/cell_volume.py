@@ -111,7 +111,7 @@ def column_integrals(centres, edge, boxes, left_of, start_of, count_of, tri, out
 @numba.njit(cache=True, inline="always")
 def _segment_hits(t, i, j, u):
     """Segment from corner i to corner j of triangle ``t`` (9,) meets triangle ``u`` (9,): Moller-Trumbore with
-    0 <= t <= 1, the arithmetic of :mod:`hoisdf.evaluation.solids`' numpy test."""
+    0 <= t <= 1, the arithmetic of :mod:`hoisdf.scoring.solids`' numpy test."""
     px, py, pz = t[3 * i], t[3 * i + 1], t[3 * i + 2]
     dx, dy, dz = t[3 * j] - px, t[3 * j + 1] - py, t[3 * j + 2] - pz
     e1x, e1y, e1z = u[3] - u[0], u[4] - u[1], u[5] - u[2]
@@ -172,7 +172,7 @@ def crossing_parts(parts, parent, faces, order, boxes, left_of, start_of, count_
 
 
 def crosses(solid, parts: np.ndarray, parent: np.ndarray) -> np.ndarray:
-    """:func:`crossing_parts` for a :class:`hoisdf.evaluation.solids.MeshSolid` and parts (K, 3, 3) of its faces."""
+    """:func:`crossing_parts` for a :class:`hoisdf.scoring.solids.MeshSolid` and parts (K, 3, 3) of its faces."""
     b = solid.bvh
     flat = np.ascontiguousarray(np.asarray(parts, np.float64).reshape(-1, 9))
     return crossing_parts(flat, np.ascontiguousarray(parent, np.int64), solid.faces, b.order, b.boxes, b.left,
@@ -202,7 +202,7 @@ def _split(tri: np.ndarray) -> np.ndarray:
 
 
 def face_parts(solid, sign: float, levels: int = 3) -> tuple[np.ndarray, np.ndarray]:
-    """Triangle soups (K, 3, 3) of a closed :class:`hoisdf.evaluation.solids.MeshSolid`: the *irregular* parts of
+    """Triangle soups (K, 3, 3) of a closed :class:`hoisdf.scoring.solids.MeshSolid`: the *irregular* parts of
     its surface, which may border anything but w = 0 and w = ``sign`` (they cross a face that is not a neighbour
     of theirs, or their front has a winding number other than 0, resp. -1 for an inward-wound mesh), and the
     *boundary*: all but the buried parts, which cross no face and have |w| >= 1 on both sides (front w >= 1 or

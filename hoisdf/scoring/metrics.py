@@ -36,7 +36,7 @@ AUC_LO, AUC_HI, AUC_STEPS = 0.0, 0.05, 100  # metres: 0-50 mm in 100 steps (Eval
 F_THRESHOLDS = (0.005, 0.015)  # F@5mm, F@15mm
 
 
-def _batch(x, name: str, last: int = 3) -> np.ndarray:
+def as_batch(x, name: str, last: int = 3) -> np.ndarray:
     """(N, K, last) float64; a single (K, last) set becomes N = 1."""
     arr = np.asarray(x, dtype=np.float64)
     if arr.ndim == 2:
@@ -46,8 +46,9 @@ def _batch(x, name: str, last: int = 3) -> np.ndarray:
     return arr
 
 
-def _pair(pred, gt) -> tuple[np.ndarray, np.ndarray]:
-    pred, gt = _batch(pred, "pred"), _batch(gt, "gt")
+def as_pair(pred, gt) -> tuple[np.ndarray, np.ndarray]:
+    """``pred`` and ``gt`` as :func:`as_batch` arrays of one shape (a ValueError naming both shapes otherwise)."""
+    pred, gt = as_batch(pred, "pred"), as_batch(gt, "gt")
     if pred.shape != gt.shape:
         raise ValueError(f"pred and gt must have the same shape, got {pred.shape} and {gt.shape}")
     return pred, gt
@@ -74,7 +75,7 @@ def procrustes_align(pred, gt, scale: bool = True, reflection: bool = True) -> n
         (N, K, 3) aligned prediction ``c R p + t``. A degenerate prediction (all points equal) maps onto the
         GT centroid.
     """
-    pred, gt = _pair(pred, gt)
+    pred, gt = as_pair(pred, gt)
     mu_p, mu_g = pred.mean(1, keepdims=True), gt.mean(1, keepdims=True)
     x, y = pred - mu_p, gt - mu_g
     u, s, vt = np.linalg.svd(np.einsum("nki,nkj->nij", y, x))  # (N, 3, 3): gt x pred
@@ -94,7 +95,7 @@ def st_align(pred, gt, wrist: int = WRIST, middle_mcp: int = MIDDLE_MCP) -> np.n
     The prediction is scaled by |gt[mcp] - gt[wrist]| / |pred[mcp] - pred[wrist]| (left unscaled where
     its bone has zero length), then translated so that its wrist lands on the GT wrist.
     """
-    pred, gt = _pair(pred, gt)
+    pred, gt = as_pair(pred, gt)
     bone_p = np.linalg.norm(pred[:, middle_mcp] - pred[:, wrist], axis=-1)
     bone_g = np.linalg.norm(gt[:, middle_mcp] - gt[:, wrist], axis=-1)
     ratio = np.where(bone_p > 0, bone_g / np.where(bone_p > 0, bone_p, 1.0), bone_g)
@@ -106,13 +107,13 @@ def st_align(pred, gt, wrist: int = WRIST, middle_mcp: int = MIDDLE_MCP) -> np.n
 
 def point_errors(pred, gt) -> np.ndarray:
     """(N, K) L2 distance of corresponding points, metres."""
-    pred, gt = _pair(pred, gt)
+    pred, gt = as_pair(pred, gt)
     return np.linalg.norm(pred - gt, axis=-1)
 
 
 def mje(pred, gt, root_relative: bool = False, root: int = WRIST) -> np.ndarray:
     """(N,) mean joint error, metres; ``root_relative`` subtracts joint ``root`` from each set first."""
-    pred, gt = _pair(pred, gt)
+    pred, gt = as_pair(pred, gt)
     if root_relative:
         pred, gt = pred - pred[:, root:root + 1], gt - gt[:, root:root + 1]
     return point_errors(pred, gt).mean(1)
@@ -193,7 +194,7 @@ def f_score(pred_pts, gt_pts, threshold: float) -> tuple[float, float, float]:
 
 def f_scores(pred_verts, gt_verts, threshold: float, procrustes: bool = False) -> np.ndarray:
     """(N,) F-score per sample of (N, V, 3) vertex sets at ``threshold`` metres, optionally PA-aligned."""
-    pred, gt = _pair(pred_verts, gt_verts)
+    pred, gt = as_pair(pred_verts, gt_verts)
     if procrustes:
         pred = procrustes_align(pred, gt)
     return np.array([f_score(p, g, threshold)[0] for p, g in zip(pred, gt)])
@@ -293,7 +294,7 @@ ome = add  # HO-3D tables call the ADD-like vertex error "OME" (upstream variabl
 def joint_metrics(pred, gt, root: int = WRIST, middle_mcp: int = MIDDLE_MCP) -> dict[str, np.ndarray]:
     """Per-sample joint metrics of (N, 21, 3) sets: mje (absolute), rr_mje, pa_mje (official alignment),
     pa_mje_no_reflection, st_mje (metres) and the AUCs auc (absolute), rr_auc, pa_auc (0-50 mm)."""
-    pred, gt = _pair(pred, gt)
+    pred, gt = as_pair(pred, gt)
     rr_p, rr_g = pred - pred[:, root:root + 1], gt - gt[:, root:root + 1]
     pa = procrustes_align(pred, gt)
     return {
@@ -307,7 +308,7 @@ def joint_metrics(pred, gt, root: int = WRIST, middle_mcp: int = MIDDLE_MCP) -> 
 def mesh_metrics(pred_verts, gt_verts, thresholds: Sequence[float] = F_THRESHOLDS) -> dict[str, np.ndarray]:
     """Per-sample hand mesh metrics of (N, V, 3) sets: mme, pa_mme, pa_mme_no_reflection (metres), vauc, pa_vauc and the
     F-scores ``f<mm>`` / ``pa_f<mm>`` (e.g. f5, f15) at ``thresholds`` metres."""
-    pred, gt = _pair(pred_verts, gt_verts)
+    pred, gt = as_pair(pred_verts, gt_verts)
     pa = procrustes_align(pred, gt)
     out = {"mme": mme(pred, gt), "pa_mme": mme(pa, gt), "vauc": vauc(pred, gt), "pa_vauc": vauc(pa, gt),
            "pa_mme_no_reflection": mme(procrustes_align(pred, gt, reflection=False), gt)}

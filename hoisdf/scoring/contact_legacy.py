@@ -117,7 +117,7 @@ def grasptta_frame(hand_v, hand_f, obj_v, obj_f, n_points: int = 778) -> dict[st
     first ``n_points`` vertices and the faces among them are MANO's open mesh."""
     import trimesh
 
-    from hoisdf.evaluation.plausibility import penetration_depth
+    from hoisdf.scoring.plausibility import penetration_depth
 
     hand_v = np.asarray(hand_v, np.float64)[:n_points]
     obj = trimesh.Trimesh(vertices=np.asarray(obj_v, np.float64), faces=np.asarray(obj_f))

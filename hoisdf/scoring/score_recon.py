@@ -1,14 +1,18 @@
 """``hoisdf score recon``: hand and object reconstruction scores of any method's meshes against the ground truth.
 
-    hoisdf score recon --pred SDF_MESH_DIR --gt GT_DIR [--protocol gsdf|exact] [--seed S] [--repeats K]
+    hoisdf score recon --pred SDF_MESH_DIR (--gt GT_DIR | --gt-store STORE --mano DIR) [--protocol gsdf|exact]
+                       [--seed S] [--repeats K]
                        [--drop-failures] [--parts hand,obj] [--ids FILE] [--workers N]
 
+The ground truth is a folder of meshes (:mod:`hoisdf.scoring.recon_files`) or posed from a store's labels
+(:mod:`hoisdf.scoring.recon_store`).
+
 Protocols (docs/scoring.md, "Reconstruction"): ``gsdf`` is gSDF's ``_evaluate`` operation for operation
-(:mod:`hoisdf.evaluation.recon_gsdf`), its draws seeded per frame by ``--seed`` (``--repeats K``: K seeds, the
+(:mod:`hoisdf.scoring.recon_gsdf`), its draws seeded per frame by ``--seed`` (``--repeats K``: K seeds, the
 spread of the unseeded protocol); ``exact`` is the same quantities as surface integrals with a rigorous bound
-(:mod:`hoisdf.evaluation.recon_exact`). Every frame of the ground truth counts: a missing, unreadable or empty
+(:mod:`hoisdf.scoring.recon_exact`). Every frame of the ground truth counts: a missing, unreadable or empty
 prediction is a failure scored with F = 0 and the Chamfer of a prediction collapsed to the ground truth's
-centroid (:func:`~hoisdf.evaluation.recon_exact.centroid_penalty`); ``--drop-failures`` reports the old survivor
+centroid (:func:`~hoisdf.scoring.recon_exact.centroid_penalty`); ``--drop-failures`` reports the old survivor
 mean instead, labelled so. Imports no model code.
 """
 
@@ -16,14 +20,15 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from hoidata.cli_types import non_negative_int, positive_int
 from hoidata.errors import DataError
-from hoisdf.evaluation import recon_exact, recon_gsdf
-from hoisdf.evaluation.recon_files import PARTS, check_mesh, gt_files, gt_mesh, named_files, read_ids
+from hoisdf.scoring import recon_exact, recon_gsdf
+from hoisdf.scoring.recon_files import PARTS, check_mesh, gt_files, gt_mesh, named_files, read_ids
 
 HELP = "hand and object Chamfer distance and F-scores of any method's meshes (gSDF's protocol, or exact)"
 CHAMFER_TOLERANCE = 1e-3  # cm^2, half-width aimed at by the exact protocol
@@ -179,8 +184,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     """This subcommand's options (``hoisdf score`` adds ``--out`` and ``--debug``)."""
     p.add_argument("--pred", required=True, type=Path, metavar="DIR", help="predicted meshes <id>_hand.ply|obj, "
                    "<id>_obj.ply|obj, metres (gSDF's sdf_mesh/ folder)")
-    p.add_argument("--gt", required=True, type=Path, metavar="DIR", help="ground-truth meshes, named the same way "
+    p.add_argument("--gt", type=Path, metavar="DIR", help="ground-truth meshes, named the same way "
                    "or as gSDF's test export (mesh_hand/<id>.obj, mesh_obj/<id>.obj)")
+    p.add_argument("--gt-store", metavar="STORE", help="or: the ground truth posed from a hoidata "
+                   "store's labels (frame ids: its frame_id; right hands only; needs --mano for hands)")
+    p.add_argument("--mano", type=Path, metavar="DIR", help="MANO folder (MANO_RIGHT.pkl), for --gt-store's hands")
     p.add_argument("--protocol", choices=("gsdf", "exact"), default="gsdf",
                    help="gsdf: gSDF's sampled evaluation, seeded; exact: surface integrals with a bound")
     p.add_argument("--seed", type=non_negative_int, default=0, help="gsdf: seed of the surface samples (default 0)")
@@ -208,8 +216,21 @@ def score(args) -> dict:
         raise DataError(None, "--chamfer-tolerance/--f-tolerance", "must be positive")
     if args.protocol == "exact" and args.repeats > 1:
         raise DataError(None, "--repeats", "the exact protocol draws nothing: repeats apply to --protocol gsdf")
-    result = score_recon(args.pred, args.gt, args.protocol, args.seed, args.repeats, parts, args.ids, args.workers,
-                         args.chamfer_tolerance, args.f_tolerance, args.max_queries)
+    if (args.gt is None) == (args.gt_store is None):
+        raise DataError(None, "--gt/--gt-store", "give the ground truth one way: a mesh folder or a store")
+    run = lambda gt: score_recon(args.pred, gt, args.protocol, args.seed, args.repeats, parts, args.ids, args.workers,
+                                 args.chamfer_tolerance, args.f_tolerance, args.max_queries)
+    if args.gt_store is None:
+        result = run(args.gt)
+    else:
+        from hoisdf.scoring.recon_store import write_store_gt
+
+        if not Path(args.pred).is_dir():  # before posing a split's meshes
+            raise DataError(args.pred, None, "prediction folder not found")
+        with tempfile.TemporaryDirectory(prefix="hoisdf-recon-gt-") as tmp:
+            made = write_store_gt(args.gt_store, Path(tmp), parts, args.mano)
+            result = run(tmp)
+        result["settings"].update(gt=str(args.gt_store), gt_layout="posed from a store", **made)
     result["drop_failures"] = bool(args.drop_failures)
     return result
 
@@ -239,6 +260,8 @@ def format_result(result: dict) -> str:
             lines.append(f"    over {len(result['repeats']['seeds'])} seeds (std, min..max): " + "; ".join(
                 f"{n} {spread[key + n]['std']:.2e}, {spread[key + n]['min']:.6f}..{spread[key + n]['max']:.6f}"
                 for n in metric_names(part)))
+    if result["settings"].get("mirrored_left_out"):
+        lines.append(f"  {result['settings']['mirrored_left_out']} mirrored (left-hand) records of the store left out")
     if result.get("ignored_predictions"):
         lines.append(f"  {result['ignored_predictions']} predicted frames are not in the ground truth: ignored")
     if exact and result.get("unconverged"):

@@ -1,4 +1,4 @@
-"""``hoisdf score SUBCOMMAND ...`` (also ``python -m hoisdf.score``): result files of any method scored offline,
+"""``hoisdf score SUBCOMMAND ...`` (also ``python -m hoisdf.scoring``): result files of any method scored offline,
 with no model and no store.
 
     hoisdf score ho3d   --pred pred.json|pred.zip --gt DIR [--version v2|v3] [--subset PREFIX | --ids FILE]
@@ -27,12 +27,13 @@ import sys
 from hoidata.atomic import write_atomic
 from hoidata.cli_types import ArgumentParser, local_path
 from hoidata.errors import run_cli
+from hoisdf.scoring.results_json import json_safe
 
 SUBCOMMANDS = {
-    "ho3d": "hoisdf.evaluation.score_ho3d",
-    "dexycb": "hoisdf.evaluation.score_dexycb",
-    "contact": "hoisdf.evaluation.score_contact",
-    "recon": "hoisdf.evaluation.score_recon",
+    "ho3d": "hoisdf.scoring.score_ho3d",
+    "dexycb": "hoisdf.scoring.score_dexycb",
+    "contact": "hoisdf.scoring.score_contact",
+    "recon": "hoisdf.scoring.score_recon",
 }
 
 
@@ -51,8 +52,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _run(args) -> int:
-    from hoisdf.evaluation.outputs import json_safe
-
     result = args.module.score(args)
     print(args.module.format_result(result))
     if args.out is not None:

@@ -12,9 +12,9 @@ Inputs (docs/plausibility.md):
   frame, which is the frame of the predictions.
 - ``--mano``: folder with MANO_RIGHT.pkl, for the faces and the wrist cap that closes each hand.
 
-Per frame it computes :func:`hoisdf.evaluation.plausibility.frame_metrics`, prints the means and writes
+Per frame it computes :func:`hoisdf.scoring.plausibility.frame_metrics`, prints the means and writes
 every frame's numbers with ``--out FILE.json``. ``--contact-definition gsdf|grasptta`` adds an older paper's
-contact, penetration and volume (:mod:`hoisdf.evaluation.contact_legacy`) beside the exact ones. It follows
+contact, penetration and volume (:mod:`hoisdf.scoring.contact_legacy`) beside the exact ones. It follows
 ``hoisdf score``'s subcommand interface (``HELP``, ``add_arguments``, ``score``, ``format_result``) and is listed
 there as ``contact``.
 """
@@ -30,8 +30,8 @@ from hoidata.cli_types import non_negative_int, positive_int
 from hoidata.errors import DataError
 from hoidata.geometry.mirror import mirror_mesh
 from hoidata.store import read_index
-from hoisdf.evaluation.contact_legacy import DEFINITIONS, legacy_many, legacy_summary
-from hoisdf.evaluation.plausibility import (
+from hoisdf.scoring.contact_legacy import DEFINITIONS, legacy_many, legacy_summary
+from hoisdf.scoring.plausibility import (
     BUDGET,
     CONTACT_THRESHOLD,
     REL_TOLERANCE,
@@ -39,7 +39,7 @@ from hoisdf.evaluation.plausibility import (
     frame_metrics_many,
     summarize,
 )
-from hoisdf.evaluation.submissions import OPENCV_TO_OPENGL, read_ho3d_lists
+from hoisdf.scoring.submissions import OPENCV_TO_OPENGL, read_ho3d_lists
 
 MANO_VERTS = 778
 MAX_CELLS = BUDGET  # per volume and frame, as the evaluator's report
@@ -151,15 +151,14 @@ def score_contact(pred, store, mano_dir, order=None, tolerance: float = TOLERANC
         workers: processes (0 or 1: this one).
         max_cells: evaluation budget per volume and frame.
         definition: also an older paper's contact, depth and volume, beside the exact ones: "gsdf" or
-            "grasptta" (:mod:`hoisdf.evaluation.contact_legacy`); "exact": only the exact ones.
+            "grasptta" (:mod:`hoisdf.scoring.contact_legacy`); "exact": only the exact ones.
 
     Returns:
         {"mean": ..., "frames": [{"id": ..., metrics}], "subset": bool, "settings": {...}}, and with an older
         definition "legacy": {"definition", "mean"}; each frame then also holds its numbers as ``<definition>_*``.
     """
-    import torch
-
     from hoidata.hand import load_mano
+    from hoidata.hand.topology import close_vertices
 
     verts, ids, by = read_hands(pred, order)
     index = read_index(store)
@@ -168,7 +167,7 @@ def score_contact(pred, store, mano_dir, order=None, tolerance: float = TOLERANC
     if limit is not None:
         verts, ids, rows = verts[:limit], ids[:limit], rows[:limit]
     mano = load_mano(mano_dir, side="right")
-    closed = mano.close(torch.as_tensor(verts)).numpy().astype(np.float64)
+    closed = close_vertices(np.asarray(verts, dtype=np.float64), np.asarray(mano.wrist_loop))
     faces = np.asarray(mano.closed_faces, dtype=np.int64)
     samples = [(closed[k], faces, *obj) for k, obj in enumerate(posed_objects(index, rows))]
     frames = frame_metrics_many(samples, workers, tolerance=tolerance, threshold=threshold, n_points=MANO_VERTS,

@@ -26,12 +26,12 @@ bounds hold up to float64 rounding (relative 1e-15).
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from hoidata.geometry.bvh import MeshBVH
 
 MAX_QUERIES = 4_000_000  # distance queries per direction of one part of one frame (about 1 GB of sub-triangles)
-CHUNK = 100_000  # sub-triangles per block of the vertex-to-closest-point bound
 
 
 class Target:
@@ -55,34 +55,80 @@ def _areas(tri: np.ndarray) -> np.ndarray:
     return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
 
 
-class _Pieces:
-    """Sub-triangles with their vertex and centroid distances."""
+@numba.njit(cache=True)
+def piece_bounds(tri, fv, pv, fc, pc, t2):
+    """Per sub-triangle (vertices ``tri``, vertex squared distances ``fv`` and closest points ``pv``, centroid
+    squared distance ``fc`` and closest point ``pc``; squared thresholds ``t2``): area, lower and upper bound of the
+    integral of f, and per threshold whether d < t surely / maybe holds on the whole piece (module docstring)."""
+    n, k = tri.shape[0], t2.shape[0]
+    area, lo, hi = np.empty(n), np.empty(n), np.empty(n)
+    surely, maybe = np.empty((n, k), np.bool_), np.empty((n, k), np.bool_)
+    for i in range(n):
+        a = tri[i, 1] - tri[i, 0]
+        b = tri[i, 2] - tri[i, 0]
+        cx = a[1] * b[2] - a[2] * b[1]
+        cy = a[2] * b[0] - a[0] * b[2]
+        cz = a[0] * b[1] - a[1] * b[0]
+        area[i] = 0.5 * np.sqrt(cx * cx + cy * cy + cz * cz)
+        c = (tri[i, 0] + tri[i, 1] + tri[i, 2]) / 3.0
+        m, r2max, fmean, inf2 = 0.0, 0.0, 0.0, np.inf
+        for j in range(3):
+            r2 = 0.0
+            for e in range(3):
+                r2 += (tri[i, j, e] - c[e]) ** 2
+            m += r2 / 3.0
+            r2max = max(r2max, r2)
+            fmean += fv[i, j] / 3.0
+            inf2 = min(inf2, fv[i, j] - r2)
+        dc = np.sqrt(fc[i])
+        near = max(dc - np.sqrt(r2max), 0.0) ** 2
+        low = area[i] * max(fmean - 0.75 * m, near)
+        high = area[i] * min(fc[i] + 0.25 * m, (dc + np.sqrt(r2max)) ** 2)
+        lo[i], hi[i] = min(low, high), high  # equal up to rounding where the piece is a point
+        inf2 = max(inf2, near)
+        # sup d over the piece: <= max over its vertices of the distance to any closest point already known
+        sup2 = np.inf
+        for q in range(4):
+            p = pc[i] if q == 0 else pv[i, q - 1]
+            worst = 0.0
+            for j in range(3):
+                d2 = 0.0
+                for e in range(3):
+                    d2 += (tri[i, j, e] - p[e]) ** 2
+                worst = max(worst, d2)
+            sup2 = min(sup2, worst)
+        for t in range(k):
+            surely[i, t] = sup2 < t2[t]
+            maybe[i, t] = surely[i, t] or inf2 < t2[t]
+    return area, lo, hi, surely, maybe
 
-    def __init__(self, tri, fv, pv, target: Target):
-        self.tri, self.fv, self.pv = tri, fv, pv
-        self.area = _areas(tri)
-        self.c = tri.mean(1)
-        self.fc, self.pc = target.query(self.c)
 
-    def bounds(self, thresholds: np.ndarray):
-        """Per piece: integral lower/upper bounds of f, and (n, k) 'surely inside' / 'maybe inside' per threshold."""
-        r2 = np.square(self.tri - self.c[:, None]).sum(2)
-        m, big_r = r2.mean(1), np.sqrt(r2.max(1))
-        dc = np.sqrt(self.fc)
-        lo = self.area * np.maximum(self.fv.mean(1) - 0.75 * m, np.square(np.maximum(dc - big_r, 0.0)))
-        hi = self.area * np.minimum(self.fc + 0.25 * m, np.square(dc + big_r))
-        lo = np.minimum(lo, hi)  # equal up to rounding where T is a point
-        # sup d over T: <= max over the vertices of the distance to any closest point already known
-        sup2 = np.empty(len(self.tri))
-        for s in range(0, len(self.tri), CHUNK):  # in chunks: the (n, 3, 4, 3) differences are large
-            known = np.concatenate([self.pc[s:s + CHUNK, None], self.pv[s:s + CHUNK]], 1)  # (n, 4, 3)
-            sup2[s:s + CHUNK] = np.square(self.tri[s:s + CHUNK, :, None] - known[:, None]).sum(3).max(1).min(1)
-        inf2 = np.maximum((self.fv - r2).min(1), np.square(np.maximum(dc - big_r, 0.0)))
-        t2 = np.square(thresholds)[None]
-        surely = sup2[:, None] < t2
-        return lo, hi, surely, surely | (inf2[:, None] < t2)
+FIELDS = ("tri", "fv", "pv", "area", "lo", "hi", "surely", "maybe")
 
-    def split(self, idx: np.ndarray, target: Target) -> _Pieces:
+
+class Pieces:
+    """Sub-triangles (``tri`` (n, 3, 3)) with their vertices' squared distances ``fv`` and closest points ``pv``, and
+    their bounds, computed once when they are made: ``lo`` / ``hi`` of the integral of f, and per threshold whether
+    the piece lies surely within it (``surely``) or maybe (``maybe``)."""
+
+    def __init__(self, **arrays):
+        for name in FIELDS:
+            setattr(self, name, arrays[name])
+
+    @classmethod
+    def make(cls, tri: np.ndarray, fv: np.ndarray, pv: np.ndarray, target: Target, thresholds: np.ndarray) -> Pieces:
+        fc, pc = target.query(tri.mean(1))
+        area, lo, hi, surely, maybe = piece_bounds(tri, fv, pv, fc, pc, np.square(thresholds))
+        return cls(tri=tri, fv=fv, pv=pv, area=area, lo=lo, hi=hi, surely=surely, maybe=maybe)
+
+    def take(self, idx: np.ndarray) -> Pieces:
+        return Pieces(**{name: getattr(self, name)[idx] for name in FIELDS})
+
+    def join(self, other: Pieces) -> Pieces:
+        return Pieces(**{name: np.concatenate([getattr(self, name), getattr(other, name)]) for name in FIELDS})
+
+    def split(self, idx: np.ndarray, target: Target, thresholds: np.ndarray) -> Pieces:
+        """The four children (edge midpoints) of the pieces ``idx``."""
         tri, fv, pv = self.tri[idx], self.fv[idx], self.pv[idx]
         mid = np.stack([(tri[:, 0] + tri[:, 1]) / 2, (tri[:, 1] + tri[:, 2]) / 2, (tri[:, 2] + tri[:, 0]) / 2], 1)
         fm, pm = target.query(mid.reshape(-1, 3))
@@ -91,48 +137,37 @@ class _Pieces:
         pts = np.concatenate([tri, mid], 1)
         fs, ps = np.concatenate([fv, fm], 1), np.concatenate([pv, pm], 1)
         kids = np.array([[0, 3, 5], [3, 1, 4], [5, 4, 2], [3, 4, 5]])
-        new_tri = pts[:, kids].reshape(-1, 3, 3)
-        new_f = fs[:, kids].reshape(-1, 3)
-        new_p = ps[:, kids].reshape(-1, 3, 3)
-        return _Pieces(new_tri, new_f, new_p, target)
+        return Pieces.make(pts[:, kids].reshape(-1, 3, 3), fs[:, kids].reshape(-1, 3), ps[:, kids].reshape(-1, 3, 3),
+                           target, thresholds)
 
 
-def _concat(a: _Pieces, b: _Pieces) -> _Pieces:
-    out = object.__new__(_Pieces)
-    for name in ("tri", "fv", "pv", "area", "c", "fc", "pc"):
-        setattr(out, name, np.concatenate([getattr(a, name), getattr(b, name)]))
-    return out
-
-
-def _take(p: _Pieces, idx: np.ndarray) -> _Pieces:
-    out = object.__new__(_Pieces)
-    for name in ("tri", "fv", "pv", "area", "c", "fc", "pc"):
-        setattr(out, name, getattr(p, name)[idx])
-    return out
+RETIRE = 0.25  # a piece whose bound is this small a share of its area's part of the tolerances is set aside
 
 
 def one_way(vertices: np.ndarray, faces: np.ndarray, target: Target, thresholds, tol_sq: float,
-            tol_frac: float, max_queries: int = MAX_QUERIES) -> dict:
+            tol_frac: float, max_queries: int = MAX_QUERIES, retire: float = RETIRE) -> dict:
     """Bounds of A's mean squared distance to B (cm^2) and of A's area fraction within each threshold (cm).
 
     Refines until the mean's bound is at most ``tol_sq`` wide and each fraction's at most ``tol_frac`` wide, or
-    ``max_queries`` distance queries were made. Pieces that are settled (bounded closely enough) are retired so
-    the work goes where the width is.
+    ``max_queries`` distance queries were made: each round splits the pieces that hold the larger half of the
+    bounds' width. Each piece's bounds are computed once, when it is made. Pieces are set aside for good (their
+    bounds summed) when they are settled: those that straddle no threshold and whose width is at most ``retire``
+    times their area's share of ``tol_sq`` (together at most ``retire * tol_sq``, so the rest of the tolerance is
+    left for the others), and those whose share of the width is negligible. Setting a piece aside only stops its
+    refinement: the bounds stay rigorous whatever ``retire`` is (0: only negligible pieces).
     """
     thresholds = np.atleast_1d(np.asarray(thresholds, dtype=np.float64))
     start = target.queries
     fvert, pvert = target.query(vertices)
-    tri = vertices[faces]
-    pieces = _Pieces(tri, fvert[faces], pvert[faces], target)
+    pieces = Pieces.make(vertices[faces], fvert[faces], pvert[faces], target, thresholds)
     total = float(pieces.area.sum())
     if not total > 0:
         raise ValueError("the surface has no area")
     done_lo = done_hi = 0.0
     done_in, done_maybe = np.zeros(len(thresholds)), np.zeros(len(thresholds))
     while True:
-        lo, hi, surely, maybe = pieces.bounds(thresholds)
-        w_sq = (hi - lo) / total
-        w_frac = (pieces.area[:, None] * (maybe & ~surely)) / total
+        w_sq = (pieces.hi - pieces.lo) / total
+        w_frac = (pieces.area[:, None] * (pieces.maybe & ~pieces.surely)) / total
         width_sq = w_sq.sum() + (done_hi - done_lo) / total
         width_frac = w_frac.sum(0) + (done_maybe - done_in) / total
         over = (width_sq > tol_sq) or bool((width_frac > tol_frac).any())
@@ -144,21 +179,19 @@ def one_way(vertices: np.ndarray, faces: np.ndarray, target: Target, thresholds,
         n = max(1, int(np.searchsorted(cum, 0.5 * cum[-1])) + 1)
         n = min(n, max(1, (max_queries - (target.queries - start)) // 7))
         chosen, rest = order[:n], order[n:]
-        # retire the pieces that are not chosen and whose share is already negligible
         keep = np.zeros(len(score), bool)
         keep[rest] = score[rest] > 1e-6 * cum[-1] / max(len(score), 1)
+        keep[rest] &= (w_sq[rest] > retire * tol_sq * pieces.area[rest] / total) | (w_frac[rest] > 0).any(1)
         settled = ~keep
         settled[chosen] = False
-        done_lo += lo[settled].sum()
-        done_hi += hi[settled].sum()
-        done_in += (pieces.area[settled, None] * surely[settled]).sum(0)
-        done_maybe += (pieces.area[settled, None] * maybe[settled]).sum(0)
-        children = pieces.split(chosen, target)
-        pieces = _concat(_take(pieces, np.flatnonzero(keep)), children)
-    lo_sum = done_lo + lo.sum()
-    hi_sum = done_hi + hi.sum()
-    f_lo = (done_in + (pieces.area[:, None] * surely).sum(0)) / total
-    f_hi = (done_maybe + (pieces.area[:, None] * maybe).sum(0)) / total
+        done_lo += pieces.lo[settled].sum()
+        done_hi += pieces.hi[settled].sum()
+        done_in += (pieces.area[settled, None] * pieces.surely[settled]).sum(0)
+        done_maybe += (pieces.area[settled, None] * pieces.maybe[settled]).sum(0)
+        pieces = pieces.take(np.flatnonzero(keep)).join(pieces.split(chosen, target, thresholds))
+    lo_sum, hi_sum = done_lo + pieces.lo.sum(), done_hi + pieces.hi.sum()
+    f_lo = (done_in + (pieces.area[:, None] * pieces.surely).sum(0)) / total
+    f_hi = (done_maybe + (pieces.area[:, None] * pieces.maybe).sum(0)) / total
     return {"sq": (lo_sum / total, hi_sum / total), "frac": (np.clip(f_lo, 0, 1), np.clip(f_hi, 0, 1)),
             "area_cm2": total, "queries": target.queries - start, "converged": not over}
 

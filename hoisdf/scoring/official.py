@@ -1,4 +1,4 @@
-"""The official evaluators' numbers, computed with this project's metrics (:mod:`hoisdf.evaluation.metrics`).
+"""The official evaluators' numbers, computed with this project's metrics (:mod:`hoisdf.scoring.metrics`).
 
 - DexYCB HPE (``NVlabs/dex-ycb-toolkit:dex_ycb_toolkit/hpe_eval.py``, ``HPEEvaluator.evaluate``): MPJPE in mm and
   AUC over 0-50 mm at 100 thresholds for three alignments: ``absolute``, ``root-relative`` (each set minus its own
@@ -24,7 +24,7 @@ import numpy as np
 
 from hoidata.atomic import write_atomic
 from hoidata.errors import DataError
-from hoisdf.evaluation import metrics as M
+from hoisdf.scoring import metrics as M
 
 HPE_ALIGNMENTS = ("absolute", "root-relative", "procrustes")
 HO3D_SCORES = ("xyz_mean3d", "xyz_auc3d", "xyz_procrustes_al_mean3d", "xyz_procrustes_al_auc3d",
@@ -45,7 +45,7 @@ def dexycb_hpe_scores(pred_mm, gt_mm) -> dict[str, dict[str, float]]:
 
     Returns ``{"absolute" | "root-relative" | "procrustes": {"mpjpe": mm, "auc": ratio over 0-50 mm}}``.
     """
-    pred, gt = M._pair(pred_mm, gt_mm)
+    pred, gt = M.as_pair(pred_mm, gt_mm)
     errors = {
         "absolute": M.point_errors(pred, gt),
         "root-relative": M.point_errors(pred - pred[:, :1], gt - gt[:, :1]),
@@ -74,7 +74,7 @@ def align_by_keypoint_trafo(pred_verts, pred_xyz, gt_xyz) -> np.ndarray:
     Returns:
         (N, V, 3) the points eval.py's aligned F-scores use.
     """
-    pred_xyz, gt_xyz = M._pair(pred_xyz, gt_xyz)
+    pred_xyz, gt_xyz = M.as_pair(pred_xyz, gt_xyz)
     mu_p, mu_g = pred_xyz.mean(1, keepdims=True), gt_xyz.mean(1, keepdims=True)
     x, y = pred_xyz - mu_p, gt_xyz - mu_g
     u, sv, vt = np.linalg.svd(np.einsum("nki,nkj->nij", y, x))  # as orthogonal_procrustes(gt_n, pred_n)
@@ -101,8 +101,8 @@ def ho3d_challenge_scores(pred_xyz, pred_verts, gt_xyz, gt_verts) -> dict[str, f
             gives the same mesh scores and F-scores of 0.
         gt_verts: (N, 778, 3).
     """
-    pred_xyz, gt_xyz = M._pair(pred_xyz, gt_xyz)
-    gt_verts = M._batch(gt_verts, "gt_verts")
+    pred_xyz, gt_xyz = M.as_pair(pred_xyz, gt_xyz)
+    gt_verts = M.as_batch(gt_verts, "gt_verts")
     pred_verts = np.asarray(pred_verts, np.float64).reshape(len(pred_xyz), -1, 3)
     out = {}
     out["xyz_mean3d"], out["xyz_auc3d"] = _mean_auc(M.point_errors(pred_xyz, gt_xyz))
@@ -126,7 +126,7 @@ def ho3d_challenge_scores(pred_xyz, pred_verts, gt_xyz, gt_verts) -> dict[str, f
 
 def _f_scores(pred, gt) -> np.ndarray:
     """(N, 2) F-scores at :data:`HO3D_F_THRESHOLDS` of (N, V, 3) against (N, 778, 3) point sets: the same numbers
-    as :func:`hoisdf.evaluation.metrics.f_score` per threshold, with each nearest-neighbour search done once."""
+    as :func:`hoisdf.scoring.metrics.f_score` per threshold, with each nearest-neighbour search done once."""
     from scipy.spatial import cKDTree
 
     out = np.zeros((len(pred), len(HO3D_F_THRESHOLDS)))
@@ -168,7 +168,7 @@ def score_ho3d_submission(pred_path, gt_folder) -> dict:
     Returns the 14 scores (:data:`HO3D_SCORES`) plus ``samples``, ``units`` and ``ground_truth``. Raises DataError
     if the prediction does not have one item per ground-truth sample (eval.py's 'Expected format mismatch.').
     """
-    from hoisdf.evaluation.submissions import read_ho3d_lists
+    from hoisdf.scoring.submissions import read_ho3d_lists
 
     pred_xyz, pred_verts = read_ho3d_lists(pred_path)
     gt_xyz, gt_verts = read_ho3d_gt(gt_folder)

@@ -1,14 +1,14 @@
 """Physical plausibility of a predicted hand against a posed object, as definitions (docs/plausibility.md).
 
 All inputs share one frame (camera frame, metres). A solid is what its mesh encloses: points with generalized
-winding number |w| > 1/2 (:mod:`hoisdf.evaluation.solids`); for a closed mesh that is exact, also where a posed
+winding number |w| > 1/2 (:mod:`hoisdf.scoring.solids`); for a closed mesh that is exact, also where a posed
 hand passes through itself. The hand for volumes must be closed: MANO's 778 vertices plus the wrist-closing
 vertex 779 and its faces (``MANO.close`` / ``closed_faces``). Per frame, with H the hand solid, O the object solid:
 
 - **penetration depth** (Hasson et al. 2019, ObMan; Jiang et al. 2021, GraspTTA): the largest distance from a
   hand vertex inside O to O's surface; 0 when no vertex is inside. Exact distances and an exact inside test.
 - **intersection volume** (the same papers, there estimated on 5 mm voxels): vol(H ∩ O), here to a requested
-  error bound (``tolerance``, m^3) by :func:`hoisdf.evaluation.solids.region_volume`.
+  error bound (``tolerance``, m^3) by :func:`hoisdf.scoring.solids.region_volume`.
 - **contact** (GraspTTA): some hand vertex is inside O or within ``threshold`` (5 mm) of its surface; the
   **contact ratio** is the fraction of frames in contact.
 - **IVU**, intersection volume per unit contact area (LatentHOI, Li et al. 2025; its authors state it as the
@@ -27,7 +27,7 @@ from collections.abc import Iterable
 import numpy as np
 
 from hoidata.geometry.sdf import signed_distance, validate_mesh
-from hoisdf.evaluation.solids import MAX_CELLS, MeshSolid, Part, VolumeEstimate, region_volume, tangled_surface
+from hoisdf.scoring.solids import MAX_CELLS, MeshSolid, Part, VolumeEstimate, region_volume, tangled_surface
 
 CONTACT_THRESHOLD = 0.005  # metres (GraspTTA's penetration_tol)
 VOXEL = 0.005  # metres: the surface-voxel pitch of the ObMan/GraspTTA scripts (for comparison only)
@@ -96,7 +96,7 @@ def intersection_volume(hand_v, hand_f, obj_v, obj_f, tolerance: float = TOLERAN
             bound rigorous (checked against the certain, lower part of the volume).
 
     Raises:
-        ValueError: the tolerance would need more than :data:`hoisdf.evaluation.solids.MAX_CELLS` evaluations.
+        ValueError: the tolerance would need more than :data:`hoisdf.scoring.solids.MAX_CELLS` evaluations.
     """
     return intersection_bounds(hand_v, hand_f, obj_v, obj_f, tolerance, rel_tolerance).volume
 

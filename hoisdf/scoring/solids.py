@@ -15,7 +15,7 @@ out of the region. Of an undecided cell, the ball around its centre whose radius
 until what is not known adds up to at most the tolerance. The true volume lies between the known-in volume and
 the volume not known to be out, so the error bound is rigorous for closed meshes (for an open one w also varies
 continuously across its holes, and no bound is claimed). An undecided cell that only one mesh's surface crosses,
-away from that surface's irregular parts, gets its exact volume instead (:mod:`hoisdf.evaluation.cell_volume`):
+away from that surface's irregular parts, gets its exact volume instead (:mod:`hoisdf.scoring.cell_volume`):
 then only cells along the curves where two surfaces meet stay undecided.
 
 All positions share one frame and unit (metres here); volumes are in cubic units of it.
@@ -31,7 +31,7 @@ import numpy as np
 from hoidata.geometry.bvh import MeshBVH
 from hoidata.geometry.sdf import AMBIGUOUS, WINDING_INSIDE, validate_mesh
 from hoidata.geometry.signs import is_closed, winding_numbers
-from hoisdf.evaluation.cell_volume import column_integrals, crosses, face_parts, orientation
+from hoisdf.scoring.cell_volume import column_integrals, crosses, face_parts, orientation
 
 ROOT_CELLS = 16  # the first level splits the box's longest side into this many cubes
 MAX_CELLS = 20_000_000  # cell-centre evaluations one volume may spend before it gives up (a few minutes)
@@ -83,7 +83,7 @@ class MeshSolid:
 
     def regular(self) -> tuple[float, MeshSolid | None]:
         """(s, irregular): the orientation s (+1 outward, -1 inward) and the parts of the surface that may border
-        anything but w = 0 and w = s (:func:`hoisdf.evaluation.cell_volume.face_parts`) as a triangle-soup solid,
+        anything but w = 0 and w = s (:func:`hoisdf.scoring.cell_volume.face_parts`) as a triangle-soup solid,
         None when there are none. Computed once per closed solid."""
         if not hasattr(self, "_regular"):
             sign = orientation(self.vertices, self.faces)
@@ -93,7 +93,7 @@ class MeshSolid:
         return self._regular
 
     def boundary_distance(self, points: np.ndarray) -> np.ndarray:
-        """(N,) distance to the surface but its buried parts (:func:`~hoisdf.evaluation.cell_volume.face_parts`): in a
+        """(N,) distance to the surface but its buried parts (:func:`~hoisdf.scoring.cell_volume.face_parts`): in a
         ball of that radius |w| > 1/2 is as at its centre (a segment from the centre crosses only buried faces,
         between values of |w| >= 1). Plain :meth:`distance` for an open mesh or one with no buried face."""
         if not self.closed:
@@ -103,7 +103,7 @@ class MeshSolid:
 
     def cube_volumes(self, centres: np.ndarray, edge: float) -> tuple[np.ndarray, np.ndarray]:
         """(K,) s x the integral of w over each cube (its volume in the solid where only regular faces meet it),
-        and (K,) bool: some face meets it (:func:`hoisdf.evaluation.cell_volume.column_integrals`)."""
+        and (K,) bool: some face meets it (:func:`hoisdf.scoring.cell_volume.column_integrals`)."""
         out, touched = np.zeros(len(centres)), np.zeros(len(centres), bool)
         b = self.bvh
         column_integrals(np.ascontiguousarray(centres, dtype=np.float64), float(edge), b.boxes, b.left, b.start,
@@ -327,7 +327,7 @@ def region_volume(parts: list[Part], lo, hi, tolerance: float, rel_tolerance: fl
 
 def self_crossing_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(F,) bool: faces that cross another face sharing no vertex with them (see
-    :func:`hoisdf.evaluation.cell_volume.crossing_parts`; a fold between neighbouring faces goes unnoticed)."""
+    :func:`hoisdf.scoring.cell_volume.crossing_parts`; a fold between neighbouring faces goes unnoticed)."""
     vertices, faces = validate_mesh(vertices, faces)
     return crosses(MeshSolid(vertices, faces), vertices[faces], np.arange(len(faces)))
 

@@ -9,9 +9,9 @@ from tqdm import tqdm
 from hoidata.errors import DataError
 from hoidata.geometry.mirror import mirror_mesh
 from hoidata.store import read_index
-from hoisdf.evaluation import metrics as M
-from hoisdf.evaluation.inference import Collected, _np
-from hoisdf.evaluation.plausibility import (
+from hoisdf.evaluation.inference import Collected, to_numpy
+from hoisdf.scoring import metrics as M
+from hoisdf.scoring.plausibility import (
     BUDGET,
     REL_TOLERANCE,
     TOLERANCE,
@@ -36,7 +36,7 @@ def _masked(fn, mask: np.ndarray, *arrays) -> dict[str, np.ndarray]:
 
 
 def score(joints, gt_joints, verts, gt_verts, obj_pose, gt_obj_pose, obj_verts: list, obj_valid) -> dict:
-    """Per-sample metrics (N,) in metres / ratios: :func:`hoisdf.evaluation.metrics.joint_metrics`, ``mesh_metrics`` when
+    """Per-sample metrics (N,) in metres / ratios: :func:`hoisdf.scoring.metrics.joint_metrics`, ``mesh_metrics`` when
     ``verts`` is not None, ``object_metrics``. Samples without finite GT joints, or with ``obj_valid`` False,
     get NaN for the hand resp. object metrics (and are skipped by the means)."""
     hand_ok = np.isfinite(gt_joints).all((1, 2)) & np.isfinite(joints).all((1, 2))
@@ -63,7 +63,7 @@ def mean_hand(store, mano, max_rows: int = BASELINE_ROWS, index=None) -> tuple[n
     for start in range(0, len(rows), 2048):
         sel = rows[start:start + 2048]
         batch = {k: torch.as_tensor(lab[k][sel]).to(device) for k in ("mano_pose", "mano_betas", "mirrored")}
-        total += _np(hand_targets(mano, mirrored, batch)["verts"]).astype(np.float64).sum(0)
+        total += to_numpy(hand_targets(mano, mirrored, batch)["verts"]).astype(np.float64).sum(0)
     return (joints - joints[:, :1]).mean(0), total / len(rows), len(rows)
 
 
@@ -83,8 +83,8 @@ def plausibility_of(groups: dict, mano, progress: bool = True, workers: int = 1)
     """Penetration depth, intersection volume, contact ratio, IVU and self-penetration of closed hands, per group:
     ``groups`` maps a name to (verts (N, 778, 3), poses (N, 4, 4), meshes: N object (vertices, faces), see
     :func:`sample_meshes`, posed by ``poses``). Every group's frames run on one pool of ``workers`` processes
-    (:func:`hoisdf.evaluation.plausibility.frame_metrics_many`; volumes to 0.1 cm^3 or 1 %, whichever is larger,
-    within the scorer's budget). Returns {name: :func:`~hoisdf.evaluation.plausibility.summarize` of its frames}."""
+    (:func:`hoisdf.scoring.plausibility.frame_metrics_many`; volumes to 0.1 cm^3 or 1 %, whichever is larger,
+    within the scorer's budget). Returns {name: :func:`~hoisdf.scoring.plausibility.summarize` of its frames}."""
     faces = np.asarray(mano.closed_faces)
     samples, sizes, n_points = [], {}, {v.shape[1] for v, _, _ in groups.values()}
     for name, (verts, poses, meshes) in groups.items():
