@@ -139,14 +139,19 @@ RECIPES: dict[str, dict[str, dict]] = {
                   "image_size": 256, "n_hand": 600, "n_object": 200, "grid_resolution": 64, "dropout": 0.1,
                   "sdf_dropout": 0.2, "freeze_bn_affine": True, "sampling": "absolute",
                   "feature_augmentation": "density", "cross_field": "sdf", "test_boxes": "gt", "fixed_shape": False,
-                  "sdf_scale": 3.1, "sdf_clamp": 0.15, "beta_init": 0.1, "beta_min": 2e-3, "cls_dist": 0.04},
+                  "sdf_scale": 3.1, "sdf_clamp": 0.15, "beta_init": 0.1, "beta_min": 2e-3, "cls_dist": 0.04,
+                  "rot6d": "raw",  # the pose head's raw 6D code, no identity offset (common/nets/mano_head.py)
+                  "beta_floor": "project",  # the density width projected in place (main/model.py)
+                  "field_density": "ranking"},  # tokens reuse the ranking pass's SDFs, dropout mask included
         "train": {**_UPSTREAM_OPTIMISER, "lr_min": 1e-5, "field_prob": 0.6, "noise_ratios": (0.3, 0.7),
                   "noise_dists": (0.03, 0.05, 0.07), "near": 0.05, "epoch_samples": 0,
                   "bf16": False,  # fp32 throughout (main/train.py: no autocast)
                   "shuffle": "global",  # DataLoader(shuffle=True, drop_last=True) (common/base.py:79-86)
                   "val_schedule": "upstream",  # every 5 epochs before point_sampling_epoch, then every epoch
                   "val_batches": 0},  # the whole validation store (main/train.py:164-169, 202)
-        "augment": {},
+        # upstream's per-sample warp, blur and colour jitter from record.upstream_region stores (data/dexycb.py,
+        # data/ho3d.py, data/dataset_util.py); the heatmap target summed on uv / 256 * 128 (main/model.py)
+        "augment": {"upstream": True, "heatmap_target": "upstream"},
         "loss": {"sdf_hand": 50.0, "sdf_obj": 25.0, "heatmap": 1e-3, "hand_seg": 1.0, "obj_seg": 1.0, "joint_vote": 0.1,
                  "joint_cls": 1.0, "joint_all": 0.1, "mano_verts": 1e4, "mano_joints": 1e4, "mano_pose": 10.0,
                  "mano_shape": 0.1, "shape_reg": 1e-6, "obj_rot": 0.7, "obj_trans": 100.0,  # main/config.py:136-151

@@ -281,3 +281,29 @@ def test_build_refuses_a_region_it_cannot_make():
                       ['record.crop="upstream"', 'record.crop_splits=["train"]', 'record.upstream_region=["train"]']):
         with pytest.raises(DataError, match="record.upstream_region"):
             load_build_config("toy", overrides)
+
+
+@pytest.mark.slow
+def test_the_dexycb_preset_trains_in_full_on_a_region_store(region_stores, mano_dir, tmp_path):
+    """``python -m hoisdf.train --config dexycb`` on a record.upstream_region store: the upstream recipe in full
+    (upstream's augmentation in the loader, its heatmap target, raw 6D, fp32) runs its steps; only the network's
+    widths are made small."""
+    import os
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    small = ["model.depth=18", "model.d_model=64", "model.ff=128", "model.hand_layers=1", "model.decoder_layers=1",
+             "model.object_layers=1", "model.sdf_features=32", "model.sdf_hidden=96", "model.token_hidden=[48]",
+             "model.n_hand=32", "model.n_object=16", "model.grid_resolution=12", "model.chunk=1000", 'model.weights=""',
+             "train.batch_size=2", "train.workers=0", "train.max_steps=2"]
+    argv = [sys.executable, "-m", "hoisdf.train", "--config", "dexycb", "--shards", str(region_stores["dexycb_s0"]),
+            "--mano", str(mano_dir), "--out", str(tmp_path / "run"), "--no-progress", *small]
+    done = subprocess.run(argv, capture_output=True, text=True, timeout=600, cwd=root,
+                          env={**os.environ, "PYTHONPATH": str(root), "PYOPENGL_PLATFORM": "egl"})
+    assert done.returncode == 0, done.stderr[-3000:]
+    lines = done.stdout.splitlines()
+    for key in ("augment.upstream = true", 'augment.heatmap_target = "upstream"', 'model.rot6d = "raw"',
+                "train.bf16 = false"):
+        assert any(key in line and "recipe upstream" in line for line in lines), key
+    assert "done: epoch 0, 2 steps" in done.stdout and (tmp_path / "run" / "checkpoints" / "last.pt").exists()
