@@ -84,8 +84,9 @@ def test_settings_refuse_unknown_choices_and_hot3d_dataset_masks():
         load_build_config("dexycb", ['record.sdf_points="mesh_to_sdf"'])
     cfg = load_build_config("ho3d", ['record.masks="dataset"', 'record.sdf_points="deepsdf"'])
     assert (cfg.record.masks, cfg.record.sdf_points) == ("dataset", "deepsdf")
-    default = load_build_config("dexycb")
+    default = load_build_config("toy")  # the project's defaults; the dataset presets take upstream's masks
     assert (default.record.masks, default.record.sdf_points) == ("rendered", "project")
+    assert load_build_config("dexycb").record.masks == "dataset"
 
 
 @pytest.mark.slow

@@ -136,7 +136,7 @@ def test_bad_files_get_one_line(split, tmp_path, capsys):
 
 
 def test_older_contact_definitions_beside_the_exact_ones(split, tmp_path, capsys):
-    """--contact-definition gsdf / grasptta: each frame also gets that script's numbers (hoisdf.evaluation.
+    """--contact-definition gsdf / grasptta: each frame also gets that script's numbers (hoisdf.scoring.
     contact_legacy, checked against the scripts themselves in tests/test_contact_definitions.py), the means are
     printed beside the exact ones, and the exact numbers are unchanged."""
     from hoidata.hand import load_mano

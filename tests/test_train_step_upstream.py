@@ -36,7 +36,7 @@ UPSTREAM_STEP = ['model.normalize_input=false', 'model.pixel_convention="upstrea
                  'model.density_sign="code"', 'model.rot6d="raw"', 'model.beta_floor="project"',
                  'model.sampling="absolute"', 'model.feature_augmentation="density"', 'model.cross_field="sdf"',
                  'model.pose_regressor="mano"', 'model.depth=50', 'model.weights=""', 'model.dropout=0.0',
-                 'model.sdf_dropout=0.0', 'augment.heatmap_target="upstream"', 'train.recipe="released"',
+                 'model.sdf_dropout=0.0', 'augment.heatmap_target="upstream"', 'train.recipe="upstream"',
                  'train.bf16=false']
 DECODER = {"dexycb": "small", "ho3d": "big"}
 # upstream's weighted loss names (main/train.py) -> the project's terms
@@ -216,7 +216,7 @@ def test_adamw_step_on_upstreams_gradients_is_upstreams(step, setting):
 
 
 def test_learning_rates_equal_upstreams():
-    """``epoch_lr`` with the released recipe's values equals upstream's StepLR chained through
+    """``epoch_lr`` with the upstream recipe's values equals upstream's StepLR chained through
     ``adjust_learning_rate`` (floor 1e-5) at every epoch, the asked ones (0, 9, 18, 63, 69) included."""
     t = settings("dexycb").train
     info = json.loads((GOLDEN / "dexycb.json").read_text())

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from hoisdf.evaluation.metrics import pa_mje as reference_pa_mje
+from hoisdf.scoring.metrics import pa_mje as reference_pa_mje
 from hoisdf.training.losses import HOISDFLoss, LossWeights, hand_targets, mirrored_shape_mano
 from hoisdf.training.trainer import pa_mje, validates_after
 
