@@ -229,16 +229,21 @@ def closest_wide(points, visit, order, lo, hi, ref, blocks, first, count, tri, d
                             best, best_k = d2, k
                 continue
             _box_distances(px, py, pz, lo, hi, r, box_d)
-            base = top
-            for j in range(lo.shape[2]):  # push the children in reach, sorted: the nearest on top
+            near, near_d = -1, np.inf
+            for j in range(lo.shape[2]):  # push the children in reach, the nearest last (on top)
                 d = box_d[j]
                 if d <= best:  # an empty slot is infinitely far
-                    t = top
-                    while t > base and bound[t - 1] < d:
-                        stack[t], bound[t] = stack[t - 1], bound[t - 1]
-                        t -= 1
-                    stack[t], bound[t] = ref[r, j], d
-                    top += 1
+                    if d < near_d:
+                        if near >= 0:
+                            stack[top], bound[top] = ref[r, near], near_d
+                            top += 1
+                        near, near_d = j, d
+                    else:
+                        stack[top], bound[top] = ref[r, j], d
+                        top += 1
+            if near >= 0:
+                stack[top], bound[top] = ref[r, near], near_d
+                top += 1
         d2, v, w, f = point_triangle(px, py, pz, tri, best_k)
         dist[i] = np.sqrt(d2)
         face[i] = best_k
