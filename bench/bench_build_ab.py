@@ -3,9 +3,9 @@
 Usage: python -m bench.bench_build_ab --baseline DIR [--frames 240] [--rounds 3] [--root DATA]
 
 DIR is another checkout of the project (``git worktree add /tmp/base <commit>``). Writes a toy DexYCB once
-(with this checkout's writer, unless --root is given), then alternates the two trees over --rounds rounds:
-each round runs, per tree, a fresh Python process with that tree first on the path, which builds the frames
-once untimed (imports, numba kernels, GL set-up) and then once timed with 1 worker (default settings of
+(with this checkout's writer, unless --root is given), then alternates the two trees over --rounds rounds (this
+one first in even rounds, the baseline first in odd ones): each round runs, per tree, a fresh Python process
+with that tree first on the path, which builds the frames once untimed (imports, numba kernels, GL set-up) and then once timed with 1 worker (default settings of
 ``pipelines/toy.toml``, train and val frames, 8 records per shard). Reports the medians, every run, the
 ratio per round, the CPU time per frame of the timed build (``time.process_time`` of the child: its own threads
 included, the waiting on other jobs excluded, so it moves less with the machine's load than the wall time), and
@@ -70,8 +70,8 @@ def main() -> None:
         else:
             root = toy_root(args.frames, work)
         runs = {name: [] for name in trees}
-        for _ in range(args.rounds):
-            for name, tree in trees.items():
+        for r in range(args.rounds):  # the order alternates, so a trend in the load favours neither tree
+            for name, tree in (list(trees.items()) if r % 2 == 0 else list(trees.items())[::-1]):
                 runs[name].append(run_tree(tree, root, work / name))
         load = " ".join(f"{x:.2f}" for x in os.getloadavg())
         print(f"1 worker, median of {args.rounds} interleaved rounds; load average after the runs {load} (1, 5, 15 min)")

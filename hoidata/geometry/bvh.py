@@ -8,7 +8,9 @@ Compiled with numba, single-threaded (a build worker is one core), float64 throu
   (*Real-Time Collision Detection*, 5.1.5) in the operation order of the brute-force reference
   :func:`hoidata.geometry.sdf.closest_point_on_triangles`; the traversal skips a box only when its
   distance exceeds the best one found, so the minimum is over all faces. On ties the lowest face
-  index wins (the reference's rule).
+  index wins (the reference's rule). Both queries run on the tree's wide view
+  (:mod:`hoidata.geometry.bvh_wide`: 8 children per node, 8-face leaf blocks, distances in vector lanes),
+  which gives the same bits as the binary walk.
 - :meth:`MeshBVH.crossings` gives each point's signed count of crossings of the mesh by the ray from
   the point along one of :data:`RAYS` (+1 where the ray passes a face from its back to its front): for a
   closed, consistently oriented mesh this is the winding number. The ray/triangle test is the
