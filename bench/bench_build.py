@@ -6,7 +6,8 @@ Writes a small toy DexYCB (unless --root points at one), then in one run:
 - builds the frames once untimed with 1 worker (this process then has its modules imported, the numba kernels
   loaded and the GL libraries initialised, as a long build has after its first seconds; without it the first
   timed configuration alone would pay for them);
-- builds --frames frames with 1 worker (the per-core rate; reading the frames, the renderer's start-up and the
+- builds --frames frames with 1 worker (the per-core rate, and the CPU time per frame of this process, which runs
+  a 1-worker build itself; reading the frames, the renderer's start-up and the
   index included) and, on the same frames, with 2 workers (spawned: their start-up included), each with the
   SDF backend build-sdf uses
   (``record.sdf_backend="bvh"``) and with the previous one as the baseline (``"igl"``), interleaved
@@ -41,13 +42,16 @@ BACKENDS = ("bvh", "igl")  # record.sdf_backend: build-sdf's, then the baseline
 ALIGNSDF_BYTES = 2 * 20_000 * 6 * 4  # two files (hand, object) of 20k float32 rows of 6 columns, per frame
 
 
-def timed_build(root: Path, out: Path, workers: int, backend: str) -> tuple[float, int]:
+def timed_build(root: Path, out: Path, workers: int, backend: str) -> tuple[float, int, float]:
+    """(wall seconds, records, CPU seconds of this process): with 1 worker the build runs in this process, so its
+    CPU time is the build's (less sensitive to other jobs' load than the wall time); with more it leaves out the
+    spawned workers."""
     cfg = load_build_config("toy", ['dataset.splits=["train", "val"]', "store.records_per_shard=8",
                                     f'record.sdf_backend="{backend}"'])
     shutil.rmtree(out, ignore_errors=True)
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     summary = build_store(cfg, root, root / "mano", root / "models", out, workers=workers, progress=False)
-    return time.perf_counter() - start, summary.records
+    return time.perf_counter() - start, summary.records, time.process_time() - cpu
 
 
 # stage -> (file suffix, function): each stage's cumulative time in a profile of a 1-worker build
@@ -74,7 +78,7 @@ def profile_stages(root: Path, out: Path) -> tuple[int, float, dict[str, float]]
     without the dataset-mask IoU's own warp (which stays in that stage)."""
     profiler = cProfile.Profile()
     profiler.enable()
-    seconds, records = timed_build(root, out, 1, BACKENDS[0])
+    seconds, records, _ = timed_build(root, out, 1, BACKENDS[0])
     profiler.disable()
     stats = pstats.Stats(profiler).stats
     found = {}
@@ -116,20 +120,24 @@ def main() -> None:
     try:
         root = Path(args.root) if args.root else toy_root(args.frames, work)
         timed_build(root, work / "warm-up", 1, BACKENDS[0])
-        seconds, records = {}, {}
+        seconds, records, cpu = {}, {}, {}
         runs = [(b, w) for w in args.workers for b in BACKENDS]
         for _ in range(args.rounds):
             for backend, workers in runs:
-                t, records[backend, workers] = timed_build(root, work / f"store-{backend}{workers}", workers, backend)
+                t, records[backend, workers], c = timed_build(root, work / f"store-{backend}{workers}", workers, backend)
                 seconds.setdefault((backend, workers), []).append(t)
+                cpu.setdefault((backend, workers), []).append(c)
         load = " ".join(f"{x:.2f}" for x in os.getloadavg())
         print(f"median of {args.rounds} interleaved rounds; load average after the runs {load} (1, 5, 15 min)")
-        print(f"{'backend':>8} {'workers':>7} {'records':>8} {'seconds':>8} {'frames/s':>9} {'per core':>9}  runs (s)")
+        print(f"{'backend':>8} {'workers':>7} {'records':>8} {'seconds':>8} {'frames/s':>9} {'per core':>9} "
+              f"{'CPU ms/frame':>13}  runs (s)")
         for backend, workers in sorted(runs, key=lambda r: (r[1], BACKENDS.index(r[0]))):
             t = float(np.median(seconds[backend, workers]))
             fps = records[backend, workers] / t
-            print(f"{backend:>8} {workers:>7} {records[backend, workers]:>8} {t:>8.1f} {fps:>9.2f} {fps / workers:>9.2f}  "
-                  + " ".join(f"{x:.1f}" for x in seconds[backend, workers]))
+            cpu_ms = 1e3 * float(np.median(cpu[backend, workers])) / records[backend, workers] if workers == 1 else None
+            cpu_cell = f"{cpu_ms:>13.1f}" if cpu_ms is not None else f"{'-':>13}"
+            print(f"{backend:>8} {workers:>7} {records[backend, workers]:>8} {t:>8.1f} {fps:>9.2f} {fps / workers:>9.2f} "
+                  f"{cpu_cell}  " + " ".join(f"{x:.1f}" for x in seconds[backend, workers]))
         for workers in args.workers:
             print(f"{workers} worker(s): bvh {np.median(seconds['igl', workers]) / np.median(seconds['bvh', workers]):.2f}x "
                   "the igl baseline's frames/s")

@@ -115,11 +115,11 @@ def with_open3d(o3d, frame: dict, points: np.ndarray) -> tuple[np.ndarray, np.nd
     return out[0], out[1]
 
 
-def timed(fn) -> tuple[object, float]:
-    """(result, wall time in ms) of one call."""
-    start = time.perf_counter()
+def timed(fn) -> tuple[object, float, float]:
+    """(result, wall time in ms, CPU time of this process in ms) of one call."""
+    start, cpu = time.perf_counter(), time.process_time()
     result = fn()
-    return result, 1e3 * (time.perf_counter() - start)
+    return result, 1e3 * (time.perf_counter() - start), 1e3 * (time.process_time() - cpu)
 
 
 METHODS = ("bvh", "igl", "trimesh", "open3d")
@@ -168,11 +168,13 @@ def main(argv=None) -> None:
         for name in methods:
             run_method(name, frame, points, o3d)
     times = {name: np.zeros((args.rounds, len(frames))) for name in methods}
+    cpu = {name: np.zeros((args.rounds, len(frames))) for name in methods}
     results = [{} for _ in frames]
     for r in range(args.rounds):
         for j, (frame, points) in enumerate(zip(frames, clouds, strict=True)):
             for name in methods:
-                results[j][name], times[name][r, j] = timed(lambda n=name, f=frame, p=points: run_method(n, f, p, o3d))
+                results[j][name], times[name][r, j], cpu[name][r, j] = timed(
+                    lambda n=name, f=frame, p=points: run_method(n, f, p, o3d))
     version = f"open3d {o3d.__version__}" if o3d is not None else "open3d not installed (pip install 'hoisdf[bench]')"
     print(f"{len(clouds[0])} points per frame; ms per frame, median of {args.rounds} interleaved rounds; "
           f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())} (1, 5, 15 min); {version}")
@@ -207,6 +209,10 @@ def main(argv=None) -> None:
     extra = f", {ratio('open3d', 'bvh', 2)}" if o3d is not None else ", open3d/bvh: open3d not installed"
     print(f"whole-set speed-up per round, median (min-max) over {args.rounds} rounds: {ratio('trimesh', 'bvh', 0)}, "
           f"{ratio('trimesh', 'igl', 0)}, {ratio('igl', 'bvh', 2)}{extra}")
+    cpu_frame = {name: float(np.median(t.sum(axis=1))) / len(frames) for name, t in cpu.items()}
+    print("CPU time per frame (process_time, this process, all its threads; mean over the frames, median over the "
+          "rounds), ms: " + ", ".join(f"{name} {ms:.1f}" for name, ms in cpu_frame.items())
+          + "".join(f"; {name}/bvh {cpu_frame[name] / cpu_frame['bvh']:.2f}" for name in methods if name != "bvh"))
     print(LEGEND)
 
 

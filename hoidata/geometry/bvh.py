@@ -8,7 +8,9 @@ Compiled with numba, single-threaded (a build worker is one core), float64 throu
   (*Real-Time Collision Detection*, 5.1.5) in the operation order of the brute-force reference
   :func:`hoidata.geometry.sdf.closest_point_on_triangles`; the traversal skips a box only when its
   distance exceeds the best one found, so the minimum is over all faces. On ties the lowest face
-  index wins (the reference's rule).
+  index wins (the reference's rule). Both queries run on the tree's wide view
+  (:mod:`hoidata.geometry.bvh_wide`: 8 children per node, 8-face leaf blocks, distances in vector lanes),
+  which gives the same bits as the binary walk.
 - :meth:`MeshBVH.crossings` gives each point's signed count of crossings of the mesh by the ray from
   the point along one of :data:`RAYS` (+1 where the ray passes a face from its back to its front): for a
   closed, consistently oriented mesh this is the winding number. The ray/triangle test is the
@@ -28,6 +30,8 @@ from collections import OrderedDict
 
 import numba
 import numpy as np
+
+from hoidata.geometry.bvh_wide import closest_wide, crossings_wide, gather, widen
 
 LEAF_SIZE = 4
 # Below this depth the surface-area split is replaced by the median one, so no tree gets deeper than
@@ -61,14 +65,16 @@ class MeshBVH:
         self.tri = np.empty((len(faces), 9))  # corners a, b, c of each face, in leaf order
         pad = PAD * float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
         _refit(vertices, faces, pad, self.order, self.left, self.start, self.count, self.boxes, self.tri)
+        self._wide = None  # the closest-face query's wide view (bvh_wide.gather), made on its first call
 
     def closest(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """For validated points (N, 3) float64: distance (N,) float64, face (N,) int64, barycentric
         weights (N, 2) of the closest point q = a + v (b - a) + w (c - a), and its feature (N,) int8."""
         n = len(points)
         dist, face, weights, feature = np.empty(n), np.empty(n, np.int64), np.empty((n, 2)), np.empty(n, np.int8)
-        _closest(points, _morton_order(points), self.order, self.boxes, self.left, self.start, self.count,
-                 self.tri, dist, face, weights, feature)
+        ref, lo, hi, blocks, first, count = self.wide()
+        closest_wide(points, _morton_order(points), self.order, lo, hi, ref, blocks, first, count, self.tri,
+                     dist, face, weights, feature)
         return dist, self.order[face], weights, feature
 
     def crossings(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -76,8 +82,17 @@ class MeshBVH:
         leaves the mesh's box soonest), and undecided (N,) bool."""
         n = len(points)
         count, undecided = np.zeros(n, np.int64), np.zeros(n, np.bool_)
-        _crossings(points, RAYS, self.boxes, self.left, self.start, self.count, self.tri, count, undecided)
+        ref, lo, hi, blocks, _, block_count = self.wide()
+        crossings_wide(points, RAYS, self.boxes[0], lo, hi, ref, blocks, block_count, count, undecided)
         return count, undecided
+
+    def wide(self) -> tuple[np.ndarray, ...]:
+        """(ref, lo, hi, blocks, first, count): the tree's wide view for this pose (:mod:`hoidata.geometry.bvh_wide`),
+        made on first use."""
+        if self._wide is None:
+            nodes, ref, leaf_of = wide_view(self.left, self.count)
+            self._wide = ref, *gather(nodes, leaf_of, self.boxes, self.tri, self.start, self.count)
+        return self._wide
 
 
 _TOPOLOGIES: OrderedDict = OrderedDict()
@@ -105,6 +120,20 @@ def topology(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.nd
     while len(_TOPOLOGIES) > KEEP_TOPOLOGIES:
         _TOPOLOGIES.popitem(last=False)
     return _TOPOLOGIES[key]
+
+
+_WIDE: OrderedDict = OrderedDict()
+
+
+def wide_view(left: np.ndarray, count: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`hoidata.geometry.bvh_wide.widen` of a kept tree shape (by the identity of its arrays), kept beside it."""
+    key = (id(left), id(count))
+    if key not in _WIDE or _WIDE[key][0] is not left:
+        _WIDE[key] = (left, count, *widen(left, count))
+        while len(_WIDE) > KEEP_TOPOLOGIES:
+            _WIDE.popitem(last=False)
+    _WIDE.move_to_end(key)
+    return _WIDE[key][2:]
 
 
 @numba.njit(cache=True)
@@ -206,7 +235,9 @@ def _refit(vertices, faces, pad, order, left_of, start_of, count_of, boxes, tri)
 @numba.njit(cache=True)
 def _morton_order(points):
     """Visiting order of the points along a Z-order curve over their bounding box: each query then
-    starts from its predecessor's face, usually a near one, so the first bound is already tight."""
+    starts from its predecessor's face, usually a near one, so the first bound is already tight.
+    (Any order gives the same results; this one only saves work.) A stable radix sort of the 30-bit
+    codes, three passes of 10 bits: the order np.argsort(code, kind="mergesort") gives, in O(N)."""
     n = len(points)
     code = np.zeros(n, np.int64)
     if n == 0:
@@ -218,154 +249,16 @@ def _morton_order(points):
             cell = int(1023.0 * (points[i, d] - lo[d]) / span[d]) if span[d] > 0 else 0
             for bit in range(10):
                 code[i] |= ((cell >> bit) & 1) << (3 * bit + d)
-    return np.argsort(code, kind="mergesort")
-
-
-@numba.njit(cache=True, inline="always")
-def _point_triangle(px, py, pz, tri, k):
-    """(squared distance, v, w, feature) from p to face k: the closest point is a + v ab + w ac.
-
-    Ericson's region tests in his order, each dot product computed only when a test needs it; the
-    closest point and the squared distance are formed as in the numpy reference."""
-    ax, ay, az = tri[k, 0], tri[k, 1], tri[k, 2]
-    ab0, ab1, ab2 = tri[k, 3] - ax, tri[k, 4] - ay, tri[k, 5] - az
-    ac0, ac1, ac2 = tri[k, 6] - ax, tri[k, 7] - ay, tri[k, 8] - az
-    ap0, ap1, ap2 = px - ax, py - ay, pz - az
-    d1, d2 = ab0 * ap0 + ab1 * ap1 + ab2 * ap2, ac0 * ap0 + ac1 * ap1 + ac2 * ap2
-    if d1 <= 0 and d2 <= 0:
-        v, w, feature = 0.0, 0.0, 0
-    else:
-        bp0, bp1, bp2 = px - tri[k, 3], py - tri[k, 4], pz - tri[k, 5]
-        d3, d4 = ab0 * bp0 + ab1 * bp1 + ab2 * bp2, ac0 * bp0 + ac1 * bp1 + ac2 * bp2
-        if d3 >= 0 and d4 <= d3:
-            v, w, feature = 1.0, 0.0, 1
-        elif d1 * d4 - d3 * d2 <= 0 and d1 >= 0 and d3 <= 0:
-            v, w, feature = d1 / (d1 - d3), 0.0, 2
-        else:
-            cp0, cp1, cp2 = px - tri[k, 6], py - tri[k, 7], pz - tri[k, 8]
-            d5, d6 = ab0 * cp0 + ab1 * cp1 + ab2 * cp2, ac0 * cp0 + ac1 * cp1 + ac2 * cp2
-            if d6 >= 0 and d5 <= d6:
-                v, w, feature = 0.0, 1.0, 3
-            elif d5 * d2 - d1 * d6 <= 0 and d2 >= 0 and d6 <= 0:
-                v, w, feature = 0.0, d2 / (d2 - d6), 4
-            elif d3 * d6 - d5 * d4 <= 0 and d4 - d3 >= 0 and d5 - d6 >= 0:
-                t = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-                v, w, feature = 1 - t, t, 5
-            else:
-                va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
-                total = va + vb + vc
-                v, w, feature = vb / total, vc / total, 6
-    e0 = px - (ax + v * ab0 + w * ac0)
-    e1 = py - (ay + v * ab1 + w * ac1)
-    e2 = pz - (az + v * ab2 + w * ac2)
-    return e0 * e0 + e1 * e1 + e2 * e2, v, w, feature
-
-
-@numba.njit(cache=True, inline="always")
-def _box_sq(px, py, pz, boxes, node):
-    """Squared distance from p to a node's box (0 inside)."""
-    s = 0.0
-    gap = max(boxes[node, 0] - px, px - boxes[node, 3], 0.0)
-    s += gap * gap
-    gap = max(boxes[node, 1] - py, py - boxes[node, 4], 0.0)
-    s += gap * gap
-    gap = max(boxes[node, 2] - pz, pz - boxes[node, 5], 0.0)
-    return s + gap * gap
-
-
-@numba.njit(cache=True)
-def _closest(points, visit, order, boxes, left_of, start_of, count_of, tri, dist, face, weights, feature):
-    stack, bound = np.empty(128, np.int64), np.empty(128)
-    last = 0  # the previous point's face: the first bound
-    for i in visit:
-        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
-        best, bv, bw, bf = _point_triangle(px, py, pz, tri, last)
-        best_k = last
-        stack[0], bound[0], top = 0, 0.0, 1
-        while top:
-            top -= 1
-            if bound[top] > best:
-                continue
-            node = stack[top]
-            left = left_of[node]
-            if left < 0:
-                for k in range(start_of[node], start_of[node] + count_of[node]):
-                    d2, v, w, f = _point_triangle(px, py, pz, tri, k)
-                    if d2 < best or (d2 == best and order[k] < order[best_k]):
-                        best, bv, bw, bf, best_k = d2, v, w, f, k
-                continue
-            dl, dr = _box_sq(px, py, pz, boxes, left), _box_sq(px, py, pz, boxes, left + 1)
-            if dl > dr:  # the nearer child goes on top of the stack: visited first
-                left, dl, dr = left + 1, dr, dl
-                right = left - 1
-            else:
-                right = left + 1
-            if dr <= best:
-                stack[top], bound[top] = right, dr
-                top += 1
-            if dl <= best:
-                stack[top], bound[top] = left, dl
-                top += 1
-        dist[i] = np.sqrt(best)
-        face[i] = best_k
-        weights[i, 0], weights[i, 1] = bv, bw
-        feature[i] = bf
-        last = best_k
-
-
-@numba.njit(cache=True)
-def _crossings(points, rays, boxes, left_of, start_of, count_of, tri, count, undecided):
-    stack = np.empty(128, np.int64)
-    for i in range(len(points)):
-        p = points[i]
-        # the ray leaving the root box soonest: the shortest path through the tree
-        pick, shortest = 0, np.inf
-        for d in range(3):
-            for side in range(2):  # rays[2 d] runs along +d, rays[2 d + 1] along -d
-                gap = boxes[0, 3 + d] - p[d] if side == 0 else p[d] - boxes[0, d]
-                if gap < shortest:
-                    pick, shortest = 2 * d + side, gap
-        ray = rays[pick]
-        # Permute the axes so the ray's largest component is z (swapping x, y keeps the handedness
-        # when it is negative), then shear the triangles so the ray becomes +z (Woop et al., 3).
-        kz = np.argmax(np.abs(ray))
-        kx, ky = (kz + 1) % 3, (kz + 2) % 3
-        if ray[kz] < 0:
-            kx, ky = ky, kx
-        sx, sy, sz = ray[kx] / ray[kz], ray[ky] / ray[kz], 1.0 / ray[kz]
-        inv = 1.0 / ray
-        total, flag = 0, False
-        stack[0], top = 0, 1
-        while top:
-            top -= 1
-            node = stack[top]
-            t0, t1 = 0.0, np.inf  # slab test: does the ray p + t ray, t >= 0, meet the box?
-            for d in range(3):
-                ta, tb = (boxes[node, d] - p[d]) * inv[d], (boxes[node, 3 + d] - p[d]) * inv[d]
-                t0, t1 = max(t0, min(ta, tb)), min(t1, max(ta, tb))
-            if t0 > t1:
-                continue
-            left = left_of[node]
-            if left >= 0:
-                stack[top], stack[top + 1] = left, left + 1
-                top += 2
-                continue
-            for k in range(start_of[node], start_of[node] + count_of[node]):
-                az, bz, cz = tri[k, kz] - p[kz], tri[k, 3 + kz] - p[kz], tri[k, 6 + kz] - p[kz]
-                ax, ay = tri[k, kx] - p[kx] - sx * az, tri[k, ky] - p[ky] - sy * az
-                bx, by = tri[k, 3 + kx] - p[kx] - sx * bz, tri[k, 3 + ky] - p[ky] - sy * bz
-                cx, cy = tri[k, 6 + kx] - p[kx] - sx * cz, tri[k, 6 + ky] - p[ky] - sy * cz
-                u, v, w = cx * by - cy * bx, ax * cy - ay * cx, bx * ay - by * ax
-                if (u < 0 or v < 0 or w < 0) and (u > 0 or v > 0 or w > 0):
-                    continue  # the ray passes outside this face
-                det = u + v + w
-                if det == 0 or u == 0 or v == 0 or w == 0:
-                    flag = True  # through an edge or a corner, or within the face's plane
-                    continue
-                t = u * (sz * az) + v * (sz * bz) + w * (sz * cz)  # the hit's ray parameter times det
-                if t == 0:
-                    flag = True  # the point lies on this face
-                elif (t > 0) == (det > 0):
-                    total += 1 if det < 0 else -1
-        count[i] = total
-        undecided[i] = flag
+    order, swap = np.arange(n), np.empty(n, np.int64)
+    for shift in range(0, 30, 10):
+        start = np.zeros(1025, np.int64)
+        for i in range(n):
+            start[((code[order[i]] >> shift) & 1023) + 1] += 1
+        for b in range(1024):
+            start[b + 1] += start[b]
+        for i in range(n):
+            b = (code[order[i]] >> shift) & 1023
+            swap[start[b]] = order[i]
+            start[b] += 1
+        order, swap = swap, order
+    return order
