@@ -101,8 +101,9 @@ def test_joints_reproject_into_the_remapped_crop_within_half_a_pixel(hot3d_root)
 def test_object_mask_in_the_crop_matches_the_clips_rle_mask(hot3d_root):
     """The object posed by the reader and rendered in the crop camera covers the fisheye pixels of the clip's amodal
     RLE mask: each fisheye pixel the crop sees (outside the toy's vignette) reads the crop's mask at its ray. IoU >=
-    0.98 for every object of at least 1000 fisheye pixels (smaller ones are mostly edge, where the toy's own mask
-    is placed to a quarter pixel)."""
+    0.98 for every object of at least 4000 fisheye pixels, 0.985 on average (smaller ones are mostly edge, where
+    the toy's own mask is placed to half a pixel, OVERSAMPLE 1; at the toy's former half resolution and OVERSAMPLE 2
+    the same accuracy in the scene was a quarter pixel, and the bounds were 1000 pixels and 0.99)."""
     import trimesh
 
     from hoidata.render import Renderer, RenderMesh
@@ -130,9 +131,9 @@ def test_object_mask_in_the_crop_matches_the_clips_rle_mask(hot3d_root):
             ij = np.round(px[seen]).astype(int)
             ours[seen] = amodal[0][ij[:, 1], ij[:, 0]]
             theirs &= seen
-            if theirs.sum() >= 1000:
+            if theirs.sum() >= 4000:
                 ious.append((ours & theirs).sum() / (ours | theirs).sum())
-    assert len(ious) >= 10 and min(ious) >= 0.98 and np.mean(ious) >= 0.99, ious
+    assert len(ious) >= 10 and min(ious) >= 0.98 and np.mean(ious) >= 0.985, ious  # toy: mean 0.990
 
 
 def cut_inside_last_frame(src, dst):
@@ -202,7 +203,7 @@ def test_build_sdf_on_the_toy_clips_verifies_with_the_mask_qa(hot3d_root, tmp_pa
     from hoidata.store import read_index
     from hoidata.store.verify import verify_store
 
-    cfg = load_build_config("hot3d_clips", ["record.crop_size=128", "record.n_hand=256", "record.n_object=128"])
+    cfg = load_build_config("hot3d_clips", ["record.n_hand=256", "record.n_object=128"])  # the preset's crops
     out = tmp_path / "store"
     summary = build_store(cfg, hot3d_root, hot3d_root / "mano", hot3d_root / "object_models_eval", out, progress=False)
     frames, skipped = read(hot3d_root, "train")
@@ -212,7 +213,7 @@ def test_build_sdf_on_the_toy_clips_verifies_with_the_mask_qa(hot3d_root, tmp_pa
     assert (labels["mirrored"] == np.array([f.side == "left" for f in frames])).all()
     iou = labels["seg_iou"]
     assert (iou[:, 0] == -1).all()  # HOT3D-Clips has no hand masks
-    assert iou[:, 1].min() > 0.9 and iou[:, 1].mean() > 0.95, iou[:, 1]
+    assert iou[:, 1].min() > 0.93 and iou[:, 1].mean() >= 0.98, iou[:, 1]  # toy, 4 frames: mean 0.985, lowest 0.957
     assert mask_iou_line(out).startswith("mask IoU with the dataset's own masks: object 0.9")
 
 
