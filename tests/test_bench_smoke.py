@@ -35,6 +35,7 @@ SCRIPTS: dict[str, list[tuple[list[str], str]]] = {
     "plausibility_cases": [(["--tolerance", "1e-6"], "cylinder through box")],
     "bench_build": [(["--root", "{root}", "--frames", "12", "--rounds", "1", "--workers", "1"],
                      "1 worker(s): bvh")],
+    "bench_hot3d": [(["--dexycb-root", "{root}", "--frames", "1", "--rounds", "1"], "HOT3D / DexYCB rate")],
     "bench_build_ab": [(["--baseline", str(ROOT), "--root", "{root}", "--rounds", "1"],
                         "shards byte-identical across trees and rounds: True")],
     "bench_export": [(["--root", "{root}", "--frames", "8"], "export gsdf --store")],

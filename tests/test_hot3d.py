@@ -7,6 +7,7 @@ import io
 import json
 import shutil
 import tarfile
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -19,7 +20,8 @@ from hoidata.toy.hot3d import MISSING_FRAME, TRUTH, bop_model_name
 from hoidata.toy.hot3d_rig import device_streams
 
 pytestmark = pytest.mark.slow  # writes toy HOT3D clips
-FRAMES = 2
+FRAMES = 2  # tests/golden/hot3d/parity.json was made on these clips (make-toy --layout hot3d --frames 2)
+GOLDEN = Path(__file__).parent / "golden" / "hot3d"
 DEVICES = {"train_aria": "Aria", "train_quest3": "Quest3"}
 
 
@@ -99,8 +101,9 @@ def test_joints_reproject_into_the_remapped_crop_within_half_a_pixel(hot3d_root)
 def test_object_mask_in_the_crop_matches_the_clips_rle_mask(hot3d_root):
     """The object posed by the reader and rendered in the crop camera covers the fisheye pixels of the clip's amodal
     RLE mask: each fisheye pixel the crop sees (outside the toy's vignette) reads the crop's mask at its ray. IoU >=
-    0.98 for every object of at least 1000 fisheye pixels (smaller ones are mostly edge, where the toy's own mask
-    is placed to a quarter pixel)."""
+    0.98 for every object of at least 4000 fisheye pixels, 0.985 on average (smaller ones are mostly edge, where
+    the toy's own mask is placed to half a pixel, OVERSAMPLE 1; at the toy's former half resolution and OVERSAMPLE 2
+    the same accuracy in the scene was a quarter pixel, and the bounds were 1000 pixels and 0.99)."""
     import trimesh
 
     from hoidata.render import Renderer, RenderMesh
@@ -128,9 +131,9 @@ def test_object_mask_in_the_crop_matches_the_clips_rle_mask(hot3d_root):
             ij = np.round(px[seen]).astype(int)
             ours[seen] = amodal[0][ij[:, 1], ij[:, 0]]
             theirs &= seen
-            if theirs.sum() >= 1000:
+            if theirs.sum() >= 4000:
                 ious.append((ours & theirs).sum() / (ours | theirs).sum())
-    assert len(ious) >= 10 and min(ious) >= 0.98 and np.mean(ious) >= 0.99, ious
+    assert len(ious) >= 10 and min(ious) >= 0.98 and np.mean(ious) >= 0.985, ious  # toy: mean 0.990
 
 
 def cut_inside_last_frame(src, dst):
@@ -200,7 +203,7 @@ def test_build_sdf_on_the_toy_clips_verifies_with_the_mask_qa(hot3d_root, tmp_pa
     from hoidata.store import read_index
     from hoidata.store.verify import verify_store
 
-    cfg = load_build_config("hot3d_clips", ["record.crop_size=128", "record.n_hand=256", "record.n_object=128"])
+    cfg = load_build_config("hot3d_clips", ["record.n_hand=256", "record.n_object=128"])  # the preset's crops
     out = tmp_path / "store"
     summary = build_store(cfg, hot3d_root, hot3d_root / "mano", hot3d_root / "object_models_eval", out, progress=False)
     frames, skipped = read(hot3d_root, "train")
@@ -210,5 +213,45 @@ def test_build_sdf_on_the_toy_clips_verifies_with_the_mask_qa(hot3d_root, tmp_pa
     assert (labels["mirrored"] == np.array([f.side == "left" for f in frames])).all()
     iou = labels["seg_iou"]
     assert (iou[:, 0] == -1).all()  # HOT3D-Clips has no hand masks
-    assert iou[:, 1].min() > 0.9 and iou[:, 1].mean() > 0.95, iou[:, 1]
+    assert iou[:, 1].min() > 0.93 and iou[:, 1].mean() >= 0.98, iou[:, 1]  # toy, 4 frames: mean 0.985, lowest 0.957
     assert mask_iou_line(out).startswith("mask IoU with the dataset's own masks: object 0.9")
+
+
+CANONICAL = [4, 8, 12, 16, 20, 0, 2, 3, 5, 6, 7, 9, 10, 11, 13, 14, 15, 17, 18, 19]  # toolkit landmark -> DexYCB joint
+
+
+def test_parity_with_the_official_reader(hot3d_root):
+    """tests/golden/hot3d/parity.json (how it was made: its README): for every crop hand_tracking_toolkit's reader
+    made from these toy clips, ours has the same crop K and pose, the same crop pixels (8x8 block means), the same
+    MANO wrist and finger joints in the crop, and the toolkit's fingertips (vertices 744, 320, 443, 554, 671; our
+    joints' tips follow manopth) are those vertices of our MANO mesh; the crops without a MANO pose
+    (no umetrack_pose) are the ones we skip."""
+    import torch
+
+    golden = json.loads((GOLDEN / "parity.json").read_text())
+    size = golden["crop_size"]
+    frames, skipped = [], []
+    for split in ("train", "val"):
+        reader = HOT3DClipsReader(hot3d_root, hot3d_root / "mano", split, crop_size=size, mirror_left=False)
+        frames += [(f, reader) for f in reader.frames()]
+        skipped += [s.frame_id for s in reader.skipped]
+    assert sorted(skipped) == sorted(golden["no_mano_pose"])
+    assert sorted(f.frame_id for f, _ in frames) == sorted(golden["crops"])
+    for frame, reader in frames:
+        want = golden["crops"][frame.frame_id]
+        K = frame.K
+        np.testing.assert_allclose([K[0, 0], K[1, 1], K[0, 2], K[1, 2]], want["K"], atol=1e-9)
+        np.testing.assert_allclose(frame.image_source.world_from_crop[:3], want["world_from_crop"], atol=1e-6)
+        # the wrist and the 14 finger joints; the toolkit's tips are mesh vertices, not our joints' tips
+        np.testing.assert_allclose(frame.joints_3d[CANONICAL[5:]], want["joints_canonical"][5:], atol=1e-6)
+        assert np.abs(frame.joints_3d[CANONICAL[:5]] - want["joints_canonical"][:5]).max() > 1e-3
+        with torch.no_grad():
+            out = reader.mano(frame.side)(torch.as_tensor(frame.mano_pose)[None],
+                                          torch.as_tensor(frame.mano_betas)[None],
+                                          torch.as_tensor(frame.mano_transl)[None])
+        tips = out.vertices[0].double().numpy()[golden["tip_vertices"]]
+        np.testing.assert_allclose(tips, want["tips_toolkit_vertices"], atol=1e-6)
+        image = frame.load_image().astype(np.float64)[..., :want["channels"]]
+        b = size // 8
+        blocks = image.reshape(8, b, 8, b, -1).mean((1, 3))
+        np.testing.assert_allclose(blocks, want["block_means"], atol=0.25, err_msg=frame.frame_id)

@@ -133,3 +133,22 @@ def test_nearest_object_and_a_frame_without_objects():
     assert (bop, uid, pose[0, 3]) == (2, "100002", 0.1)
     with pytest.raises(DataError, match="000000.objects.json.*no annotated object"):
         nearest_object({}, np.zeros(3), "c.tar", "000000.objects.json")
+
+
+def test_toy_umetrack_profile_has_the_fields_and_shapes_the_official_reader_loads():
+    """hand_tracking_toolkit's SampleDecoder builds an UmeTrack model from ``__hand_shapes.json__``'s ``umetrack``:
+    nine required tensors (rest positions in millimetres, floats), 22 joints, 17 frames, 21 landmarks."""
+    from hoidata.toy.hot3d_umetrack import umetrack_profile
+
+    rest = np.random.default_rng(0).normal(0, 0.05, (21, 3))
+    profile = json.loads(json.dumps(umetrack_profile(rest)))
+    shapes = {"joint_rotation_axes": (22, 3), "joint_rest_positions": (22, 3), "joint_frame_index": (22,),
+              "joint_parent": (22,), "joint_first_child": (22,), "joint_next_sibling": (22,),
+              "landmark_rest_positions": (21, 3), "landmark_rest_bone_weights": (21, 2),
+              "landmark_rest_bone_indices": (21, 2)}
+    assert {k: np.asarray(v).shape for k, v in profile.items()} == shapes
+    assert np.asarray(profile["joint_rest_positions"]).dtype.kind == "f"  # the reader scales them in place by 1e-3
+    frames = np.asarray(profile["landmark_rest_bone_indices"])
+    assert frames.min() >= 0 and frames.max() <= 16
+    np.testing.assert_allclose(profile["landmark_rest_positions"][0], (rest[4] - rest[0]) * 1000)  # thumb tip, mm
+    np.testing.assert_allclose(profile["landmark_rest_positions"][5], 0.0, atol=1e-12)  # the wrist

@@ -222,9 +222,10 @@ def _foreign_imports(path: Path, lazy: bool = True) -> set[str]:
     return found
 
 
-# the scoring modules that drive the MANO layer themselves (posing ground-truth hands from a store's labels): torch
+# the scoring modules that drive the MANO layer themselves (ground-truth hands from a store's labels, HOT3D's MANO
+# predictions): torch
 # inside the function that does it, never at import
-SCORING_POSES_MANO = ("hoisdf.scoring.recon_store",)
+SCORING_POSES_MANO = ("hoisdf.scoring.recon_store", "hoisdf.scoring.score_hot3d")
 
 
 def _scoring_problems(graph: dict[str, set[str]], paths: dict[str, Path]) -> list[str]:

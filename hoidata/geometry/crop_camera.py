@@ -36,7 +36,16 @@ def crop_maps(camera: Fisheye624, world_from_camera: np.ndarray, K: np.ndarray, 
     Rays behind the fisheye camera map to (-1, -1), which ``cv2.remap`` reads as black.
     """
     u, v = np.meshgrid(np.arange(size, dtype=np.float64), np.arange(size, dtype=np.float64))
-    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=-1)
+    pix = crop_to_fisheye(camera, world_from_camera, K, world_from_crop, np.stack([u, v], -1))
+    return pix[..., 0].astype(np.float32), pix[..., 1].astype(np.float32)
+
+
+def crop_to_fisheye(camera: Fisheye624, world_from_camera: np.ndarray, K: np.ndarray, world_from_crop: np.ndarray,
+                    uv: np.ndarray) -> np.ndarray:
+    """Crop camera pixels (..., 2) (any, not only whole ones) -> the fisheye pixels (..., 2) their rays reach;
+    (-1, -1) where a ray arrives behind the fisheye camera. Arguments as :func:`crop_maps`."""
+    uv = np.asarray(uv, np.float64)
+    rays = np.stack([(uv[..., 0] - K[0, 2]) / K[0, 0], (uv[..., 1] - K[1, 2]) / K[1, 1], np.ones(uv.shape[:-1])], -1)
     # each ray's point at unit distance, as the official reader takes it (HOT3D's crop cameras sit at the fisheye
     # camera's centre, where the distance does not matter)
     rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
@@ -44,7 +53,7 @@ def crop_maps(camera: Fisheye624, world_from_camera: np.ndarray, K: np.ndarray, 
     eye = rays @ camera_from_crop[:3, :3].T + camera_from_crop[:3, 3]
     pix = camera.project(eye)
     pix[eye[..., 2] < 0] = -1.0
-    return pix[..., 0].astype(np.float32), pix[..., 1].astype(np.float32)
+    return pix
 
 
 def remap_crop(image: np.ndarray, maps: tuple[np.ndarray, np.ndarray], interpolation: int | None = None) -> np.ndarray:

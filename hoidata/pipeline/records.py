@@ -212,7 +212,7 @@ def crop_view(raw: Frame, frame: Frame, obj: ObjectAsset, object_uv: np.ndarray,
             "to_pixels": to_crop, "to_K": to_crop, "meta": {}}
 
 
-HAND_BIT, OBJECT_BIT, SEEN_BIT = 1, 2, 4  # dataset_masks' bit code (SEEN: where an AMODAL_ONLY dataset's image is)
+HAND_BIT, OBJECT_BIT = 1, 2  # dataset_masks' bit code
 
 
 def dataset_masks(frame: Frame) -> np.ndarray | None:
@@ -221,7 +221,7 @@ def dataset_masks(frame: Frame) -> np.ndarray | None:
     if frame.labels is not None:  # a synthetic render's own label map
         return _bits(frame.labels == 1, frame.labels == 2)
     path = frame.segmentation_path
-    if path is None and frame.dataset != "hot3d_clips":
+    if path is None:
         return None
     if frame.dataset == "dexycb":
         from hoidata.datasets.dexycb_layout import read_labels
@@ -229,11 +229,6 @@ def dataset_masks(frame: Frame) -> np.ndarray | None:
         # the reader checked every key of this file when it listed the frame; only the label map is decoded here
         seg = read_labels(path, int(frame.source["num_objects"]), keys=("seg",))["seg"]
         return _bits(seg == 255, seg == frame.object_id)
-    if frame.dataset == "hot3d_clips":  # amodal object masks only (RLE), remapped into the crop camera
-        from hoidata.datasets.hot3d import crop_object_mask
-
-        got = crop_object_mask(frame)
-        return None if got is None else _bits(np.zeros_like(got[0]), got[0]) | (got[1].view(np.uint8) * SEEN_BIT)
     if frame.dataset == "ho3d":  # rendered at 1/4 resolution: hand in red, object in blue
         import cv2
 
@@ -294,22 +289,21 @@ def expected_mask_path(frame: Frame):
 def dataset_mask_iou(frame: Frame, labels: np.ndarray, to_mask: np.ndarray, amodal: np.ndarray | None = None
                      ) -> np.ndarray:
     """IoU (2,) of our visible hand / object masks (label map 1 / 2) with the dataset's; -1 if it has none.
-    For AMODAL_ONLY datasets: the hand's is -1 and the object's compares our amodal object mask (``amodal[1]``).
+    HOT3D-Clips has amodal object masks only: the hand's is -1 and the object's compares our amodal object mask
+    (``amodal[1]``), read at the mask's pixels (:func:`hoidata.datasets.hot3d.object_mask_iou`).
 
     Both masks travel as bits of one map through one nearest-neighbour warp: each output pixel takes the
     bits of one source pixel, so this equals warping each mask on its own."""
+    if frame.dataset == "hot3d_clips":
+        from hoidata.datasets.hot3d import object_mask_iou
+
+        return np.array([-1.0, object_mask_iou(frame, amodal[1], to_mask)])
     warped = warped_dataset_masks(frame, to_mask, labels.shape[0])
     if warped is None:
         return np.array([-1.0, -1.0])
     out = []
     for bit, label in ((HAND_BIT, 1), (OBJECT_BIT, 2)):
         theirs, ours = (warped & bit) > 0, labels == label
-        if frame.dataset in AMODAL_ONLY:  # compared where the dataset's image is (not the record's black margin)
-            if label == 1:
-                out.append(-1.0)
-                continue
-            seen = (warped & SEEN_BIT) > 0
-            theirs, ours = theirs & seen, amodal[1] & seen
         union = np.count_nonzero(ours | theirs)
         out.append(np.count_nonzero(ours & theirs) / union if union else 1.0)
     return np.array(out)

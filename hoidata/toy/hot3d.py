@@ -2,7 +2,8 @@
 
 ``<split>_<device>/clip-<id>.tar`` with one WebDataset sample per frame keyed ``%06d`` (``image_<stream>.jpg``,
 ``cameras.json``, ``hands.json``, ``hand_crops.json``, ``objects.json``, ``info.json``) and the clip's
-``__hand_shapes.json__``; ``object_models_eval/obj_<bop id>.glb`` (the toy objects, metres) beside them. A clip
+``__hand_shapes.json__`` (``mano`` betas and a toy ``umetrack`` profile the
+official reader accepts, :mod:`hoidata.toy.hot3d_umetrack`); ``object_models_eval/obj_<bop id>.glb`` (the toy objects, metres) beside them. A clip
 shows both toy hands, each grasping a toy object, through the toy headset's FISHEYE624 streams
 (:mod:`hoidata.toy.hot3d_rig`). Hand poses are MANO's 15 PCA coefficients (``flat_hand_mean=False``) with the
 global orientation and translation in ``wrist_xform``, world frame; the hand drawn is exactly that pose. In frame
@@ -30,6 +31,7 @@ from hoidata.geometry.se3 import se3_to_wxyz
 from hoidata.hand.pose import axis_angle_to_pca, change_frame, pca_to_axis_angle
 from hoidata.toy import scenes as toy_scenes
 from hoidata.toy.hot3d_rig import FisheyeView, box, crop_camera_for, device_streams, wide_side
+from hoidata.toy.hot3d_umetrack import umetrack_profile
 
 MISSING_FRAME = 1  # the left hand has no umetrack_pose (nor mano_pose) in this frame of every clip
 SIDE_OFFSETS = {"right": 0.11, "left": -0.11}  # metres along world x of each hand's grasp
@@ -91,6 +93,14 @@ def make_hand(side: str, mano, obj, betas: np.ndarray, frames: int, rng) -> ToyH
     objects[:, :3, 3] += shift
     return ToyHand(side, mano, seq, pca[:, 3:], np.concatenate([pca[:, :3], transl], 1),
                    out.vertices.double().numpy(), out.joints.double().numpy(), objects)
+
+
+def rest_joints(mano, betas: np.ndarray) -> np.ndarray:
+    """The hand's 21 joints (metres) in MANO's flat rest pose for ``betas``."""
+    with torch.no_grad():
+        zero = torch.zeros(1, 48, dtype=torch.float64)
+        out = mano(zero, torch.as_tensor(betas)[None], zero[:, :3])
+    return out.joints[0].double().numpy()
 
 
 def _hand_entry(hand: ToyHand, f: int, boxes: dict, vis: dict) -> dict:
@@ -207,7 +217,8 @@ def write_clip(path: Path, device: str, manos: dict, objects: dict, views: dict,
             for name, data in _frame_members(f"{f:06d}", f, device, streams, rig, hands,
                                              [(h.seq.object, h.object_poses) for h in hands], looks):
                 _add(tar, name, data)
-        _add(tar, HAND_SHAPES, _json({"mano": betas.tolist(), "umetrack": {"toy": "no UmeTrack profile"}}))
+        umetrack = umetrack_profile(rest_joints(manos["right"], betas))
+        _add(tar, HAND_SHAPES, _json({"mano": betas.tolist(), "umetrack": umetrack}))
     truth = path.parent.parent / TRUTH / f"{path.stem}.npz"
     truth.parent.mkdir(parents=True, exist_ok=True)
     np.savez(truth, streams=np.array([s.stream_id for s in streams]), joints=np.stack([h.joints for h in hands], 1),

@@ -3,7 +3,8 @@
 pyrender draws pinhole images only, so a fisheye view is drawn as a wide pinhole image from the same centre and
 axes, then resampled: each fisheye pixel's ray (:meth:`~hoidata.geometry.fisheye624.Fisheye624.unproject`) reads
 the pinhole pixel it hits (colour bilinear, labels nearest; the pinhole image has ``OVERSAMPLE`` times the
-fisheye's focal length, so a mask's edge is placed to a fraction of a fisheye pixel). Rays more than ``RENDER_ANGLE`` off the axis stay black,
+fisheye's focal length, so a mask's edge is placed to half a pinhole pixel, at most half a fisheye pixel: the
+pinhole magnifies off its axis). Rays more than ``RENDER_ANGLE`` off the axis stay black,
 like the vignette of the real fisheye corners. Labels and pixels come from the same poses, so annotations and images
 agree by construction.
 """
@@ -18,7 +19,7 @@ import numpy as np
 from hoidata.geometry.fisheye624 import Fisheye624
 
 RENDER_ANGLE = 1.0  # radians off the axis that a fisheye view shows (57 degrees); beyond it: black
-OVERSAMPLE = 2  # the pinhole image is drawn at this many times the fisheye's focal length (finer masks)
+OVERSAMPLE = 1  # the pinhole image is drawn at this many times the fisheye's focal length
 
 
 @dataclass(frozen=True)
@@ -49,15 +50,18 @@ COEFFS = (0.30, -0.20, 0.05, 0.01, -0.005, 0.001, 1.0e-3, -5.0e-4, 5.0e-4, -2.0e
 
 def device_streams(device: str) -> list[Stream]:
     """The toy headset's streams: Aria has an RGB stream ``214-1`` (15 projection values: one focal length) and two
-    monochrome ``1201-1`` / ``1201-2``; Quest 3 the two monochrome ones with 16 values (fx, fy)."""
+    monochrome ``1201-1`` / ``1201-2``; Quest 3 the two monochrome ones with 16 values (fx, fy). Sizes: RGB 1216 x
+    1216 (HOT3D's: 1408 x 1408), monochrome 960 x 720 (Aria's SLAM cameras: 640 x 480; Quest 3's: 1280 x 1024). At
+    half these (an earlier toy) an object covered ~700 pixels of a monochrome image, and the clip's RLE mask, a sample
+    at those pixels, limited the build's mask IoU to ~0.979 even for a perfect mask (docs/datasets.md)."""
     mono = [(-0.05, -0.15, "1201-1", "left"), (0.05, 0.15, "1201-2", "right")]
     if device == "Aria":
-        out = [Stream("214-1", "camera-rgb", Fisheye624(608, 608, 250.0, 250.0, 303.3, 304.2, COEFFS), np.eye(4))]
-        return out + [Stream(sid, f"camera-slam-{side}", Fisheye624(480, 360, 180.0, 180.0, 239.6, 179.8, COEFFS),
+        out = [Stream("214-1", "camera-rgb", Fisheye624(1216, 1216, 500.0, 500.0, 607.1, 608.9, COEFFS), np.eye(4))]
+        return out + [Stream(sid, f"camera-slam-{side}", Fisheye624(960, 720, 360.0, 360.0, 479.7, 360.1, COEFFS),
                              _mount(x, yaw)) for x, yaw, sid, side in mono]
     if device == "Quest3":
         scaled = tuple(c * 0.8 for c in COEFFS)
-        return [Stream(sid, f"camera-mono-{side}", Fisheye624(480, 360, 178.0, 178.9, 240.4, 179.1, scaled),
+        return [Stream(sid, f"camera-mono-{side}", Fisheye624(960, 720, 356.0, 357.8, 481.3, 358.7, scaled),
                        _mount(x, yaw))
                 for x, yaw, sid, side in mono]
     raise ValueError(f"unknown toy device {device!r}; expected 'Aria' or 'Quest3'")

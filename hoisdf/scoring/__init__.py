@@ -4,7 +4,7 @@ checkpoint, its per-run outputs and pictures) stands above it and uses it.
 
 - the command: :mod:`~hoisdf.scoring.cli` (``hoisdf score``; ``python -m hoisdf.scoring``), one module per
   subcommand: :mod:`~hoisdf.scoring.score_ho3d`, :mod:`~hoisdf.scoring.score_dexycb`,
-  :mod:`~hoisdf.scoring.score_contact`, :mod:`~hoisdf.scoring.score_recon`;
+  :mod:`~hoisdf.scoring.score_contact`, :mod:`~hoisdf.scoring.score_recon`, :mod:`~hoisdf.scoring.score_hot3d`;
 - pose metrics as the official evaluators compute them: :mod:`~hoisdf.scoring.metrics`,
   :mod:`~hoisdf.scoring.official`;
 - the official result files, read and written: :mod:`~hoisdf.scoring.submissions`,

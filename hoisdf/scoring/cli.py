@@ -5,6 +5,7 @@ with no model and no store.
     hoisdf score dexycb --pred RESULT.txt --root DEXYCB_DIR --split s0_test
     hoisdf score contact --pred pred.json|pred.zip|hands.npz [--order evaluation.txt] --store STORE --mano DIR
     hoisdf score recon  --pred SDF_MESH_DIR --gt GT_MESH_DIR [--protocol gsdf|exact] [--seed S] [--repeats K]
+    hoisdf score hot3d  --pred DIR|SUBMISSION.tar --gt DIR [--mano DIR] [--track pose|shape]
 
 Each subcommand prints a table and, with ``--out FILE.json``, writes the numbers under the same names. A
 malformed file is one ``error:`` line naming the file, the entry and the field (exit 2; ``--debug`` for the
@@ -34,6 +35,7 @@ SUBCOMMANDS = {
     "dexycb": "hoisdf.scoring.score_dexycb",
     "contact": "hoisdf.scoring.score_contact",
     "recon": "hoisdf.scoring.score_recon",
+    "hot3d": "hoisdf.scoring.score_hot3d",
 }
 
 
