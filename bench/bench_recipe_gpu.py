@@ -9,7 +9,9 @@ Two steps, as ``bench_gpu.py`` (the GPU machine has torch, numpy and scipy but n
 
    resolves the pipeline's training settings (``dexycb``: ``train.recipe = "upstream"``, fp32, the full-size model),
    reads ``--batches`` batches of ``train.batch_size`` (22) from a toy DexYCB store (or ``--store``) through the
-   trainer's loader, applies the training augmentation with a seeded generator, and saves them (images as uint8)
+   trainer's loader (under ``augment.upstream``, the recipe's default, the store must be built with
+   ``record.upstream_region = ["train"]``, as the ``dexycb`` preset builds it; ``augment.upstream=false`` takes any
+   store), applies the training augmentation with a seeded generator, and saves them (images as uint8)
    with the resolved settings and the toy MANO: about 10 MB per batch of 22;
 
 2. on the GPU machine (device tool: carry ``["bench/recipe_inputs"]``)::
@@ -60,7 +62,7 @@ def prepare(out: Path, config_name: str, overrides: list[str], store: Path | Non
     try:
         store, mano_dir = store_and_mano(argparse.Namespace(store=store, mano=mano), work, records=batches * t.batch_size)
         data = build_dataset([StoreSpec(store)], t.batch_size, batches * t.batch_size, t.seed, m.n_hand, m.n_object,
-                             t.near, training=True, progress=False)
+                             t.near, training=True, progress=False, upstream=config.augment.upstream)
         generator = torch.Generator().manual_seed(t.seed)
         saved = []
         for _, batch in zip(range(batches), data):

@@ -100,7 +100,7 @@ def peak_gib(device: torch.device) -> float | None:
 @contextmanager
 def stage_times(model, device: torch.device, times: dict):
     """Add the seconds spent in the backbone, the query-point sampling and the pose path to ``times``."""
-    stages = {"backbone": (model.backbone, "forward"), "sampling": (model, "_query_points"), "pose": (model, "_pose")}
+    stages = {"backbone": (model.backbone, "forward"), "sampling": (model, "_queries"), "pose": (model, "_pose")}
 
     def timed(name, fn):
         def call(*args, **kwargs):

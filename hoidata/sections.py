@@ -101,7 +101,12 @@ def section(cls, values: dict, path: Path, name: str, overrides=()):
         if problem:
             raise DataError(origin(path, overrides, f"{name}.{key}"), f"{name}.{key}", problem)
         kwargs[key] = tuple(value) if isinstance(value, list) else value
-    return cls(**kwargs)
+    try:
+        return cls(**kwargs)
+    except ValueError as err:  # a rule between keys the class checks itself (``__post_init__``)
+        text = str(err).removeprefix(f"{name}.")
+        field = next((f"{name}.{k}" for k in sorted(known, key=len, reverse=True) if text.startswith(k)), name)
+        raise DataError(path, field, str(err)) from None
 
 
 def section_names(config_cls) -> tuple[str, ...]:

@@ -242,3 +242,14 @@ def test_train_with_a_preset_prints_its_recipe_and_validates_as_upstream(tiny_st
         val = {r["name"]: float(r["value"]) for r in csv.DictReader(f) if r["split"] == "val"}
     assert {"pa_mje_mm", "mje_mm", "total"} <= set(val) and 0 < val["pa_mje_mm"] <= val["mje_mm"]
     assert val["samples"] == records > 0  # the whole store (val_batches = 0; before: 0 samples)
+
+
+@pytest.mark.parametrize("override, key", [("model.image_size=64", "augment.upstream"),
+                                           ('augment.heatmap_target="sum"', "augment.heatmap_target"),
+                                           ('augment.rotation="any"', "augment.rotation")])
+def test_a_rule_between_settings_is_one_line_naming_the_file_and_key(override, key):
+    """Rules a settings class checks itself (``__post_init__``: augment.upstream needs 256 px inputs, the choices of
+    heatmap_target and rotation) end as one DataError naming the file and the key, not a ValueError traceback."""
+    with pytest.raises(DataError) as err:
+        load_train_config("dexycb", [override])
+    assert key in str(err.value) and "dexycb.toml" in str(err.value) and "\n" not in str(err.value)
