@@ -11,7 +11,7 @@ import torch
 
 from hoisdf.scoring.metrics import pa_mje as reference_pa_mje
 from hoisdf.training.losses import HOISDFLoss, LossWeights, hand_targets, mirrored_shape_mano
-from hoisdf.training.trainer import pa_mje, validates_after
+from hoisdf.training.trainer import validates_after
 
 
 def test_upstream_validation_schedule_is_every_5_epochs_then_every_epoch_from_field_sampling():
@@ -31,18 +31,21 @@ def _joints(seed: int, n: int = 6) -> np.ndarray:
     return np.random.default_rng(seed).normal(scale=0.05, size=(n, 21, 3))
 
 
-def test_pa_mje_is_the_similarity_alignment_with_a_proper_rotation():
+def test_validation_pa_mje_is_the_similarity_alignment_with_a_proper_rotation():
+    """The trainer's validation PA-MJE is hoisdf.scoring.metrics.pa_mje without reflections (upstream's
+    ``rigid_align``, common/metrics.py:188-210; equal to it within 4.3e-16 on 200 pairs run in scratch)."""
+    import inspect
+
+    from hoisdf.training import trainer
+
+    assert trainer.pa_mje is reference_pa_mje and "reflection=False" in inspect.getsource(trainer.Trainer)
     gt = _joints(0)
     rot = np.linalg.qr(np.random.default_rng(1).normal(size=(3, 3)))[0]
     rot *= np.sign(np.linalg.det(rot))
     pred = 1.3 * gt @ rot.T + 0.2 + 0.002 * _joints(2)
-    mine = pa_mje(torch.tensor(pred), torch.tensor(gt)).numpy()
-    np.testing.assert_allclose(mine, reference_pa_mje(pred, gt, reflection=False), rtol=1e-5, atol=1e-9)  # the reference adds 1e-8 to a norm
-    assert mine.max() < 0.003  # the similarity is undone
+    assert reference_pa_mje(pred, gt, reflection=False).max() < 0.003  # the similarity is undone
     mirror = pred * np.array([-1.0, 1.0, 1.0])  # upstream forbids the reflection: a mirror image keeps its error
-    np.testing.assert_allclose(pa_mje(torch.tensor(mirror), torch.tensor(gt)).numpy(),
-                               reference_pa_mje(mirror, gt, reflection=False), rtol=1e-5, atol=1e-9)  # the reference adds 1e-8 to a norm
-    assert (reference_pa_mje(mirror, gt, reflection=True) < pa_mje(torch.tensor(mirror), torch.tensor(gt)).numpy()).all()
+    assert (reference_pa_mje(mirror, gt, reflection=True) < reference_pa_mje(mirror, gt, reflection=False)).all()
 
 
 def _mano_batch(mano, mirrored: list[bool], synthetic: list[bool] | None = None) -> dict:

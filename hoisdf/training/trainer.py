@@ -30,6 +30,7 @@ from hoisdf.data.augment import augment_batch
 from hoisdf.data.kinds import check_trainable
 from hoisdf.model import build_model
 from hoisdf.model.sampling import noise_scale
+from hoisdf.scoring.metrics import pa_mje
 from hoisdf.training.checkpoint import (
     CHECKPOINTS,
     LAST,
@@ -69,21 +70,6 @@ def validates_after(epoch: int, schedule: str, every: int, point_sampling_epoch:
     if schedule == "upstream":
         return epoch >= point_sampling_epoch or epoch % 5 == 0
     return bool(every) and (epoch + 1) % every == 0
-
-
-def pa_mje(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
-    """(B,) mean joint error (input units) after aligning each (J, 3) prediction onto its ground truth by a
-    similarity transform with a proper rotation (upstream's ``rigid_align``, common/metrics.py:188-210)."""
-    pred, gt = pred.double(), gt.double()
-    x, y = pred - pred.mean(1, keepdim=True), gt - gt.mean(1, keepdim=True)
-    u, s, vt = torch.linalg.svd(x.transpose(1, 2) @ y / pred.shape[1])  # (B, 3, 3): pred x gt
-    d = torch.ones_like(s)
-    d[:, -1] = torch.sign(torch.linalg.det(vt.transpose(1, 2) @ u.transpose(1, 2)))
-    d[d == 0] = 1.0
-    rot = vt.transpose(1, 2) @ torch.diag_embed(d) @ u.transpose(1, 2)  # maps x onto y
-    scale = (s * d).sum(1) / x.pow(2).mean(1).sum(1).clamp_min(1e-12)
-    aligned = scale[:, None, None] * x @ rot.transpose(1, 2) + gt.mean(1, keepdim=True)
-    return (aligned - gt).norm(dim=-1).mean(1)
 
 
 def make_optimizer(model: nn.Module, optimizer: str, lr: float, weight_decay: float) -> torch.optim.Optimizer:
@@ -328,7 +314,9 @@ class Trainer:
             gt = batch["joints_3d"] - batch["hand_root"][:, None]
             values = {**{k: float(v) for k, v in terms.items()}, "total": float(total),
                       "mje_mm": float((out["joints"].float() - gt).norm(dim=-1).mean()) * 1000,
-                      "pa_mje_mm": float(pa_mje(out["joints"].float(), gt).mean()) * 1000,
+                      # upstream's rigid_align: similarity with a proper rotation (no reflection)
+                      "pa_mje_mm": float(pa_mje(out["joints"].detach().double().cpu().numpy(),
+                                                gt.detach().double().cpu().numpy(), reflection=False).mean()) * 1000,
                       "oce_mm": float((out["obj_translation"] - batch["object_pose"][:, :3, 3]).norm(dim=-1).mean()) * 1000}
             n = len(batch["key"])
             for k, v in values.items():
