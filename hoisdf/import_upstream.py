@@ -56,7 +56,8 @@ def import_snapshot(snapshot: Path, setting: str, mano_dir: Path, out: Path) -> 
     with torch.device("meta"):  # names and shapes only: no memory, no random init
         model = build_model(config.model, None)
     U.check_mano(network, mano_dir, snapshot)
-    state = U.convert_network(payload["network"], model.state_dict(), snapshot, ik=setting == "ho3d_render")
+    state = U.convert_network(payload["network"], model.state_dict(), snapshot, ik=setting == "ho3d_render",
+                              raw_6d=config.model.rot6d == "raw")  # the recipe's pose head: no identity shift
     with warnings.catch_warnings():  # "copying into a meta parameter is a no-op": only the check is wanted
         warnings.simplefilter("ignore")
         load_weights(model, state, snapshot)  # the model's own strict check of names and shapes

@@ -189,12 +189,13 @@ def test_import_round_trip(imported, mano_dir):
         if U.is_dropped(name):
             continue
         mine = state[U.project_key(name)]
-        if name == "linear_pose.layers.2.bias":
+        if name == "linear_pose.layers.2.bias" and config.model.rot6d == "offset":  # an identity-offset head
             value = value - torch.tensor(U.IDENTITY_6D)
         assert torch.equal(mine, value.reshape(mine.shape)), name
     m = config.model
     assert (m.pixel_convention, m.sheared_grid, m.normalize_input, m.density_sign, m.object_rotation, m.decoder) == \
         ("upstream", True, False, "code", "axis_angle", "small")
+    assert m.rot6d == "raw"  # the preset's upstream recipe: upstream's raw 6D code, its bias copied unshifted
     written = json.loads((run / "config.json").read_text())["upstream"]
     assert written["sha256"] == info["sha256"] and written["setting"] == "dexycb" and written["epoch"] == 69
     assert len(written["dropped"]) == 26 and info["mapped"] == 699
