@@ -53,7 +53,9 @@ EOF
 hoidata --version
 hoidata make-toy --out toy --layout ho3d --sequences 1 --frames 1 >/dev/null
 hoidata build-sdf --dataset ho3d --root toy --out store --workers 1 record.crop_size=64 record.n_hand=64 \
-  record.n_object=64 2>/dev/null  # the named preset, read from the installed hoidata.presets (no progress bars)
+  record.n_object=64 'record.upstream_region=[]' 2>/dev/null  # the named preset, read from the installed
+# hoidata.presets (no progress bars); project crops, not its upstream frame regions: the step below trains the toy's
+# small model on them
 hoidata verify store
 python -m hoisdf.train --config toy --shards store --mano toy/mano --out run --no-progress model.depth=18 \
   model.image_size=64 model.n_hand=32 model.n_object=16 model.grid_resolution=16 model.hand_layers=1 \

@@ -30,6 +30,7 @@ from test_import_upstream import _rodrigues, lazily, rebuild_network
 
 GOLDEN = Path(__file__).parent / "golden" / "train_step"
 SKETCH, SAMPLE = 128, 64
+SAMPLE_REL = 1e-2  # sampled gradient entries: absolute tolerance as a fraction of the parameter's gradient norm
 SETTINGS = ("dexycb", "ho3d")
 # upstream's training step, key by key (the upstream recipe sets these; dropout 0 only for this comparison)
 UPSTREAM_STEP = ['model.normalize_input=false', 'model.pixel_convention="upstream"', 'model.sheared_grid=true',
@@ -195,7 +196,9 @@ def test_gradients_equal_upstreams(step, setting):
         assert cos > tol["cosine"], (name, cos)
         n = int(gold["sample.count"][i])
         sampled = torch.from_numpy(gold["sample.grad"][i, :n]).double()
-        assert torch.allclose(rec["sample"][name].double(), sampled, rtol=0, atol=rel_tol * ref), name
+        # single entries carry more float32 noise than the norm: 3.3e-3 of the norm between 1 and 2 torch threads
+        # (decoder_net.resnet_decoder.conv4d.1.weight, a train-mode BatchNorm's scale); 1e-2 of it leaves 3x room
+        assert torch.allclose(rec["sample"][name].double(), sampled, rtol=0, atol=max(rel_tol, SAMPLE_REL) * ref), name
         worst[name] = rel
     assert len(worst) + len(info["zero"]) == len(info["names"]) > 300
 
