@@ -118,7 +118,7 @@ def test_sdf_points_turn_as_upstream(group):
     """The loader's points (relative to the hand root) turned by the draw's rotation, then put in upstream's frames
     (hand: the turned root; object: upstream's anchor) x3.1: upstream's values for the same rows (a left hand's rows
     mirrored in x first, as upstream and the project's build both mirror them)."""
-    from hoisdf.data.upstream_augment import affine_transform
+    from hoidata.geometry.upstream_crop import rotated_crop_affines as affine_transform
 
     for key, want in GOLDEN[group].items():
         _, _, rot = affine_transform(np.zeros(2), 100.0, golden_draw(want).rotation, np.eye(3))
@@ -163,7 +163,7 @@ def test_region_holds_every_pixel_the_warp_samples(rotation):
     K = np.array([[600.0, 0, 320], [0, 600, 240], [0, 0, 1]])
 
     def holds(x0, y0, n):
-        from hoisdf.data.upstream_augment import affine_transform
+        from hoidata.geometry.upstream_crop import rotated_crop_affines as affine_transform
 
         for d in draws:
             c = centre + up.CENTER_JITTER * side * np.asarray(d.jitter)

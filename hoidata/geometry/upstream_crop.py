@@ -61,16 +61,30 @@ def scale_translate(centre, side, size: int) -> np.ndarray:
     return out
 
 
-def crop_affines(centre: np.ndarray, side, size: int, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(affine, affine for K) float32 (3, 3) of an unrotated crop (upstream's ``get_affine_transform`` with rot 0
-    and K given): the second is built about the centre taken through upstream's principal-point round trip,
-    which can differ from the first in the last bit; DexYCB's K uses it, HO-3D's the first."""
-    affine = scale_translate(centre, side, size).dot(np.eye(3)).astype(np.float32)
+def rotated_crop_affines(centre: np.ndarray, side, rot: float, K: np.ndarray, size: int = INPUT_SIZE):
+    """(pixel affine, K affine, rotation (3, 3)) float32 of a crop of ``side`` px about ``centre`` turned by ``rot``
+    radians (upstream's ``get_affine_transform`` with K: the image turns about the origin, then the crop is cut about
+    the turned centre; K's affine is cut about the centre turned about the principal point, a round trip that can
+    differ from the first in the last bit: DexYCB's K uses it, HO-3D's the first)."""
+    rot_mat = np.zeros((3, 3))
+    sn, cs = np.sin(rot), np.cos(rot)
+    rot_mat[0, :2] = [cs, -sn]
+    rot_mat[1, :2] = [sn, cs]
+    rot_mat[2, 2] = 1
+    homogeneous = centre.tolist() + [1]
+    post = scale_translate(rot_mat.dot(homogeneous)[:2], side, size)
     to_pp, from_pp = np.eye(3), np.eye(3)
     to_pp[:2, 2] = -K[0, 2], -K[1, 2]
     from_pp[:2, 2] = K[0, 2], K[1, 2]
-    moved = from_pp.dot(np.eye(3)).dot(to_pp).dot([*centre.tolist(), 1])
-    return affine, scale_translate(moved[:2], side, size).astype(np.float32)
+    about_pp = from_pp.dot(rot_mat).dot(to_pp).dot(homogeneous)
+    return (post.dot(rot_mat).astype(np.float32), scale_translate(about_pp[:2], side, size).astype(np.float32),
+            rot_mat.astype(np.float32))
+
+
+def crop_affines(centre: np.ndarray, side, size: int, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(affine, affine for K) float32 (3, 3) of an unrotated crop: :func:`rotated_crop_affines` at rot 0."""
+    affine, affine_k, _ = rotated_crop_affines(centre, side, 0.0, K, size)
+    return affine, affine_k
 
 
 def transform_points(uv: np.ndarray, affine: np.ndarray) -> np.ndarray:
@@ -79,15 +93,19 @@ def transform_points(uv: np.ndarray, affine: np.ndarray) -> np.ndarray:
     return affine.dot(hom.transpose()).transpose()[:, :2]
 
 
-def warp_nearest(image, affine: np.ndarray, size: int) -> np.ndarray:
-    """PIL image (RGB) -> (size, size, 3) uint8 through ``affine`` (3, 3) float32 with PIL's default
-    nearest-neighbour AFFINE transform, black outside (upstream's ``transform_img`` then ``crop``)."""
+def warp_pil(image, affine: np.ndarray, size: int):
+    """PIL image -> PIL image (size, size) through ``affine`` (3, 3) with PIL's default nearest-neighbour AFFINE
+    transform, black outside (upstream's ``transform_img``)."""
     from PIL import Image
 
     inv = np.linalg.inv(affine)
-    data = (inv[0, 0], inv[0, 1], inv[0, 2], inv[1, 0], inv[1, 1], inv[1, 2])
-    out = image.transform((size, size), Image.AFFINE, data)
-    return np.asarray(out.crop((0, 0, size, size)))
+    return image.transform((size, size), Image.AFFINE, (inv[0, 0], inv[0, 1], inv[0, 2], inv[1, 0], inv[1, 1], inv[1, 2]))
+
+
+def warp_nearest(image, affine: np.ndarray, size: int) -> np.ndarray:
+    """PIL image (RGB) -> (size, size, 3) uint8 through :func:`warp_pil` (upstream's ``transform_img`` then
+    ``crop``)."""
+    return np.asarray(warp_pil(image, affine, size).crop((0, 0, size, size)))
 
 
 def pixel_affine(affine: np.ndarray) -> np.ndarray:

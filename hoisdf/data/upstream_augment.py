@@ -78,36 +78,15 @@ def draw_upstream(rng: np.random.Generator, rotation: str) -> UpstreamDraw:
                         order=order, **{k: float(v) for k, v in factors.items()})
 
 
-def affine_transform(centre: np.ndarray, side, rot: float, K: np.ndarray, size: int = up.INPUT_SIZE):
-    """(pixel affine, K affine, rotation (3, 3)) float32 of a crop of ``side`` about ``centre`` turned by ``rot``
-    radians (upstream's ``get_affine_transform`` with K: the image turns about the origin, then the crop is cut about
-    the turned centre; K's affine is cut about the centre turned about the principal point)."""
-    rot_mat = np.zeros((3, 3))
-    sn, cs = np.sin(rot), np.cos(rot)
-    rot_mat[0, :2] = [cs, -sn]
-    rot_mat[1, :2] = [sn, cs]
-    rot_mat[2, 2] = 1
-    homogeneous = centre.tolist() + [1]
-    post = up.scale_translate(rot_mat.dot(homogeneous)[:2], side, size)
-    to_pp, from_pp = np.eye(3), np.eye(3)
-    to_pp[:2, 2] = -K[0, 2], -K[1, 2]
-    from_pp[:2, 2] = K[0, 2], K[1, 2]
-    about_pp = from_pp.dot(rot_mat).dot(to_pp).dot(homogeneous)
-    return (post.dot(rot_mat).astype(np.float32), up.scale_translate(about_pp[:2], side, size).astype(np.float32),
-            rot_mat.astype(np.float32))
-
-
 def warp_frame(region: np.ndarray, origin, frame_size, affine: np.ndarray, size: int = up.INPUT_SIZE):
     """PIL RGB (size, size): the frame (``frame_size`` (W, H), black) holding ``region`` (n, n, 3) uint8 at
-    ``origin`` (x0, y0), warped by ``affine`` with Pillow's nearest AFFINE transform (upstream's ``transform_img``).
-    The frame is rebuilt so that Pillow samples the very coordinates it samples in upstream's whole frame."""
+    ``origin`` (x0, y0), warped by ``affine`` as upstream's ``transform_img`` (:func:`~hoidata.geometry.upstream_crop.
+    warp_pil`). The frame is rebuilt so that Pillow samples the very coordinates it samples in upstream's whole frame."""
     from PIL import Image
 
     frame = Image.new("RGB", tuple(int(v) for v in frame_size))
     frame.paste(Image.fromarray(np.ascontiguousarray(region)), tuple(int(v) for v in origin))
-    inv = np.linalg.inv(affine)
-    return frame.transform((size, size), Image.AFFINE, (inv[0, 0], inv[0, 1], inv[0, 2], inv[1, 0], inv[1, 1],
-                                                        inv[1, 2]))
+    return up.warp_pil(frame, affine, size)
 
 
 def blur_and_color(image, draw: UpstreamDraw):
@@ -162,7 +141,7 @@ def augment_view(region: np.ndarray, origin, frame_size, K: np.ndarray, joints_u
     centre, side = up.base_square(joints_uv, box21_uv, tuple(frame_size))
     centre = centre + up.CENTER_JITTER * side * np.asarray(draw.jitter, np.float64)
     side = side * np.float64(draw.scale)
-    affine, affine_k, rot = affine_transform(centre, side, draw.rotation, K)
+    affine, affine_k, rot = up.rotated_crop_affines(centre, side, draw.rotation, K)
     uv, box_uv = up.transform_points(joints_uv, affine), up.transform_points(box21_uv, affine)
     K_new = affine_k.dot(K)
     hand_box, object_box = up.joints_box(uv, HAND_GRID_FACTOR[dataset]), up.joints_box(box_uv, up.OBJECT_GRID_FACTOR)
