@@ -56,7 +56,7 @@ def test_landmarks_of_the_submission_itself_score_zero_in_any_entry_order(files,
     fingertip vertices), listed in another order: entries are paired after the server's stable frame_id sort."""
     import numpy as np
 
-    from hoisdf.scoring.score_hot3d import HandModels
+    from hoisdf.scoring.score_hot3d import THRESHOLDS_MM, HandModels
 
     gt, pred = files
     entries = json.loads((pred / "result_pose_hot3d.json").read_text())
@@ -69,7 +69,10 @@ def test_landmarks_of_the_submission_itself_score_zero_in_any_entry_order(files,
            for e, lm in zip(entries, landmarks)]
     (gt / "gt_landmarks_hot3d.json").write_text(json.dumps(sorted(own, key=lambda e: -e["frame_id"])))  # stable
     got = run(tmp_path, pred, gt, mano_dir)
-    assert got["hot3d_MPJPE"] < 1e-9 and got["hot3d_PCK_AUC"] > 99.98 and not got["warnings"]
+    # every landmark within every threshold above 0 mm; at 0 mm an error of 4e-15 m (float noise that follows numpy's
+    # BLAS kernel: 0 under SkylakeX, not under Haswell / Prescott) is a miss, worth at most that point's half-step
+    first_step = 100 * 0.5 / (len(THRESHOLDS_MM) - 1)
+    assert got["hot3d_MPJPE"] < 1e-9 and got["hot3d_PCK_AUC"] >= 100 - first_step and not got["warnings"]
     swapped = [own[i + 1 - 2 * (i % 2)] for i in range(len(own))]  # the two hands of each frame trade places
     (gt / "gt_landmarks_hot3d.json").write_text(json.dumps(swapped))
     assert run(tmp_path, pred, gt, mano_dir)["hot3d_MPJPE"] > 10.0  # paired by position, as on the server

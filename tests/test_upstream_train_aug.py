@@ -19,6 +19,9 @@ from hoisdf.data.upstream_samples import frame_inputs, upstream_sample
 GOLDEN_DIR = Path(__file__).parent / "golden" / "upstream_train_aug"
 GOLDEN = json.loads((GOLDEN_DIR / "train_aug.json").read_text())
 TOL = 1e-6  # K and boxes (px), anchor, joints and SDF points (m; SDF points in upstream's x3.1 units)
+# upstream keeps boxes and K in float32 after 3x3 products whose last bit follows numpy's BLAS kernel: HO-3D's hand box
+# (~111 px) moved 2 float32 ulps (1.5e-5 px) under OPENBLAS_CORETYPE=Haswell / Prescott, more than TOL at that size
+FLOAT32_RTOL = 4 * float(np.finfo(np.float32).eps)
 SDF_SCALE = 3.1
 SMALL = ["record.n_hand=64", "record.n_object=32", 'record.upstream_region=["train"]', 'dataset.splits=["train"]']
 GROUPS = {"dexycb_right": ("dexycb_s0", "toy", SMALL), "dexycb_left": ("dexycb_s0", "toy", SMALL),
@@ -32,7 +35,7 @@ def golden_draw(entry: dict) -> UpstreamDraw:
 
 
 def close(got, want, what: str) -> None:
-    np.testing.assert_allclose(np.asarray(got, np.float64), np.asarray(want, np.float64), rtol=0, atol=TOL,
+    np.testing.assert_allclose(np.asarray(got, np.float64), np.asarray(want, np.float64), rtol=FLOAT32_RTOL, atol=TOL,
                                err_msg=what)
 
 
