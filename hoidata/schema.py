@@ -7,6 +7,8 @@ Members of a record (key ``<dataset>-<split>-<frame id>``, no dots):
 ==============  =============================================================================
 ``img.jpg``     RGB crop, square, ``crop_size`` px (default 512), JPEG; pixels outside the image black
 ``img.png``     in place of ``img.jpg`` in an upstream-crop record (see below): the RGB crop, lossless PNG
+``frame.jpg``   in place of ``img.jpg`` in an upstream-region record (see below): the original frame's file as shipped
+                (``frame.png`` when that file is a PNG)
 ``seg.png``     uint8 single channel at ``crop_size // 2``: bit 0 visible hand, bit 1 visible object,
                 bit 2 amodal hand, bit 3 amodal object
 ``hm.png``      uint8 single channel at ``crop_size // 2``: sum of 21 joint Gaussians (sigma 1.25 px),
@@ -36,9 +38,13 @@ losslessly as ``img.png``; ``K`` is upstream's crop intrinsics. Their ``meta.jso
 :data:`CROP_FIELDS` (all of them; other records hold none): the 2D boxes that filter upstream's inference grid
 and its object anchor, which evaluation uses in place of its own.
 
-Upstream-region records (``record.upstream_region``, full records of the named splits): ``img.png`` is a square of the
-original frame at native resolution, lossless, large enough for upstream's training jitter, scale and rotation;
-their ``meta.json`` also holds the :data:`REGION_FIELDS` (upstream's frame-level inputs to its training warp).
+Upstream-region records (``record.upstream_region``, full records of the named splits) keep what upstream's training
+warp samples: the original frame's file as the dataset ships it, byte for byte, as ``frame.jpg`` or ``frame.png``
+(by its format; never re-encoded), read as upstream reads it (Pillow, flipped for a left hand); readers get under
+``img`` the square of that frame at ``region_origin`` (``seg.png`` and ``hm.png`` are at half its side), large enough
+for upstream's training jitter, scale and rotation. Stores built before the frame member hold that square itself as
+a lossless ``img.png``; both read the same. Their ``meta.json`` also holds the :data:`REGION_FIELDS` (upstream's
+frame-level inputs to its training warp).
 """
 
 from __future__ import annotations
@@ -51,12 +57,15 @@ SCHEMA_VERSION = 2  # 2: sample_index, record kinds
 
 IMG = "img.jpg"
 IMG_LOSSLESS = "img.png"  # the image member of an upstream-crop record (CROP_FIELDS), in place of IMG
+FRAME_JPG, FRAME_PNG = "frame.jpg", "frame.png"  # an upstream-region record's original frame file, in place of IMG
+FRAME_MEMBERS = (FRAME_JPG, FRAME_PNG)
+IMAGE_STAND_INS = (IMG_LOSSLESS, *FRAME_MEMBERS)  # members that stand in for IMG (one at most, never beside it)
 SEG = "seg.png"
 HEATMAP = "hm.png"
 SDF = "sdf.npy"
 META = "meta.json"
 MEMBERS = (IMG, SEG, HEATMAP, SDF, META)
-WRITE_ORDER = (IMG, IMG_LOSSLESS, SEG, HEATMAP, SDF, META)  # member order inside a shard
+WRITE_ORDER = (IMG, IMG_LOSSLESS, FRAME_JPG, FRAME_PNG, SEG, HEATMAP, SDF, META)  # member order inside a shard
 
 # seg.png bit planes
 SEG_HAND_VISIBLE, SEG_OBJECT_VISIBLE, SEG_HAND_AMODAL, SEG_OBJECT_AMODAL = 1, 2, 4, 8
@@ -115,13 +124,14 @@ CROP_FIELDS = {
                             "grid_object_box back-projected at the hand root's depth; HO-3D: at 0.5244322 m)"),
 }
 
-# meta.json fields of a record.upstream_region record only (all or none): its img.png is a square of the original
-# frame at native resolution (upstream HOISDF's training warp samples it), K, joints_2d and boxes in its pixels
+# meta.json fields of a record.upstream_region record only (all or none): its image (the frame.jpg / frame.png file's
+# square at region_origin, or an older store's img.png) is a square of the original frame at native resolution
+# (upstream HOISDF's training warp samples it), K, joints_2d and boxes in its pixels
 UPSTREAM_REGION = "upstream_train"
 REGION_FIELDS = {
-    "region": (None, "'upstream_train': img.png is the square of the original frame (flipped for a left hand) at "
+    "region": (None, "'upstream_train': the image is the square of the original frame (flipped for a left hand) at "
                      "region_origin, black outside the frame, that upstream HOISDF's training augmentation samples"),
-    "region_origin": ((2,), "x0, y0 of img.png's top-left pixel in the (flipped) frame, pixels"),
+    "region_origin": ((2,), "x0, y0 of the image's top-left pixel in the (flipped) frame, pixels"),
     "frame_size": ((2,), "width, height of the original frame, pixels"),
     "frame_K": ((3, 3), "upstream's intrinsics of the (flipped) frame (DexYCB float64, HO-3D float32 values)"),
     "frame_joints_2d": ((21, 2), "upstream's 2D joints in the (flipped) frame, float32 values"),
@@ -146,19 +156,21 @@ RECORD_KINDS = {
 
 
 def kind_of_members(names) -> str | None:
-    """The record kind whose members are exactly ``names`` (None if no kind has that set); ``img.png`` stands in
-    for ``img.jpg`` (an upstream-crop record), never beside it."""
+    """The record kind whose members are exactly ``names`` (None if no kind has that set); one of IMAGE_STAND_INS
+    (``img.png``: an upstream-crop or upstream-region record; ``frame.jpg`` / ``frame.png``: an upstream-region record)
+    stands in for ``img.jpg``, never beside it or another."""
     names = set(names)
-    if IMG_LOSSLESS in names:
-        if IMG in names:
+    stand_ins = names & set(IMAGE_STAND_INS)
+    if stand_ins:
+        if IMG in names or len(stand_ins) > 1:
             return None
-        names = (names - {IMG_LOSSLESS}) | {IMG}
+        names = (names - stand_ins) | {IMG}
     return next((kind for kind, (members, _) in RECORD_KINDS.items() if names == set(members)), None)
 
 
 def image_member(names) -> str:
-    """The image member among a record's member ``names``: ``img.png`` if there, else ``img.jpg``."""
-    return IMG_LOSSLESS if IMG_LOSSLESS in names else IMG
+    """The image member among a record's member ``names``: the one of IMAGE_STAND_INS there, else ``img.jpg``."""
+    return next((name for name in IMAGE_STAND_INS if name in names), IMG)
 
 
 _KEY_RE = re.compile(r"[A-Za-z0-9_\-]+")  # used with fullmatch: no dots, slashes or trailing newline

@@ -310,3 +310,94 @@ def test_the_dexycb_preset_trains_in_full_on_a_region_store(region_stores, mano_
                 "train.bf16 = false"):
         assert any(key in line and "recipe upstream" in line for line in lines), key
     assert "done: epoch 0, 2 steps" in done.stdout and (tmp_path / "run" / "checkpoints" / "last.pt").exists()
+
+
+def _frame_members(store: Path) -> dict:
+    """{key: (member name, bytes)} of the image member of each record of ``store``."""
+    from hoidata.store import read_shard_members
+
+    out = {}
+    for shard in sorted(store.glob("shard-*.tar")):
+        for members in read_shard_members(shard):
+            name = schema.image_member([m for m in members if not m.startswith("__")])
+            out[members["__key__"]] = (name, bytes(members[name]))
+    return out
+
+
+@pytest.mark.slow
+def test_region_records_keep_the_frame_file_as_shipped(request, region_stores, region_records):
+    """A region record stores the original frame's file byte for byte (frame.jpg for DexYCB's JPEG, frame.png for
+    the toy HO-3D's PNG: never re-encoded); it reads back as Pillow reads that file, flipped for a left hand, and its
+    img is that frame's square at region_origin (what the masks sit on)."""
+    import io
+
+    from PIL import Image
+
+    from hoidata.store import FRAME_IMAGE
+
+    for fixture, store in region_stores.items():
+        root = request.getfixturevalue(fixture)
+        shipped = {p.read_bytes() for p in root.rglob("*") if p.suffix in (".jpg", ".png") and
+                   (p.name.startswith("color_") or p.parent.name == "rgb")}
+        for key, (name, data) in _frame_members(store).items():
+            rec = region_records[key]
+            meta = rec[schema.META]
+            assert name == (schema.FRAME_JPG if meta["dataset"] == "dexycb" else schema.FRAME_PNG) and data in shipped
+            want = np.asarray(Image.open(io.BytesIO(data)).convert("RGB"))
+            assert np.array_equal(rec[FRAME_IMAGE], want[:, ::-1] if meta["mirrored"] else want), key
+            x0, y0 = meta["region_origin"].astype(int)
+            assert np.array_equal(rec[schema.IMG], up.cut_region(rec[FRAME_IMAGE], x0, y0, rec[schema.IMG].shape[0]))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("group", sorted(GOLDEN))
+def test_the_loader_warps_the_stored_frame_as_upstream(region_records, group):
+    """The loader's path (the whole stored frame warped, no rebuilt frame) against upstream's golden pixels, and
+    equal value for value to the sample of the same record stored the older way (its square as img.png)."""
+    from hoidata.store import FRAME_IMAGE, decode_record, encode_record
+
+    for key, want in GOLDEN[group].items():
+        rec = region_records[key]
+        meta, draw = rec[schema.META], golden_draw(want)
+        K, joints_uv, box21_uv = frame_inputs(meta)
+        view = augment_view(rec[FRAME_IMAGE], (0, 0), meta["frame_size"].astype(int), K, joints_uv, box21_uv,
+                            np.asarray(meta["joints_3d"], np.float32), meta["dataset"], draw)
+        assert hashlib.sha256(np.asarray(view.plain).tobytes()).hexdigest() == want["plain_sha256"], key
+        old = decode_record(encode_record(key, rec[schema.IMG], rec[schema.SEG], rec[schema.HEATMAP], rec[schema.SDF],
+                                          dict(meta)), "<old store>")
+        assert FRAME_IMAGE not in old
+        sample = {"seg_bits": rec[schema.SEG], "hand_root": np.asarray(meta["joints_3d"][0], np.float32),
+                  "mano_pose": np.asarray(meta["mano_pose"], np.float32), "hand_points": np.ones((4, 3), np.float32)}
+        new_way = upstream_sample(rec[schema.IMG], meta, sample, draw, key, rec[FRAME_IMAGE])
+        old_way = upstream_sample(old[schema.IMG], old[schema.META], sample, draw, key)
+        assert new_way.keys() == old_way.keys()
+        for name, value in new_way.items():
+            assert np.array_equal(value, old_way[name]), (key, name)
+
+
+@pytest.mark.slow
+def test_frame_member_codec_rules(region_records):
+    """A frame member whose header disagrees with frame_size, one cut short, one on a record without the region
+    fields, or one beside img.png: one DataError naming the record (or its members)."""
+    import cv2
+
+    from hoidata.errors import DataError
+    from hoidata.store import decode_record, encode_record
+
+    rec = next(r for r in region_records.values() if r[schema.META]["dataset"] == "dexycb")
+    meta, key = dict(rec[schema.META]), rec[schema.META]["key"]
+    arrays = (rec[schema.IMG], rec[schema.SEG], rec[schema.HEATMAP], rec[schema.SDF])
+    jpeg = cv2.imencode(".jpg", np.zeros((480, 640, 3), np.uint8))[1].tobytes()
+    members = encode_record(key, *arrays, meta, jpeg)
+    assert schema.FRAME_JPG in members and members[schema.FRAME_JPG] == jpeg and schema.IMG_LOSSLESS not in members
+    small = cv2.imencode(".jpg", np.zeros((48, 64, 3), np.uint8))[1].tobytes()
+    for frame, words in ((small, "frame_size"), (jpeg[:-40], "truncated")):
+        with pytest.raises(DataError, match=words):
+            encode_record(key, *arrays, meta, frame)
+        with pytest.raises(DataError, match=f"{key}.frame.jpg"):
+            decode_record({"__key__": key, **members, schema.FRAME_JPG: frame}, "<test>")
+    plain = {k: v for k, v in meta.items() if k not in schema.REGION_FIELDS}
+    with pytest.raises(DataError, match="upstream-region record"):
+        encode_record(key, *arrays, plain, jpeg)
+    with pytest.raises(DataError, match="expected exactly"):
+        decode_record({**members, schema.IMG_LOSSLESS: encode_record(key, *arrays, meta)[schema.IMG_LOSSLESS]}, "<t>")

@@ -56,8 +56,9 @@ class RecordSettings:
     # n_object rows per entity in the frames' joint normalisation (hoidata.geometry.sampling_deepsdf, docs/stores.md)
     sdf_points: str = "project"  # "project" | "deepsdf"
     masks: str = "rendered"  # visible mask targets: "rendered" from the meshes | "dataset": the dataset's own masks
-    # splits whose full records keep, in place of the crop, the square of the original frame (lossless img.png, native
-    # resolution) that upstream HOISDF's training augmentation samples, and upstream's inputs to it (docs/stores.md)
+    # splits whose full records keep, in place of the crop, the original frame's file as shipped (frame.jpg / .png;
+    # readers get its square at native resolution that upstream HOISDF's training augmentation samples) and
+    # upstream's inputs to it (docs/stores.md)
     upstream_region: tuple[str, ...] = ()  # e.g. ["train"]; empty: off
     LIMITS: ClassVar[dict] = {"crop_size": (">= 32", "<= 4096"), "context": ("> 0",), "n_hand": (">= 1",),
                               "n_object": (">= 1",), "uniform_fraction": (">= 0", "<= 1"), "cube": ("> 0",),
@@ -148,7 +149,8 @@ def build_record(frame: Frame, mano, obj: ObjectAsset, renderer, key: str, setti
     `mano` is the hand model the frame's labels were made with (its own side and, for left hands,
     shape convention); a mirrored frame's mesh is that model's mesh, reflected, which is exact
     whatever the shape convention. Returns a dict with the decoded arrays (``img``, ``seg``,
-    ``heatmap``, ``sdf``, ``meta``) that :func:`hoidata.store.encode_record` turns into bytes.
+    ``heatmap``, ``sdf``, ``meta``; ``frame``: the frame file's bytes of a record.upstream_region record, else None)
+    that :func:`hoidata.store.encode_record` turns into bytes.
     """
     from hoidata.geometry.sampling import build_sdf_record
     from hoidata.geometry.sampling_deepsdf import deepsdf_record
@@ -181,6 +183,7 @@ def build_record(frame: Frame, mano, obj: ObjectAsset, renderer, key: str, setti
         "heatmap": summed_heatmap(project(frame.joints_3d, K_mask), half, settings.heatmap_sigma),
         "sdf": sdf,
         "meta": meta,
+        "frame": view.get("frame_bytes"),  # a record.upstream_region record stores the frame's file, not img
     }
 
 

@@ -53,8 +53,11 @@ def record_size(frame: Frame, settings, box3d: np.ndarray | None = None) -> int:
     return settings.crop_size
 
 
-def decode_as_upstream(frame: Frame):
-    """The frame's image as upstream decodes it: ``PIL.Image.open(path).convert("RGB")``, size checked."""
+def decode_as_upstream(frame: Frame, data: bytes | None = None):
+    """The frame's image as upstream decodes it: ``PIL.Image.open(path).convert("RGB")``, size checked (``data``: the
+    file's bytes, read already)."""
+    import io
+
     from PIL import Image, UnidentifiedImageError
 
     from hoidata.datasets.frame import read_rgb
@@ -63,7 +66,7 @@ def decode_as_upstream(frame: Frame):
         raise DataError(frame.image_path, "record.crop", "upstream's crop needs the original image file")
     read_rgb(frame.image_path, frame.image_size)  # the project's checks: present, complete, decodable, the size
     try:
-        with Image.open(frame.image_path) as img:
+        with Image.open(frame.image_path if data is None else io.BytesIO(data)) as img:
             return img.convert("RGB")
     except (OSError, UnidentifiedImageError) as exc:
         raise DataError(frame.image_path, None, f"PIL cannot decode this image ({exc})") from None
@@ -148,11 +151,16 @@ def region_square(frame: Frame, box3d: np.ndarray | None) -> tuple[int, int, int
 
 
 def region_view(frame: Frame, box3d: np.ndarray) -> dict:
-    """A record.upstream_region record's image and fields: ``img`` (n, n, 3) uint8 the square of the original frame
-    (decoded as upstream decodes it, flipped for a left hand, black outside the frame), ``to_pixels`` (3, 3) the
-    frame -> region pixel map (a translation), ``meta``: schema.REGION_FIELDS."""
+    """A record.upstream_region record's image and fields: ``frame_bytes`` the original frame file's bytes (what the
+    record stores, as shipped), ``img`` (n, n, 3) uint8 the square of that frame (decoded as upstream decodes it,
+    flipped for a left hand, black outside the frame; what readers get), ``to_pixels`` (3, 3) the frame -> region
+    pixel map (a translation), ``meta``: schema.REGION_FIELDS."""
     x0, y0, n = region_square(frame, box3d)
-    image = decode_as_upstream(frame)
+    data = Path(frame.image_path).read_bytes()
+    if data[:2] != b"\xff\xd8" and data[:8] != b"\x89PNG\r\n\x1a\n":
+        raise DataError(frame.image_path, "record.upstream_region", "the record keeps the frame's file as shipped: a "
+                                                                    "JPEG or PNG file, not this")
+    image = decode_as_upstream(frame, data)
     image = flip_image(image) if frame.mirror else image
     inputs = train_inputs(frame, box3d)
     to_pixels = np.eye(3)
@@ -161,7 +169,8 @@ def region_view(frame: Frame, box3d: np.ndarray) -> dict:
             "frame_size": np.array(image.size, np.float64), "frame_K": np.asarray(inputs["K"], np.float64),
             "frame_joints_2d": np.asarray(inputs["hand_uv"], np.float64),
             "frame_box21_2d": np.asarray(inputs["object_uv"], np.float64)}
-    return {"img": up.cut_region(np.asarray(image), x0, y0, n), "to_pixels": to_pixels, "meta": meta}
+    return {"img": up.cut_region(np.asarray(image), x0, y0, n), "to_pixels": to_pixels, "meta": meta,
+            "frame_bytes": data}
 
 
 def upstream_view(frame: Frame, box3d: np.ndarray) -> up.UpstreamCrop:

@@ -126,7 +126,8 @@ class RecordWorker:
                                settings)
         if source is not None:
             rec["meta"]["source"] = source
-        return store.encode_record(key, rec["img"], rec["seg"], rec["heatmap"], rec["sdf"], rec["meta"])
+        return store.encode_record(key, rec["img"], rec["seg"], rec["heatmap"], rec["sdf"], rec["meta"],
+                                   rec.get("frame"))
 
     def run(self, job: ShardJob) -> tuple[int, int, list]:
         """Build and write one shard (empty when every frame was skipped); returns (number, records written, skips).

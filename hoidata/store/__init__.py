@@ -17,6 +17,7 @@ The names most callers need are re-exported here.
 """
 
 from hoidata.store.codec import (
+    FRAME_IMAGE,
     KEY,
     MAX_IMAGE_SIDE,
     MAX_MEMBER_BYTES,
@@ -56,7 +57,7 @@ from hoidata.store.verify import (
 )
 
 __all__ = [
-    "INDEX_NAME", "KEY", "MAX_IMAGE_SIDE", "MAX_MEMBER_BYTES", "RemoteFile", "RemoteStore", "ShardInfo",
+    "FRAME_IMAGE", "INDEX_NAME", "KEY", "MAX_IMAGE_SIDE", "MAX_MEMBER_BYTES", "RemoteFile", "RemoteStore", "ShardInfo",
     "ShardWriter", "StoreIndex", "UNKNOWN_SIZE", "VerifyReport", "completed_shards", "decode_record", "encode_record", "file_digest",
     "index_labels", "index_lock", "iter_records", "local_store", "read_checked_shard", "read_index",
     "read_record", "read_shard_members", "record_spans", "read_sidecar", "resolve_store", "shard_name", "shard_sizes", "shard_source",

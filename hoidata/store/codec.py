@@ -15,8 +15,12 @@ import cv2
 import numpy as np
 
 from hoidata.errors import DataError
+from hoidata.geometry.upstream_crop import cut_region
 from hoidata.schema import (
     CROP_FIELDS,
+    FRAME_JPG,
+    FRAME_MEMBERS,
+    FRAME_PNG,
     FULL,
     HEATMAP,
     IMG,
@@ -46,6 +50,7 @@ PNG_COMPRESSION = 3  # pinned so the bytes do not depend on OpenCV's default
 MAX_MEMBER_BYTES = 64 << 20  # refuse absurd members before reading them into memory
 MAX_IMAGE_SIDE = 4096  # refuse absurd image headers before decoding (decompression bombs)
 KEY = "__key__"  # the record key in decoded records, as WebDataset names it
+FRAME_IMAGE = "frame_image"  # decoded upstream-region records with a frame member: the whole (flipped) frame, RGB
 N_PARTS = 16  # hand part labels 0..15 in sdf.npy's last column
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 _PNG_END = b"IEND\xaeB`\x82"  # the IEND chunk's type and CRC, the last bytes of every PNG
@@ -143,10 +148,11 @@ def _check_meta(meta, where, key, n_sdf: int | None, kind: str | None = None, im
         if meta["region"] != UPSTREAM_REGION:
             raise DataError(where, name, f"'region': {meta['region']!r}, expected {UPSTREAM_REGION!r}")
         fields = (*fields, *REGION_FIELDS)
-    if image is not None and bool(crop or region) != (image == IMG_LOSSLESS):
-        raise DataError(where, _field(key, image), f"an upstream-crop or upstream-region record ('crop' or 'region' "
-                                                   f"in {META}) stores its image as {IMG_LOSSLESS}, any other record "
-                                                   f"as {IMG}")
+    if image is not None and (bool(crop or region) != (image != IMG) or crop and image != IMG_LOSSLESS):
+        raise DataError(where, _field(key, image), f"an upstream-crop record ('crop' in {META}) stores its image as "
+                                                   f"{IMG_LOSSLESS}, an upstream-region record ('region') as "
+                                                   f"{' or '.join(FRAME_MEMBERS)} (or {IMG_LOSSLESS}), any other "
+                                                   f"record as {IMG}")
     missing, extra = sorted(set(fields) - set(meta)), sorted(set(meta) - set(fields))
     if missing or extra:
         raise DataError(where, name, f"missing fields {missing}, unexpected fields {extra} (kind {given!r})")
@@ -187,13 +193,16 @@ def _check_meta(meta, where, key, n_sdf: int | None, kind: str | None = None, im
 
 
 def encode_record(key: str, img: np.ndarray, seg: np.ndarray | None, heatmap: np.ndarray | None,
-                  sdf: np.ndarray | None, meta: dict) -> dict[str, bytes]:
+                  sdf: np.ndarray | None, meta: dict, frame: bytes | None = None) -> dict[str, bytes]:
     """Arrays and labels -> {member name: bytes} of the record's kind; the same inputs always give the same bytes.
 
-    img is RGB, stored as JPEG, or as lossless PNG (``img.png``) when meta holds the upstream-crop fields
-    (schema.CROP_FIELDS). meta must hold exactly its kind's fields (``meta["kind"]``, schema.RECORD_KINDS; numpy values
-    allowed); seg, heatmap and sdf are None exactly for a kind without those members. It is checked as a reader
-    would check it, so a record that encodes also decodes.
+    img is RGB, stored as JPEG, or as lossless PNG (``img.png``) when meta holds the upstream-crop or upstream-region
+    fields (schema.CROP_FIELDS, REGION_FIELDS). ``frame`` (an upstream-region record): the original frame file's
+    bytes, stored as they are (``frame.jpg`` / ``frame.png`` by their format) in place of img, which is then the
+    square of that frame the record's meta places (its header is checked against ``frame_size``, not decoded).
+    meta must hold exactly its kind's fields (``meta["kind"]``, schema.RECORD_KINDS; numpy values allowed); seg,
+    heatmap and sdf are None exactly for a kind without those members. It is checked as a reader would check it, so a
+    record that encodes also decodes.
     """
     check_record_key(key, None)
     kind = meta.get("kind") if isinstance(meta, dict) else None
@@ -203,13 +212,18 @@ def encode_record(key: str, img: np.ndarray, seg: np.ndarray | None, heatmap: np
     if kind in RECORD_KINDS and given != set(members_of_kind):
         raise DataError(None, key, f"a {kind!r} record has members {list(members_of_kind)}, got {sorted(given)}")
     image = IMG_LOSSLESS if isinstance(meta, dict) and ("crop" in meta or "region" in meta) else IMG
+    if frame is not None:
+        image = FRAME_PNG if bytes(frame[:8]) == _PNG_MAGIC else FRAME_JPG
     _check_images(None, key, img, seg, heatmap, image)
     if sdf is not None:
         _check_sdf(None, key, sdf)
     plain = to_jsonable(meta, None, _field(key, META))
     _check_meta(plain, None, key, None if sdf is None else len(sdf), image=image)
+    if frame is not None:
+        _check_frame_header(frame, None, key, image, plain["frame_size"])
     bgr = np.ascontiguousarray(img[..., ::-1])
-    members = {image: _imencode(".png", bgr, [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION]) if image == IMG_LOSSLESS
+    members = {image: bytes(frame) if frame is not None else
+               _imencode(".png", bgr, [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION]) if image == IMG_LOSSLESS
                else _imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])}
     for member, arr in ((SEG, seg), (HEATMAP, heatmap)) if seg is not None else ():
         members[member] = _imencode(".png", np.ascontiguousarray(arr), [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION])
@@ -249,7 +263,7 @@ def _image_size(data: bytes, member: str) -> tuple[int, int] | None:
     """(width, height) from a PNG's IHDR or a JPEG's SOF header without decoding; None if not found."""
     if member == IMG_LOSSLESS and data[24:26] != b"\x08\x02":  # the crop: 8-bit RGB PNG, nothing else
         return None
-    if member != IMG:
+    if member not in (IMG, FRAME_JPG):
         if data[:8] == _PNG_MAGIC and data[12:16] == b"IHDR" and len(data) >= 24:
             return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
         return None
@@ -278,6 +292,35 @@ def _decode_image(data: bytes, where, key, member: str) -> np.ndarray:
     if arr is None:
         raise DataError(where, _field(key, member), f"OpenCV cannot decode this {kind}")
     return arr
+
+
+def _check_frame_header(data, where, key, member: str, frame_size) -> None:
+    """An upstream-region record's frame member: a JPEG (frame.jpg) or PNG (frame.png) whose header says
+    ``frame_size`` (W, H) px, not cut short."""
+    data = bytes(data)
+    size, kind = _image_size(data, member), "JPEG" if member == FRAME_JPG else "PNG"
+    if size is None or not 0 < max(size) <= MAX_IMAGE_SIDE:
+        raise DataError(where, _field(key, member), f"not a {kind} of at most {MAX_IMAGE_SIDE} px (header: {size})")
+    if size != tuple(int(v) for v in frame_size):
+        raise DataError(where, _field(key, member), f"{size[0]}x{size[1]} px, but the record's 'frame_size' is "
+                                                    f"{[int(v) for v in frame_size]}")
+    problem = incomplete_image(data)
+    if problem:
+        raise DataError(where, _field(key, member), problem)
+
+
+def _read_frame(data, where, key, member: str, meta: dict) -> np.ndarray:
+    """An upstream-region record's frame member -> the whole frame (H, W, 3) uint8 as upstream's loader reads it:
+    Pillow's decode in RGB, flipped left to right for a mirrored (left-hand) record."""
+    from PIL import Image, UnidentifiedImageError
+
+    _check_frame_header(data, where, key, member, meta["frame_size"])
+    try:
+        with Image.open(io.BytesIO(bytes(data))) as img:
+            rgb = np.asarray(img if img.mode == "RGB" else img.convert("RGB"))
+    except (OSError, UnidentifiedImageError, ValueError) as exc:
+        raise DataError(where, _field(key, member), f"Pillow cannot decode this image ({exc})") from None
+    return np.ascontiguousarray(rgb[:, ::-1]) if meta["mirrored"] else rgb
 
 
 def _png_unread(data: bytes, where, key, member: str) -> np.ndarray:
@@ -325,14 +368,16 @@ def decode_record(members: dict[str, bytes], where: str, undecoded: tuple[str, .
         if not isinstance(members[name], (bytes, bytearray, memoryview)) or len(members[name]) > MAX_MEMBER_BYTES:
             raise DataError(where, _field(key, name), f"expected at most {MAX_MEMBER_BYTES} bytes")
     image = image_member(given)  # decoded under IMG whatever its member name, so readers need not care
-    out = {IMG: _decode_image(members[image], where, key, image)}
+    frame = image in FRAME_MEMBERS  # its square is cut once the meta has placed it
+    if frame and kind != FULL:
+        raise DataError(where, _field(key, image), f"only a {FULL!r} upstream-region record holds a frame member")
+    out = {} if frame else {IMG: _decode_image(members[image], where, key, image)}
     if kind == FULL:
         for member in (SEG, HEATMAP):
             read = _png_unread if member in undecoded else _decode_image
             out[member] = read(members[member], where, key, member)
-    _check_images(where, key, out[IMG], out.get(SEG), out.get(HEATMAP), image)
-    for member in undecoded:
-        out.pop(member, None)
+    if not frame:
+        _check_images(where, key, out[IMG], out.get(SEG), out.get(HEATMAP), image)
     if SDF in given:
         out[SDF] = _decode_sdf(members[SDF], where, key)
         _check_sdf(where, key, out[SDF])
@@ -341,4 +386,11 @@ def decode_record(members: dict[str, bytes], where: str, undecoded: tuple[str, .
     except (UnicodeDecodeError, ValueError, RecursionError) as exc:  # RecursionError: absurdly nested JSON
         raise DataError(where, _field(key, META), f"not UTF-8 JSON ({type(exc).__name__})") from None
     out[META] = _check_meta(plain, where, key, len(out[SDF]) if SDF in out else None, kind, image)
-    return {KEY: out[META]["key"], **out}
+    if frame:  # the square at region_origin, its side twice the masks'
+        out[FRAME_IMAGE] = _read_frame(members[image], where, key, image, out[META])
+        x0, y0 = (int(v) for v in out[META]["region_origin"])
+        out[IMG] = cut_region(out[FRAME_IMAGE], x0, y0, 2 * out[SEG].shape[0])
+        _check_images(where, key, out[IMG], out[SEG], out[HEATMAP], image)
+    for member in undecoded:
+        out.pop(member, None)
+    return {KEY: out[META]["key"], IMG: out.pop(IMG), **out}

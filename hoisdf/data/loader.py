@@ -48,7 +48,7 @@ from webdataset.utils import pytorch_worker_info
 
 from hoidata import schema
 from hoidata.errors import DataError
-from hoidata.store import KEY, decode_record
+from hoidata.store import FRAME_IMAGE, KEY, decode_record
 from hoisdf.data.global_shuffle import GlobalShuffle, record_table
 from hoisdf.data.kinds import check_trainable, fill_absent_labels
 from hoisdf.data.shards import Loader, ReadShards, ShardStream, errors_as_items, store_shards
@@ -210,8 +210,8 @@ class _ToArrays:
             "is_synthetic": np.bool_(meta["dataset"] == "synthetic"),
             "key": key,
         })
-        return finish_sample(rec[schema.IMG], meta, out, key, self.upstream and [self.seed, self.state.epoch,
-                                                                                  _key_seed(key), _AUGMENT_STREAM])
+        seed = self.upstream and [self.seed, self.state.epoch, _key_seed(key), _AUGMENT_STREAM]
+        return finish_sample(rec[schema.IMG], meta, out, key, seed, rec.get(FRAME_IMAGE))
 
 
 def crop_entries(meta: dict) -> dict:

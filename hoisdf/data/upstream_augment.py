@@ -81,10 +81,14 @@ def draw_upstream(rng: np.random.Generator, rotation: str) -> UpstreamDraw:
 def warp_frame(region: np.ndarray, origin, frame_size, affine: np.ndarray, size: int = up.INPUT_SIZE):
     """PIL RGB (size, size): the frame (``frame_size`` (W, H), black) holding ``region`` (n, n, 3) uint8 at
     ``origin`` (x0, y0), warped by ``affine`` as upstream's ``transform_img`` (:func:`~hoidata.geometry.upstream_crop.
-    warp_pil`). The frame is rebuilt so that Pillow samples the very coordinates it samples in upstream's whole frame."""
+    warp_pil`). The frame is rebuilt so that Pillow samples the very coordinates it samples in upstream's whole frame;
+    a ``region`` (H, W, 3) that is the whole frame at origin (0, 0) is warped as it is."""
     from PIL import Image
 
-    frame = Image.new("RGB", tuple(int(v) for v in frame_size))
+    size_wh = tuple(int(v) for v in frame_size)
+    if tuple(int(v) for v in origin) == (0, 0) and region.shape[1::-1] == size_wh:
+        return up.warp_pil(Image.fromarray(np.ascontiguousarray(region)), affine, size)
+    frame = Image.new("RGB", size_wh)
     frame.paste(Image.fromarray(np.ascontiguousarray(region)), tuple(int(v) for v in origin))
     return up.warp_pil(frame, affine, size)
 
@@ -137,7 +141,8 @@ def augment_view(region: np.ndarray, origin, frame_size, K: np.ndarray, joints_u
                  box21_uv: np.ndarray, joints_3d: np.ndarray, dataset: str, draw: UpstreamDraw) -> UpstreamView:
     """Upstream's ``data_aug`` for one frame, given in upstream's dtypes (DexYCB: K float64, joints float32; HO-3D:
     both float32): ``region`` (n, n, 3) uint8 at ``origin`` in the frame of ``frame_size``; joints_3d (21, 3) float32
-    camera frame (joint 0 the hand root, whose turned depth places the DexYCB anchor)."""
+    camera frame (joint 0 the hand root, whose turned depth places the DexYCB anchor). ``region`` may be the whole
+    frame (H, W, 3) at origin (0, 0)."""
     centre, side = up.base_square(joints_uv, box21_uv, tuple(frame_size))
     centre = centre + up.CENTER_JITTER * side * np.asarray(draw.jitter, np.float64)
     side = side * np.float64(draw.scale)

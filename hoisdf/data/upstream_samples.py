@@ -61,9 +61,12 @@ def rotate_pose(object_pose: np.ndarray, mano_pose: np.ndarray, rot: np.ndarray)
     return (turn @ object_pose).astype(np.float32), np.concatenate([glob, mano_pose[3:]]).astype(np.float32)
 
 
-def upstream_sample(rec_img: np.ndarray, meta: dict, sample: dict, draw: UpstreamDraw, key: str) -> dict:
+def upstream_sample(rec_img: np.ndarray, meta: dict, sample: dict, draw: UpstreamDraw, key: str,
+                    frame: np.ndarray | None = None) -> dict:
     """The loader's per-sample dict ``sample`` (made from the record as for the project's augmentation) with the
-    region record's image ``rec_img`` replaced by upstream's augmented 256 px input and every label moved with it."""
+    region record's image ``rec_img`` replaced by upstream's augmented 256 px input and every label moved with it.
+    ``frame``: the whole (flipped) frame (H, W, 3) the record stores (hoidata.store.FRAME_IMAGE), warped in place of
+    ``rec_img`` (the same pixels where the region holds them; no rebuilt frame)."""
     if "region" not in meta:
         raise DataError(None, key, "augment.upstream needs records built with record.upstream_region (the frame region "
                                    "upstream's training warp samples); this record has a project crop")
@@ -71,8 +74,9 @@ def upstream_sample(rec_img: np.ndarray, meta: dict, sample: dict, draw: Upstrea
     origin, frame_size = meta["region_origin"].astype(np.int64), meta["frame_size"].astype(np.int64)
     K, joints_uv, box21_uv = frame_inputs(meta)
     joints = np.asarray(meta["joints_3d"], np.float32)
-    view = augment_view(rec_img, origin, frame_size, K, joints_uv, box21_uv, joints, dataset, draw)
-    if not footprint_inside(view.affine, origin, rec_img.shape[0], frame_size):
+    source, at = (rec_img, origin) if frame is None else (frame, np.zeros(2, np.int64))
+    view = augment_view(source, at, frame_size, K, joints_uv, box21_uv, joints, dataset, draw)
+    if frame is None and not footprint_inside(view.affine, origin, rec_img.shape[0], frame_size):
         raise DataError(None, key, "the draw samples frame pixels outside the stored region (a region built for "
                                    "other jitter ranges?)")
     rot = view.rot
@@ -100,14 +104,15 @@ def project_sample(meta: dict, key: str) -> None:
                                    "the project's augmentation needs project-crop records")
 
 
-def finish_sample(rec_img: np.ndarray, meta: dict, sample: dict, key: str, seed) -> dict:
+def finish_sample(rec_img: np.ndarray, meta: dict, sample: dict, key: str, seed,
+                  frame: np.ndarray | None = None) -> dict:
     """The loader's last per-sample step: ``seed`` falsy: the sample as it is (a region record refused); else a
     list of ints seeding this sample's draw (:func:`~hoisdf.data.upstream_augment.draw_upstream`, the record's
-    dataset's rotation rule) and :func:`upstream_sample`."""
+    dataset's rotation rule) and :func:`upstream_sample` (``frame``: the record's whole frame, when it stores one)."""
     from hoisdf.data.upstream_augment import ROTATIONS, draw_upstream
 
     if not seed:
         project_sample(meta, key)
         return sample
     rule = ROTATIONS[upstream_rule(meta, key)]
-    return upstream_sample(rec_img, meta, sample, draw_upstream(np.random.default_rng(seed), rule), key)
+    return upstream_sample(rec_img, meta, sample, draw_upstream(np.random.default_rng(seed), rule), key, frame)
