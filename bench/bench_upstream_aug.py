@@ -5,8 +5,8 @@ Usage: python -m bench.bench_upstream_aug [--frames 48] [--batch 22] [--batches 
            [--root DIR] [--upstream CHECKOUT]
 
 - ours: ``make_loader(build_dataset(..., upstream=True))`` over a store built with ``record.upstream_region`` (the
-  region PNG decoded, SDF rows drawn, upstream's warp, blur and colour per sample, collated), 600 + 200 SDF points
-  and as many near points, as training uses;
+  stored frame file decoded with Pillow, SDF rows drawn, upstream's warp, blur and colour per sample, collated),
+  600 + 200 SDF points and as many near points, as training uses;
 - upstream: upstream's ``data/dexycb.py`` ``Dataset.__getitem__`` in mode ``train`` from an upstream checkout
   (``--upstream``, e.g. a clone of amathislab/HOISDF; the project holds none of its code), one process, on the same
   frames: its JPEG decode, SDF ``.npy`` read (synthetic rows in its layout, 20,000 per block like AlignSDF's), masks
@@ -15,7 +15,8 @@ Usage: python -m bench.bench_upstream_aug [--frames 48] [--batch 22] [--batches 
   column prints "not run".
 
 Per core: samples/s divided by the processes that work (1 + workers, at most the machine's cores). Interleaved
-over ``--rounds`` rounds, medians; the load average is printed with the table.
+over ``--rounds`` rounds, medians, and ours per core / upstream's per core in each round; the load average before
+and after and the store's size are printed with the table.
 """
 
 from __future__ import annotations
@@ -157,8 +158,10 @@ def main(argv=None) -> None:
         root = args.root or toy_train_root(args.frames, work)
         build_store(load_build_config("toy", SETTINGS), root, root / "mano", root / "models", work / "store",
                     workers=1, progress=False)
+        stored = [p.stat().st_size for p in (work / "store").glob("shard-*.tar")]
         up = args.upstream.resolve() if args.upstream else None
         rates: dict[str, list[float]] = {}
+        load_before = os.getloadavg()[0]
         for _ in range(args.rounds):
             for workers in args.workers:
                 rates.setdefault(f"ours, {workers} worker(s)", []).append(
@@ -166,19 +169,28 @@ def main(argv=None) -> None:
             if up is not None:
                 rates.setdefault("upstream __getitem__", []).append(
                     upstream_rate(up, root.resolve(), work, args.batch * args.batches))
+    print_table(rates, args.workers, up is not None, load_before, sum(stored))
+
+
+def print_table(rates: dict, workers_list, with_upstream: bool, load_before: float, store_bytes: int) -> None:
+    """Medians per loader, per core, and ours per core / upstream's per core (median and per round)."""
     cores = os.cpu_count() or 1
-    print(f"{'loader':<24} {'samples/s':>10} {'per core':>9}")
-    for workers in args.workers:
+    load = " ".join(f"{x:.2f}" for x in os.getloadavg())
+    print(f"store: {store_bytes / 1e6:.2f} MB of shards; samples/s, median of {len(next(iter(rates.values())))} "
+          f"interleaved rounds; load average {load_before:.2f} before, {load} after (1, 5, 15 min), {cores} cores")
+    print(f"{'loader':<24} {'samples/s':>10} {'per core':>9} {'x upstream':>11}  x upstream per round")
+    upstream = np.array(rates["upstream __getitem__"]) if with_upstream else None
+    for workers in workers_list:
         name = f"ours, {workers} worker(s)"
-        rate = float(np.median(rates[name]))
-        print(f"{name:<24} {rate:>10.1f} {rate / min(1 + workers, cores):>9.1f}")
-    if up is None:
+        per_core = np.array(rates[name]) / min(1 + workers, cores)
+        ratio = per_core / upstream if with_upstream else None
+        print(f"{name:<24} {np.median(rates[name]):>10.1f} {np.median(per_core):>9.1f} "
+              + (f"{np.median(ratio):>11.2f}  " + " ".join(f"{x:.2f}" for x in ratio) if with_upstream else ""))
+    if not with_upstream:
         print(f"{'upstream __getitem__':<24} {'not run (--upstream CHECKOUT)':>20}")
     else:
-        rate = float(np.median(rates["upstream __getitem__"]))
+        rate = float(np.median(upstream))
         print(f"{'upstream __getitem__':<24} {rate:>10.1f} {rate:>9.1f}")
-    print(f"load average (1 min): {os.getloadavg()[0]:.2f} on {cores} cores")
-
 
 if __name__ == "__main__":
     main()
