@@ -351,7 +351,10 @@ def decode_record(members: dict[str, bytes], where: str, undecoded: tuple[str, .
     Returns {"__key__": key, IMG: RGB uint8, SEG: uint8, HEATMAP: uint8, SDF: int16 (N, 6), META: dict}
     with META's shaped fields as numpy arrays; a record of a kind without some members (schema.RECORD_KINDS)
     has only its own (an ``eval`` record: IMG and META). An upstream-crop record's ``img.png`` is returned under
-    IMG too, pixel for pixel as stored. Other ``__*__`` entries (``__url__``...) are ignored.
+    IMG too, pixel for pixel as stored. An upstream-region record's frame member (``frame.jpg`` / ``frame.png``) is
+    decoded with Pillow as upstream decodes it and flipped for a mirrored record: the whole frame is returned under
+    FRAME_IMAGE, its square at ``region_origin`` (side twice the masks') under IMG. Other ``__*__`` entries
+    (``__url__``...) are ignored.
     ``undecoded``: PNG members (SEG, HEATMAP) to check without decoding (present, within the size limit, a PNG
     header of the right size, not cut short) and leave out of the result, for readers that do not use them.
     Any deviation from the schema raises DataError naming ``where`` (the shard) and the key/member.
