@@ -67,14 +67,17 @@ class MeshBVH:
         _refit(vertices, faces, pad, self.order, self.left, self.start, self.count, self.boxes, self.tri)
         self._wide = None  # the closest-face query's wide view (bvh_wide.gather), made on its first call
 
-    def closest(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def closest(self, points: np.ndarray, visit: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """For validated points (N, 3) float64: distance (N,) float64, face (N,) int64, barycentric
-        weights (N, 2) of the closest point q = a + v (b - a) + w (c - a), and its feature (N,) int8."""
+        weights (N, 2) of the closest point q = a + v (b - a) + w (c - a), and its feature (N,) int8.
+        ``visit``: the order to query them in (:func:`morton_order` of the points when None; a caller querying the
+        same points on several meshes passes it once); any permutation gives the same results."""
         n = len(points)
         dist, face, weights, feature = np.empty(n), np.empty(n, np.int64), np.empty((n, 2)), np.empty(n, np.int8)
         ref, lo, hi, blocks, first, count = self.wide()
-        closest_wide(points, _morton_order(points), self.order, lo, hi, ref, blocks, first, count, self.tri,
-                     dist, face, weights, feature)
+        closest_wide(points, morton_order(points) if visit is None else visit, self.order, lo, hi, ref, blocks, first,
+                     count, self.tri, dist, face, weights, feature)
         return dist, self.order[face], weights, feature
 
     def crossings(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -230,6 +233,12 @@ def _refit(vertices, faces, pad, order, left_of, start_of, count_of, boxes, tri)
             else:
                 boxes[node, d] = min(boxes[left, d], boxes[left + 1, d])
                 boxes[node, 3 + d] = max(boxes[left, 3 + d], boxes[left + 1, 3 + d])
+
+
+def morton_order(points: np.ndarray) -> np.ndarray:
+    """(N,) int64: the points' order along a Z-order curve over their bounding box (:func:`_morton_order`), the
+    visiting order of :meth:`MeshBVH.closest` that makes each query start near its predecessor's answer."""
+    return _morton_order(points)
 
 
 @numba.njit(cache=True)

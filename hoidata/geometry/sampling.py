@@ -18,7 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hoidata.geometry.sdf import signed_distance, validate_mesh
+from hoidata.geometry.bvh import morton_order
+from hoidata.geometry.sdf import as_points, signed_distance, validate_mesh
 from hoidata.schema import NO_PART, quantize_sdf
 
 DEFAULT_SIGMAS = (0.010, 0.003)
@@ -164,8 +165,10 @@ def compute_sdf_samples(points, hand_vertices, hand_faces, hand_face_parts, obj_
                          f"got {parts.dtype} {parts.shape}")
     if not float(part_radius) >= 0:
         raise ValueError(f"part_radius must be >= 0 metres, got {part_radius!r}")
-    sdf_hand, hand_face = signed_distance(points, hand_vertices, hand_faces, bool(hand_pseudonormal), backend)
-    sdf_object, _ = signed_distance(points, obj_vertices, obj_faces, bool(obj_watertight), backend)
+    points = as_points(points, "points")
+    visit = morton_order(points) if backend == "bvh" else None  # the points' query order, found once for both meshes
+    sdf_hand, hand_face = signed_distance(points, hand_vertices, hand_faces, bool(hand_pseudonormal), backend, visit)
+    sdf_object, _ = signed_distance(points, obj_vertices, obj_faces, bool(obj_watertight), backend, visit)
     part = np.where(np.abs(sdf_hand) <= float(part_radius), parts[hand_face], NO_PART).astype(np.int8)
     return sdf_hand, sdf_object, part
 

@@ -123,10 +123,46 @@ def is_closed(faces: np.ndarray) -> bool:
     return bool(np.array_equal(np.sort(heads * n + tails), np.sort(tails * n + heads)))
 
 
-def winding_numbers(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, bvh: MeshBVH) -> np.ndarray:
-    """(N,) generalized winding numbers of a closed mesh (:func:`is_closed`) at points off its surface."""
-    count, undecided = bvh.crossings(points)
-    winding = count.astype(np.float64)
+def winding_numbers(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, bvh: MeshBVH,
+                    dist: np.ndarray | None = None, visit: np.ndarray | None = None) -> np.ndarray:
+    """(N,) generalized winding numbers of a closed mesh (:func:`is_closed`) at points off its surface.
+
+    With the points' unsigned distances to the mesh ``dist`` (N,) and an order ``visit`` (N,) of them, only some
+    points cast a ray: the winding number of a closed mesh is constant off its surface, so a point shares its
+    predecessor's (in ``visit``) when the segment between them lies in a ball free of the surface, one of the two
+    balls of radius ``dist`` around them (:func:`_shared_winding`). The same numbers, fewer rays."""
+    if dist is None or visit is None:
+        source = np.arange(len(points))
+    else:
+        source = _shared_winding(points, np.asarray(dist, dtype=np.float64), np.asarray(visit, dtype=np.int64))
+    cast = np.flatnonzero(source == np.arange(len(points)))
+    rays = np.ascontiguousarray(points[cast])
+    count, undecided = bvh.crossings(rays)
+    winding = np.empty(len(points))
+    winding[cast] = count
     if undecided.any():
-        winding[undecided] = igl.winding_number(vertices, faces, np.ascontiguousarray(points[undecided]))
-    return winding
+        winding[cast[undecided]] = igl.winding_number(vertices, faces, np.ascontiguousarray(rays[undecided]))
+    return winding[source]
+
+
+SHARE_WINDOW = 16  # predecessors tried
+SHARE_MARGIN = 1e-9  # relative: the segment must be this much shorter than the ball's radius (rounding of both)
+
+
+@numba.njit(cache=True)
+def _shared_winding(points, dist, visit):
+    """(N,) int64: for each point, the point whose winding number it has, itself where it must cast a ray. Walking
+    ``visit``, a point p whose predecessor q satisfies |p - q| (1 + SHARE_MARGIN) < max(dist[p], dist[q]) takes
+    q's source: the segment pq then lies inside the open ball around p or q whose radius is that point's distance
+    to the surface, so it crosses no face and the winding number is the same at both ends."""
+    source = np.arange(len(points))
+    for t in range(1, len(visit)):
+        i = visit[t]
+        for back in range(1, min(t, SHARE_WINDOW) + 1):
+            j = visit[t - back]
+            d0, d1, d2 = points[i, 0] - points[j, 0], points[i, 1] - points[j, 1], points[i, 2] - points[j, 2]
+            gap = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2) * (1.0 + SHARE_MARGIN)
+            if gap < max(dist[i], dist[j]):
+                source[i] = source[j]
+                break
+    return source
