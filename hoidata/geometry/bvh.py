@@ -60,7 +60,8 @@ class MeshBVH:
     """
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray):
-        self.order, self.left, self.start, self.count = topology(vertices, faces)
+        self.key = mesh_key(vertices, faces)  # what the per-face-array caches (tree shape, adjacency) are keyed by
+        self.order, self.left, self.start, self.count = topology(vertices, faces, self.key)
         self.boxes = np.empty((len(self.left), 6))  # (lo xyz, hi xyz) per node
         self.tri = np.empty((len(faces), 9))  # corners a, b, c of each face, in leaf order
         pad = PAD * float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
@@ -107,10 +108,11 @@ def mesh_key(vertices: np.ndarray, faces: np.ndarray) -> tuple[int, bytes]:
     return len(vertices), hashlib.blake2b(np.ascontiguousarray(faces).tobytes(), digest_size=16).digest()
 
 
-def topology(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def topology(vertices: np.ndarray, faces: np.ndarray, key: tuple | None = None
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(order, left, start, count) of the tree over these faces: built from ``vertices`` the first
-    time a face array (by content, with the vertex count) is seen, then reused."""
-    key = mesh_key(vertices, faces)
+    time a face array (by content, with the vertex count: ``key``, :func:`mesh_key` when None) is seen, then reused."""
+    key = mesh_key(vertices, faces) if key is None else key
     if key in _TOPOLOGIES:
         _TOPOLOGIES.move_to_end(key)
         return _TOPOLOGIES[key]

@@ -22,7 +22,7 @@ import igl
 import numpy as np
 
 from hoidata.geometry.bvh import MeshBVH, morton_order
-from hoidata.geometry.signs import is_closed, pseudonormal_outside, winding_numbers
+from hoidata.geometry.signs import is_closed_kept, pseudonormal_outside, winding_numbers
 
 BACKENDS = ("bvh", "igl")
 
@@ -105,7 +105,7 @@ def signed_distance(points, vertices, faces, watertight: bool, backend: str = "b
         raise ValueError(f"visit must be an order of the {len(points)} points, got shape {visit.shape}")
     dist, closest_face, weights, feature = bvh.closest(points, visit)
     if watertight:
-        outside = pseudonormal_outside(points, vertices, faces, closest_face, weights, feature)
+        outside = pseudonormal_outside(points, vertices, faces, closest_face, weights, feature, bvh.key)
     else:
         outside = ~winding_inside(points, vertices, faces, bvh, dist, visit)
     return np.where(outside, dist, -dist), closest_face
@@ -153,7 +153,7 @@ def winding_inside(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, 
     if len(boxed) == 0:
         return inside
     query = np.ascontiguousarray(points[boxed])
-    if bvh is not None and is_closed(faces):
+    if bvh is not None and is_closed_kept(faces, bvh.key):
         if dist is not None and visit is not None:  # the boxed points in the order given, renumbered
             rank = np.full(len(points), -1, np.int64)
             rank[boxed] = np.arange(len(boxed))

@@ -27,15 +27,16 @@ _ADJACENCY: OrderedDict = OrderedDict()
 KEEP_ADJACENCY = 32  # face arrays whose edge and vertex incidence is kept (least recently used dropped first)
 
 
-def adjacency(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Incidence of a face array, computed once per face array (:func:`hoidata.geometry.bvh.mesh_key`):
+def adjacency(vertices: np.ndarray, faces: np.ndarray, key: tuple | None = None) -> tuple[np.ndarray, ...]:
+    """Incidence of a face array, computed once per face array (``key``: its
+    :func:`hoidata.geometry.bvh.mesh_key`, found here when None):
 
     - edge_of (F, 3): undirected edge index of each face's edges ab, ac, bc;
     - edge_ptr (E + 1,), edge_faces: the faces on edge e are edge_faces[edge_ptr[e]:edge_ptr[e + 1]];
     - vertex_ptr (V + 1,), vertex_faces, vertex_corner: the faces around vertex i and the corner
       (0, 1, 2) it is in each of them.
     """
-    key = mesh_key(vertices, faces)
+    key = mesh_key(vertices, faces) if key is None else key
     if key not in _ADJACENCY:
         n_f, n_v = len(faces), len(vertices)
         pairs = [(0, 1), (0, 2), (1, 2)]  # slot order: ab, ac, bc
@@ -54,11 +55,11 @@ def adjacency(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, ...]
     return _ADJACENCY[key]
 
 
-def pseudonormal_outside(points, vertices, faces, face, weights, feature) -> np.ndarray:
+def pseudonormal_outside(points, vertices, faces, face, weights, feature, key: tuple | None = None) -> np.ndarray:
     """(N,) bool: the pseudonormal test at each point's closest feature (from :meth:`MeshBVH.closest`:
-    faces (N,), barycentric weights (N, 2), feature codes (N,))."""
+    faces (N,), barycentric weights (N, 2), feature codes (N,)); ``key``: the faces' mesh_key, if known."""
     out = np.empty(len(points), np.bool_)
-    _pseudonormal_outside(points, vertices, faces, face, weights, feature, *adjacency(vertices, faces), out)
+    _pseudonormal_outside(points, vertices, faces, face, weights, feature, *adjacency(vertices, faces, key), out)
     return out
 
 
@@ -121,6 +122,19 @@ def is_closed(faces: np.ndarray) -> bool:
     tails = np.roll(faces, -1, axis=1).reshape(-1)
     n = int(faces.max()) + 1
     return bool(np.array_equal(np.sort(heads * n + tails), np.sort(tails * n + heads)))
+
+
+_CLOSED: OrderedDict = OrderedDict()
+
+
+def is_closed_kept(faces: np.ndarray, key: tuple) -> bool:
+    """:func:`is_closed` of a face array whose :func:`hoidata.geometry.bvh.mesh_key` is ``key``, found once per key."""
+    if key not in _CLOSED:
+        _CLOSED[key] = is_closed(faces)
+        while len(_CLOSED) > KEEP_ADJACENCY:
+            _CLOSED.popitem(last=False)
+    _CLOSED.move_to_end(key)
+    return _CLOSED[key]
 
 
 def winding_numbers(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, bvh: MeshBVH,
