@@ -60,21 +60,25 @@ class MeshBVH:
     """
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray):
-        self.order, self.left, self.start, self.count = topology(vertices, faces)
+        self.key = mesh_key(vertices, faces)  # what the per-face-array caches (tree shape, adjacency) are keyed by
+        self.order, self.left, self.start, self.count = topology(vertices, faces, self.key)
         self.boxes = np.empty((len(self.left), 6))  # (lo xyz, hi xyz) per node
         self.tri = np.empty((len(faces), 9))  # corners a, b, c of each face, in leaf order
         pad = PAD * float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
         _refit(vertices, faces, pad, self.order, self.left, self.start, self.count, self.boxes, self.tri)
         self._wide = None  # the closest-face query's wide view (bvh_wide.gather), made on its first call
 
-    def closest(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def closest(self, points: np.ndarray, visit: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """For validated points (N, 3) float64: distance (N,) float64, face (N,) int64, barycentric
-        weights (N, 2) of the closest point q = a + v (b - a) + w (c - a), and its feature (N,) int8."""
+        weights (N, 2) of the closest point q = a + v (b - a) + w (c - a), and its feature (N,) int8.
+        ``visit``: the order to query them in (:func:`morton_order` of the points when None; a caller querying the
+        same points on several meshes passes it once); any permutation gives the same results."""
         n = len(points)
         dist, face, weights, feature = np.empty(n), np.empty(n, np.int64), np.empty((n, 2)), np.empty(n, np.int8)
         ref, lo, hi, blocks, first, count = self.wide()
-        closest_wide(points, _morton_order(points), self.order, lo, hi, ref, blocks, first, count, self.tri,
-                     dist, face, weights, feature)
+        closest_wide(points, morton_order(points) if visit is None else visit, self.order, lo, hi, ref, blocks, first,
+                     count, self.tri, dist, face, weights, feature)
         return dist, self.order[face], weights, feature
 
     def crossings(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -104,10 +108,11 @@ def mesh_key(vertices: np.ndarray, faces: np.ndarray) -> tuple[int, bytes]:
     return len(vertices), hashlib.blake2b(np.ascontiguousarray(faces).tobytes(), digest_size=16).digest()
 
 
-def topology(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def topology(vertices: np.ndarray, faces: np.ndarray, key: tuple | None = None
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(order, left, start, count) of the tree over these faces: built from ``vertices`` the first
-    time a face array (by content, with the vertex count) is seen, then reused."""
-    key = mesh_key(vertices, faces)
+    time a face array (by content, with the vertex count: ``key``, :func:`mesh_key` when None) is seen, then reused."""
+    key = mesh_key(vertices, faces) if key is None else key
     if key in _TOPOLOGIES:
         _TOPOLOGIES.move_to_end(key)
         return _TOPOLOGIES[key]
@@ -230,6 +235,12 @@ def _refit(vertices, faces, pad, order, left_of, start_of, count_of, boxes, tri)
             else:
                 boxes[node, d] = min(boxes[left, d], boxes[left + 1, d])
                 boxes[node, 3 + d] = max(boxes[left, 3 + d], boxes[left + 1, 3 + d])
+
+
+def morton_order(points: np.ndarray) -> np.ndarray:
+    """(N,) int64: the points' order along a Z-order curve over their bounding box (:func:`_morton_order`), the
+    visiting order of :meth:`MeshBVH.closest` that makes each query start near its predecessor's answer."""
+    return _morton_order(points)
 
 
 @numba.njit(cache=True)

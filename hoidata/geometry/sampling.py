@@ -16,9 +16,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
-from hoidata.geometry.sdf import signed_distance, validate_mesh
+from hoidata.geometry.bvh import morton_order
+from hoidata.geometry.sdf import as_points, signed_distance, validate_mesh
 from hoidata.schema import NO_PART, quantize_sdf
 
 DEFAULT_SIGMAS = (0.010, 0.003)
@@ -52,19 +54,52 @@ def split_counts(n_hand: int, n_object: int, uniform_fraction: float) -> np.ndar
 
 
 def surface_points(vertices: np.ndarray, faces: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
-    """(n, 3) points uniform over the mesh surface (faces picked by area, then uniform in the face)."""
-    tri = vertices[faces]
-    areas = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    """(n, 3) points uniform over the mesh surface (faces picked by area, then uniform in the face).
+
+    The draws are those of ``rng.choice(len(faces), n, p=areas / areas.sum())`` (one ``rng.random(n)``, inverted
+    through the normalised cumulative areas), then ``rng.random(n)`` twice for the place in the face; the areas,
+    picks and points are computed in compiled loops with numpy's operations in numpy's order (the same bits)."""
+    vertices = np.ascontiguousarray(vertices, dtype=np.float64)
+    faces = np.ascontiguousarray(faces, dtype=np.int64)
+    areas = _face_areas(vertices, faces)
     if n > 0 and not areas.sum() > 0:
         raise ValueError("cannot sample the surface of a mesh with zero total area")
     if n == 0:
         return np.zeros((0, 3))
-    pick = rng.choice(len(faces), size=n, p=areas / areas.sum())
+    cdf = (areas / areas.sum()).cumsum()
+    cdf /= cdf[-1]
+    keys = rng.random(n)
+    order = np.argsort(keys)  # searched in increasing order: each search starts where the last one ended
+    pick = np.empty(n, np.int64)
+    pick[order] = cdf.searchsorted(keys[order], side="right")
     r1, r2 = rng.random(n), rng.random(n)
-    # (1 - s, s (1 - r2), s r2) with s = sqrt(r1) is uniform over a triangle.
-    s = np.sqrt(r1)
-    t = tri[pick]
-    return (1 - s)[:, None] * t[:, 0] + (s * (1 - r2))[:, None] * t[:, 1] + (s * r2)[:, None] * t[:, 2]
+    return _face_points(vertices, faces, pick, r1, r2)
+
+
+@numba.njit(cache=True)
+def _face_areas(vertices, faces):
+    """(F,) triangle areas: half the norm of (b - a) x (c - a), as np.cross and np.linalg.norm form it."""
+    out = np.empty(len(faces))
+    for k in range(len(faces)):
+        a, b, c = faces[k, 0], faces[k, 1], faces[k, 2]
+        u0, u1, u2 = vertices[b, 0] - vertices[a, 0], vertices[b, 1] - vertices[a, 1], vertices[b, 2] - vertices[a, 2]
+        w0, w1, w2 = vertices[c, 0] - vertices[a, 0], vertices[c, 1] - vertices[a, 1], vertices[c, 2] - vertices[a, 2]
+        c0, c1, c2 = u1 * w2 - u2 * w1, u2 * w0 - u0 * w2, u0 * w1 - u1 * w0
+        out[k] = 0.5 * np.sqrt((c0 * c0 + c1 * c1) + c2 * c2)
+    return out
+
+
+@numba.njit(cache=True)
+def _face_points(vertices, faces, pick, r1, r2):
+    """(n, 3): (1 - s) a + s (1 - r2) b + s r2 c in face pick[i], s = sqrt(r1[i]): uniform over a triangle."""
+    out = np.empty((len(pick), 3))
+    for i in range(len(pick)):
+        s = np.sqrt(r1[i])
+        wa, wb, wc = 1 - s, s * (1 - r2[i]), s * r2[i]
+        a, b, c = faces[pick[i], 0], faces[pick[i], 1], faces[pick[i], 2]
+        for d in range(3):
+            out[i, d] = wa * vertices[a, d] + wb * vertices[b, d] + wc * vertices[c, d]
+    return out
 
 
 def near_surface_points(vertices: np.ndarray, faces: np.ndarray, n: int, sigmas, rng: np.random.Generator
@@ -164,8 +199,10 @@ def compute_sdf_samples(points, hand_vertices, hand_faces, hand_face_parts, obj_
                          f"got {parts.dtype} {parts.shape}")
     if not float(part_radius) >= 0:
         raise ValueError(f"part_radius must be >= 0 metres, got {part_radius!r}")
-    sdf_hand, hand_face = signed_distance(points, hand_vertices, hand_faces, bool(hand_pseudonormal), backend)
-    sdf_object, _ = signed_distance(points, obj_vertices, obj_faces, bool(obj_watertight), backend)
+    points = as_points(points, "points")
+    visit = morton_order(points) if backend == "bvh" else None  # the points' query order, found once for both meshes
+    sdf_hand, hand_face = signed_distance(points, hand_vertices, hand_faces, bool(hand_pseudonormal), backend, visit)
+    sdf_object, _ = signed_distance(points, obj_vertices, obj_faces, bool(obj_watertight), backend, visit)
     part = np.where(np.abs(sdf_hand) <= float(part_radius), parts[hand_face], NO_PART).astype(np.int8)
     return sdf_hand, sdf_object, part
 

@@ -61,6 +61,29 @@ class MaskRenderer:
         self._program._add_to_context()
         self._renderbuffers, self._fb_ms, self._fb = _framebuffers(self.width, self.height)
         self._slots = [_MeshSlot() for _ in range(MAX_MESHES)]
+        self._fixed_state()
+
+    def _fixed_state(self) -> None:
+        """pyrender's SEG-pass state and the fixed uniforms (view, model), set once: the context is this
+        renderer's alone, so they stay as set from one frame to the next (only the projection and colour change)."""
+        GL = self._GL
+        GL.glViewport(0, 0, self.width, self.height)
+        GL.glEnable(GL.GL_DEPTH_TEST)
+        GL.glDepthMask(GL.GL_TRUE)
+        GL.glDepthFunc(GL.GL_LESS)
+        GL.glDepthRange(0.0, 1.0)
+        GL.glClearColor(0.0, 0.0, 0.0, 0.0)
+        GL.glDisable(GL.GL_MULTISAMPLE)
+        GL.glEnable(GL.GL_CULL_FACE)
+        GL.glCullFace(GL.GL_BACK)
+        GL.glEnable(GL.GL_BLEND)
+        GL.glBlendFunc(GL.GL_ONE, GL.GL_ZERO)
+        GL.glPolygonMode(GL.GL_FRONT_AND_BACK, GL.GL_FILL)
+        self._program._bind()
+        self._program.set_uniform("V", np.linalg.inv(CV_TO_GL))  # what pyrender computes from the camera pose
+        self._program.set_uniform("M", np.eye(4))
+        self._color = GL.glGetUniformLocation(self._program._program_id, "color")
+        self._program._unbind()
 
     def _current(self) -> bool:
         """Make the context current; False when the EGL display was terminated (by a pyrender Renderer's close
@@ -136,31 +159,17 @@ class MaskRenderer:
         return rgba[..., 0].astype(np.int32), np.ascontiguousarray(amodal)
 
     def _begin(self, P: np.ndarray) -> None:
-        """Bind the framebuffer and program and set pyrender's SEG-pass state and camera uniforms."""
+        """Bind the framebuffer and program, clear, and set the projection (the rest is :meth:`_fixed_state`)."""
         GL = self._GL
         GL.glBindFramebuffer(GL.GL_DRAW_FRAMEBUFFER, self._fb_ms)
-        GL.glViewport(0, 0, self.width, self.height)
-        GL.glEnable(GL.GL_DEPTH_TEST)
-        GL.glDepthMask(GL.GL_TRUE)
-        GL.glDepthFunc(GL.GL_LESS)
-        GL.glDepthRange(0.0, 1.0)
         GL.glColorMask(GL.GL_TRUE, GL.GL_TRUE, GL.GL_TRUE, GL.GL_TRUE)
-        GL.glClearColor(0.0, 0.0, 0.0, 0.0)
         GL.glClear(GL.GL_COLOR_BUFFER_BIT | GL.GL_DEPTH_BUFFER_BIT)
-        GL.glDisable(GL.GL_MULTISAMPLE)
-        GL.glEnable(GL.GL_CULL_FACE)
-        GL.glCullFace(GL.GL_BACK)
-        GL.glEnable(GL.GL_BLEND)
-        GL.glBlendFunc(GL.GL_ONE, GL.GL_ZERO)
-        GL.glPolygonMode(GL.GL_FRONT_AND_BACK, GL.GL_FILL)
         self._program._bind()
-        self._program.set_uniform("V", np.linalg.inv(CV_TO_GL))  # what pyrender computes from the camera pose
         self._program.set_uniform("P", P)
-        self._program.set_uniform("M", np.eye(4))
 
     def _draw(self, slot: "_MeshSlot", color) -> None:
         GL = self._GL
-        self._program.set_uniform("color", np.asarray(color, dtype=np.float64))
+        GL.glUniform3fv(self._color, 1, np.asarray(color, dtype=np.float32))  # as pyrender's set_uniform sends it
         GL.glBindVertexArray(slot.vao)
         GL.glDrawElementsInstanced(GL.GL_TRIANGLES, slot.n_indices, GL.GL_UNSIGNED_INT, ctypes.c_void_p(0), 1)
         GL.glBindVertexArray(0)
