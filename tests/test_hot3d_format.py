@@ -24,7 +24,16 @@ from hoidata.datasets.hot3d_format import (
 from hoidata.errors import DataError
 
 
-def test_rle_starts_are_one_based_at_both_edges():
+@pytest.fixture(params=["slices", "cumulative sum"])
+def rle_path(request, monkeypatch):
+    """rle_decode's two ways (a slice per run; one cumulative sum for masks of many runs), each test run on both."""
+    import hoidata.datasets.hot3d_format as fmt
+
+    monkeypatch.setattr(fmt, "RLE_LOOP_RUNS", 10**9 if request.param == "slices" else 0)
+    return request.param
+
+
+def test_rle_starts_are_one_based_at_both_edges(rle_path):
     first = rle_decode({"height": 2, "width": 3, "rle": [1, 2]})  # the first two pixels
     np.testing.assert_array_equal(first, [[1, 1, 0], [0, 0, 0]])
     last = rle_decode({"height": 2, "width": 3, "rle": [6, 1]})  # the very last pixel
@@ -36,7 +45,7 @@ def test_rle_starts_are_one_based_at_both_edges():
     assert rle_encode(np.zeros((2, 3), bool))["rle"] == [] and not rle_decode(rle_encode(np.zeros((2, 3)))).any()
 
 
-def test_rle_round_trip_on_random_masks():
+def test_rle_round_trip_on_random_masks(rle_path):
     rng = np.random.default_rng(0)
     for _ in range(20):
         mask = rng.random((rng.integers(1, 30), rng.integers(1, 30))) < rng.random()
@@ -44,7 +53,7 @@ def test_rle_round_trip_on_random_masks():
 
 
 @pytest.mark.parametrize("rle,problem", [([0, 1], "1-based"), ([6, 2], "outside"), ([1], "odd"), ([2, -1], "outside")])
-def test_bad_rle_names_the_field(rle, problem):
+def test_bad_rle_names_the_field(rle, problem, rle_path):
     with pytest.raises(DataError, match=f"'m.rle'.*{problem}"):
         rle_decode({"height": 2, "width": 3, "rle": rle}, "clip.tar", "m")
 

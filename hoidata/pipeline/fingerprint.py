@@ -20,6 +20,7 @@ import hashlib
 import json
 import os
 from dataclasses import fields
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -81,11 +82,16 @@ def root_relative(value, root: Path):
     """``value`` (a reader's ``source`` dict, a list or a string) with every path under ``root`` written relative
     to it (``labels_000000.npz`` of ``ROOT/subject/.../labels_000000.npz``): what a record stores does not depend
     on how ``--root`` was spelled (relative, absolute, through a link) or where the dataset lives."""
-    roots = root_spellings(root)
+    return _root_relative(value, root_spellings(root))
+
+
+def _root_relative(value, roots: tuple[str, ...]):
+    """:func:`root_relative` with the root's spellings resolved once (not once per string: HOT3D's sources hold
+    lists)."""
     if isinstance(value, dict):
-        return {k: root_relative(v, root) for k, v in value.items()}
+        return {k: _root_relative(v, roots) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return type(value)(root_relative(v, root) for v in value)
+        return type(value)(_root_relative(v, roots) for v in value)
     if isinstance(value, (str, os.PathLike)):
         text = _relative(value, roots, "")
         return text.lstrip(os.sep) if text != os.fspath(value) else text
@@ -117,9 +123,15 @@ def annotations(frames, root: Path) -> str:
 def _stamp(path: Path):
     try:
         st = path.stat()
-        return [st.st_size, st.st_mtime_ns, file_sha256(path)]
+        return [st.st_size, st.st_mtime_ns, _digest(os.fspath(path), st.st_size, st.st_mtime_ns)]
     except OSError:
         return MISSING
+
+
+@lru_cache(maxsize=8)
+def _digest(path: str, size: int, mtime_ns: int) -> str:
+    """file_sha256 once per file, size and mtime in a process: HOT3D's frames all read their clip's tar."""
+    return file_sha256(Path(path))
 
 
 def frame_inputs(frame, root: Path) -> dict:
