@@ -161,3 +161,20 @@ def test_toy_umetrack_profile_has_the_fields_and_shapes_the_official_reader_load
     assert frames.min() >= 0 and frames.max() <= 16
     np.testing.assert_allclose(profile["landmark_rest_positions"][0], (rest[4] - rest[0]) * 1000)  # thumb tip, mm
     np.testing.assert_allclose(profile["landmark_rest_positions"][5], 0.0, atol=1e-12)  # the wrist
+
+
+def test_toy_clips_beyond_the_default_three():
+    """make-toy --layout hot3d --sequences N: the default three clips first, then 3, 4, 5, ... (odd Aria, even Quest
+    3), 10 not twice; the reader puts the multiples of 10 in val."""
+    from hoidata.datasets.hot3d import VAL_EVERY
+    from hoidata.toy.hot3d import DEFAULT_CLIPS, toy_clips
+
+    assert toy_clips(2) == DEFAULT_CLIPS[:2] and toy_clips(3) == DEFAULT_CLIPS
+    clips = toy_clips(22)
+    numbers = [n for _, n, _ in clips]
+    assert numbers[:5] == [1, 2, 10, 3, 4] and len(set(numbers)) == 22 and max(numbers) == 22
+    assert [n for n in numbers if n % VAL_EVERY == 0] == [10, 20]
+    assert all(folder == f"train_{device.lower()}" and device == ("Aria" if n % 2 else "Quest3")
+               for folder, n, device in clips[3:])
+    with pytest.raises(ValueError, match="whole number of clips"):
+        toy_clips(0)
