@@ -240,7 +240,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="dataset layout (default: all = dexycb and ho3d; ho3d_v3: HO-3D v3's JPEG layout; hot3d: "
                         "HOT3D-Clips tars)")
     p.add_argument("--sequences", type=positive_int, default=None,
-                   help="sequences per subject (DexYCB; val and test need 5 or more) / training sequences (HO-3D) / clips (HOT3D, at most 3)")
+                   help="sequences per subject (DexYCB; val and test need 5 or more) / training sequences (HO-3D) / clips (HOT3D: 3 by default, up to 90; multiples of 10 are val)")
     p.add_argument("--frames", type=positive_int, default=None, help="frames per sequence and camera (per clip: HOT3D)")
     p.add_argument("--seed", type=non_negative_int, default=0, help="random seed; the same seed gives the same files")
     p.add_argument("--cache-dir", default=None, help="cache for simplified meshes (default $HOIDATA_CACHE/objects or ~/.cache/hoidata/objects)")

@@ -6,7 +6,16 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from hoidata.geometry.crop_camera import crop_intrinsics, crop_maps, pinhole_to_crop_frame, remap_crop
+from hoidata.geometry.crop_camera import (
+    MAP_TOLERANCE,
+    crop_intrinsics,
+    crop_maps,
+    crop_rays_in_camera,
+    crop_to_fisheye,
+    fisheye_grid,
+    pinhole_to_crop_frame,
+    remap_crop,
+)
 from hoidata.geometry.fisheye624 import Fisheye624, _distort_with_jacobian, distort
 from hoidata.geometry.se3 import matrix_to_quaternion_wxyz, quaternion_wxyz_to_matrix, se3_from_wxyz, se3_to_wxyz
 
@@ -141,3 +150,51 @@ def test_max_angle_is_where_the_radial_map_stops_increasing():
     assert Fisheye624(10, 10, 5.0, 5.0, 4.5, 4.5, (0.0,) * 12).max_angle() == pytest.approx(np.pi)
     rays = random_rays(1000, 0.8, seed=3)  # inside the fold: the unprojection finds the ray, not its mirror branch
     np.testing.assert_allclose(folding.unproject(folding.project(rays)), rays, atol=1e-9)
+
+
+@pytest.mark.parametrize("params,size", [(ARIA, (1408, 1408)), (QUEST, (640, 480))])
+def test_interpolated_crop_maps_within_tolerance_of_the_exact_rays(params, size):
+    """crop_maps computes the rays exactly at every GRID_STEP-th pixel and interpolates between them: every pixel of
+    60 random crop cameras (field of view 0.2-1.0 rad, centre up to 1 rad off the axis, rolled; 128 and 256 px) is
+    within MAP_TOLERANCE of its exact ray, and every crop whose rays stay within 1.1 rad of the axis is interpolated
+    (not the exact fallback, which is right but slower: beyond, near the edge of an Aria image, this calibration's
+    theta^12 term grows fast and a 128 px crop at 1.16 rad needs a finer grid than step 4)."""
+    cam = Fisheye624.from_params(params, *size)
+    rng = np.random.default_rng(7)
+    interpolated = 0
+    for i in range(60):
+        crop = 128 if i % 2 else 256
+        turn = (Rotation.from_euler("z", rng.uniform(-np.pi, np.pi)) * Rotation.from_euler("x", rng.uniform(0, 1.0))
+                * Rotation.from_euler("z", rng.uniform(-np.pi, np.pi)))
+        world_from_crop = se3_from_wxyz(matrix_to_quaternion_wxyz(turn.as_matrix()), [0.01, -0.02, 0.0])
+        world_from_camera = se3_from_wxyz([1.0, 0.0, 0.0, 0.0], [0.01, -0.02, 0.0])
+        K = crop_intrinsics(crop, rng.uniform(0.2, 1.0))
+        v, u = np.mgrid[0:crop, 0:crop].astype(np.float64)
+        exact = crop_to_fisheye(cam, world_from_camera, K, world_from_crop, np.stack([u, v], -1))
+        grid = fisheye_grid(cam, world_from_camera, K, world_from_crop, (crop, crop))
+        assert np.abs(grid - exact).max() <= MAP_TOLERANCE
+        corners = crop_rays_in_camera(world_from_camera, K, world_from_crop, np.array([[0, 0], [0, crop - 1],
+                                                                                     [crop - 1, 0], [crop - 1] * 2]))
+        if np.arccos(corners[:, 2].min()) <= 1.1:
+            assert np.any(grid != exact)
+            interpolated += 1
+        maps = crop_maps(cam, world_from_camera, K, world_from_crop, crop)
+        assert np.abs(np.stack(maps, -1) - grid).max() < 1e-3  # float32 of the same map
+    assert interpolated >= 30
+
+
+def test_interpolated_map_through_an_affine_grid_and_its_exact_fallback():
+    """fisheye_grid on a grid mapped affinely into the crop (a half-size mask grid, mirrored) equals the exact rays
+    at those crop pixels within the tolerance; with tolerance 0 the check fails and every pixel is exact."""
+    cam = Fisheye624.from_params(ARIA, 1408, 1408)
+    world_from_crop = se3_from_wxyz(matrix_to_quaternion_wxyz(Rotation.from_euler("xy", [0.4, -0.3]).as_matrix()),
+                                    [0, 0, 0])
+    K = crop_intrinsics(256, 0.6)
+    grid_to_crop = np.array([[-2.0, 0.0, 255.5], [0.0, 2.0, 0.5], [0.0, 0.0, 1.0]])  # mirrored, twice the pixels
+    v, u = np.mgrid[0:128, 0:128].astype(np.float64)
+    uv = np.stack([u, v], -1) @ grid_to_crop[:2, :2].T + grid_to_crop[:2, 2]
+    exact = crop_to_fisheye(cam, np.eye(4), K, world_from_crop, uv)
+    grid = fisheye_grid(cam, np.eye(4), K, world_from_crop, (128, 128), grid_to_crop)
+    assert 0 < np.abs(grid - exact).max() <= MAP_TOLERANCE
+    assert np.array_equal(fisheye_grid(cam, np.eye(4), K, world_from_crop, (128, 128), grid_to_crop, tolerance=0.0),
+                          exact)

@@ -24,7 +24,16 @@ from hoidata.datasets.hot3d_format import (
 from hoidata.errors import DataError
 
 
-def test_rle_starts_are_one_based_at_both_edges():
+@pytest.fixture(params=["slices", "cumulative sum"])
+def rle_path(request, monkeypatch):
+    """rle_decode's two ways (a slice per run; one cumulative sum for masks of many runs), each test run on both."""
+    import hoidata.datasets.hot3d_format as fmt
+
+    monkeypatch.setattr(fmt, "RLE_LOOP_RUNS", 10**9 if request.param == "slices" else 0)
+    return request.param
+
+
+def test_rle_starts_are_one_based_at_both_edges(rle_path):
     first = rle_decode({"height": 2, "width": 3, "rle": [1, 2]})  # the first two pixels
     np.testing.assert_array_equal(first, [[1, 1, 0], [0, 0, 0]])
     last = rle_decode({"height": 2, "width": 3, "rle": [6, 1]})  # the very last pixel
@@ -36,7 +45,7 @@ def test_rle_starts_are_one_based_at_both_edges():
     assert rle_encode(np.zeros((2, 3), bool))["rle"] == [] and not rle_decode(rle_encode(np.zeros((2, 3)))).any()
 
 
-def test_rle_round_trip_on_random_masks():
+def test_rle_round_trip_on_random_masks(rle_path):
     rng = np.random.default_rng(0)
     for _ in range(20):
         mask = rng.random((rng.integers(1, 30), rng.integers(1, 30))) < rng.random()
@@ -44,7 +53,7 @@ def test_rle_round_trip_on_random_masks():
 
 
 @pytest.mark.parametrize("rle,problem", [([0, 1], "1-based"), ([6, 2], "outside"), ([1], "odd"), ([2, -1], "outside")])
-def test_bad_rle_names_the_field(rle, problem):
+def test_bad_rle_names_the_field(rle, problem, rle_path):
     with pytest.raises(DataError, match=f"'m.rle'.*{problem}"):
         rle_decode({"height": 2, "width": 3, "rle": rle}, "clip.tar", "m")
 
@@ -152,3 +161,20 @@ def test_toy_umetrack_profile_has_the_fields_and_shapes_the_official_reader_load
     assert frames.min() >= 0 and frames.max() <= 16
     np.testing.assert_allclose(profile["landmark_rest_positions"][0], (rest[4] - rest[0]) * 1000)  # thumb tip, mm
     np.testing.assert_allclose(profile["landmark_rest_positions"][5], 0.0, atol=1e-12)  # the wrist
+
+
+def test_toy_clips_beyond_the_default_three():
+    """make-toy --layout hot3d --sequences N: the default three clips first, then 3, 4, 5, ... (odd Aria, even Quest
+    3), 10 not twice; the reader puts the multiples of 10 in val."""
+    from hoidata.datasets.hot3d import VAL_EVERY
+    from hoidata.toy.hot3d import DEFAULT_CLIPS, toy_clips
+
+    assert toy_clips(2) == DEFAULT_CLIPS[:2] and toy_clips(3) == DEFAULT_CLIPS
+    clips = toy_clips(22)
+    numbers = [n for _, n, _ in clips]
+    assert numbers[:5] == [1, 2, 10, 3, 4] and len(set(numbers)) == 22 and max(numbers) == 22
+    assert [n for n in numbers if n % VAL_EVERY == 0] == [10, 20]
+    assert all(folder == f"train_{device.lower()}" and device == ("Aria" if n % 2 else "Quest3")
+               for folder, n, device in clips[3:])
+    with pytest.raises(ValueError, match="whole number of clips"):
+        toy_clips(0)

@@ -20,8 +20,10 @@ the others.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -39,7 +41,7 @@ from hoidata.datasets.hot3d_format import (
     transform,
 )
 from hoidata.errors import DataError
-from hoidata.geometry.crop_camera import crop_maps, crop_to_fisheye, remap_crop
+from hoidata.geometry.crop_camera import crop_maps, fisheye_grid, remap_crop
 from hoidata.geometry.fisheye624 import Fisheye624
 from hoidata.hand.pose import change_frame, pca_to_axis_angle
 
@@ -47,6 +49,7 @@ CLIP_FOLDERS = ("train_aria", "train_quest3")
 SPLITS = ("train", "val")
 VAL_EVERY = 10  # val: clips whose number is a multiple of this
 CROP_SIZE = 256  # pixels of the crop camera's image (the official reader's default is 128)
+IMAGES_KEPT = 4  # decoded fisheye images kept per process (a frame's 2-3 streams, read for each hand in turn)
 
 
 def clip_paths(root: Path, split: str) -> list[Path]:
@@ -82,15 +85,29 @@ class CropImage:
     def __call__(self) -> np.ndarray:
         import cv2
 
-        data = ClipMembers(Path(self.tar)).read(self.where)
-        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        stat = os.stat(self.tar)  # in the key: a tar rewritten in place is decoded again
+        image = fisheye_image(self.tar, tuple(self.where), stat.st_mtime_ns, stat.st_size)
         if image is None:
             raise DataError(self.tar, self.member, "cannot decode the JPEG image")
         if image.shape[:2] != (self.camera.height, self.camera.width):
             raise DataError(self.tar, self.member, f"image is {image.shape[1]}x{image.shape[0]}, the camera's "
                             f"calibration says {self.camera.width}x{self.camera.height}")
-        rgb = cv2.cvtColor(image, cv2.COLOR_GRAY2RGB if image.ndim == 2 else cv2.COLOR_BGR2RGB)
-        return remap_crop(rgb, crop_maps(self.camera, self.world_from_camera, self.K, self.world_from_crop, self.size))
+        # remapped as decoded (grey or BGR), then converted: the same pixels as converting the whole image first
+        crop = remap_crop(image, crop_maps(self.camera, self.world_from_camera, self.K, self.world_from_crop,
+                                           self.size))
+        return cv2.cvtColor(crop, cv2.COLOR_GRAY2RGB if crop.ndim == 2 else cv2.COLOR_BGR2RGB)
+
+
+@lru_cache(maxsize=IMAGES_KEPT)
+def fisheye_image(tar: str, where: tuple, mtime_ns: int, file_size: int) -> np.ndarray | None:
+    """A stream's JPEG as decoded (grey or BGR, read-only), or None if it does not decode. Kept for the next
+    ``IMAGES_KEPT`` calls: a frame's streams are read once for both hands' crops."""
+    import cv2
+
+    image = cv2.imdecode(np.frombuffer(ClipMembers(Path(tar)).read(where), np.uint8), cv2.IMREAD_UNCHANGED)
+    if image is not None:
+        image.flags.writeable = False
+    return image
 
 
 @dataclass
@@ -241,15 +258,21 @@ def object_mask_iou(frame: Frame, ours: np.ndarray, to_mask: np.ndarray) -> floa
         raise DataError(src.tar, name, f"mask is {mask.shape[1]}x{mask.shape[0]}, the image {cam.width}x{cam.height}")
     size = ours.shape[0]
     v, u = np.mgrid[0:size, 0:size].astype(np.float64)
-    back = np.linalg.inv(to_mask)
-    uv = np.stack([u, v], -1) @ back[:2, :2].T + back[:2, 2]  # the crop pixels under the mask's pixel centres
+    back = np.linalg.inv(to_mask)  # mask pixels -> the (mirrored when the frame is) crop's pixels
     if frame.mirror:
-        uv[..., 0] = src.size - 1 - uv[..., 0]
-    pix = crop_to_fisheye(cam, src.world_from_camera, src.K, src.world_from_crop, uv).astype(np.float32)
+        back = np.array([[-1.0, 0.0, src.size - 1], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]) @ back
+    uv = np.stack([u, v], -1) @ back[:2, :2].T + back[:2, 2]  # the crop pixels under the mask's pixel centres
+    pix = fisheye_grid(cam, src.world_from_camera, src.K, src.world_from_crop, (size, size), back).astype(np.float32)
     seen = (uv > -0.5).all(-1) & (uv < src.size - 0.5).all(-1)
     seen &= (pix >= 0).all(-1) & (pix[..., 0] <= cam.width - 1) & (pix[..., 1] <= cam.height - 1)
-    theirs = cv2.remap(mask.astype(np.float32), pix[..., 0], pix[..., 1], cv2.INTER_LINEAR,
-                       borderMode=cv2.BORDER_CONSTANT, borderValue=0) >= 0.5
+    theirs = np.zeros(seen.shape, bool)
+    if seen.any():  # read from the window of the mask that the seen pixels and their right/lower neighbours cover
+        lo = np.floor(pix[seen].min(0)).astype(np.int64)
+        hi = np.floor(pix[seen].max(0)).astype(np.int64) + 2
+        window = mask[lo[1]:hi[1], lo[0]:hi[0]].astype(np.float32)
+        shifted = pix - lo.astype(np.float32)  # exact: whole numbers off float32 values of the same or finer ulp
+        theirs = cv2.remap(window, shifted[..., 0], shifted[..., 1], cv2.INTER_LINEAR,
+                           borderMode=cv2.BORDER_CONSTANT, borderValue=0) >= 0.5
     theirs, ours = theirs & seen, ours & seen
     union = np.count_nonzero(theirs | ours)
     return float(np.count_nonzero(theirs & ours) / union) if union else 1.0

@@ -24,6 +24,7 @@ HAND_SHAPES = "__hand_shapes.json__"
 FISHEYE624 = "CameraModelType.FISHEYE624"
 FRAME_MEMBERS = ("cameras.json", "hands.json", "hand_crops.json", "objects.json", "info.json")
 SIDES = ("left", "right")
+RLE_LOOP_RUNS = 20_000  # rle_decode sets up to this many runs one slice each, more through one cumulative sum
 
 
 @dataclass
@@ -190,6 +191,11 @@ def rle_decode(value, path=None, name: str = "mask") -> np.ndarray:
     starts, lengths = runs[::2] - 1, runs[1::2]
     if runs.size and (starts.min() < 0 or lengths.min() < 0 or (starts + lengths).max() > h * w):
         raise DataError(path, f"{name}.rle", f"runs outside the {w}x{h} mask (starts are 1-based)")
+    if starts.size <= RLE_LOOP_RUNS:  # a slice per run: no pass over the whole image
+        flat = np.zeros(h * w, bool)
+        for start, length in zip(starts.tolist(), lengths.tolist()):
+            flat[start:start + length] = True
+        return flat.reshape(h, w)
     flat = np.zeros(h * w + 1, np.int32)
     np.add.at(flat, starts, 1)
     np.add.at(flat, starts + lengths, -1)

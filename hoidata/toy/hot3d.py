@@ -40,10 +40,28 @@ TRUTH = "toy_truth"  # <root>/toy_truth/clip-<id>.npz: the toy's own poses, for 
 N_PCA = 15
 
 
+DEFAULT_CLIPS = (("train_aria", 1, "Aria"), ("train_quest3", 2, "Quest3"), ("train_aria", 10, "Aria"))
+
+
+def toy_clips(count: int) -> tuple:
+    """The first ``count`` toy clips as (folder, clip number, device): the default three (two train, the val clip
+    10), then clips 3, 4, 5, ... (odd numbers Aria, even Quest 3), skipping 10; the reader puts every multiple of 10
+    in ``val`` (20, 30, ...), the rest in ``train``. Each clip is its own grasp of each hand (its own seed)."""
+    if isinstance(count, bool) or not isinstance(count, int) or count < 1:
+        raise ValueError(f"the toy HOT3D-Clips needs a whole number of clips >= 1, got {count!r}")
+    out, number = list(DEFAULT_CLIPS[:count]), 3
+    while len(out) < count:
+        if number != 10:
+            device = "Aria" if number % 2 else "Quest3"
+            out.append((f"train_{device.lower()}", number, device))
+        number += 1
+    return tuple(out)
+
+
 @dataclass(frozen=True)
 class ToyHOT3DSize:
     frames: int = 4
-    clips: tuple = (("train_aria", 1, "Aria"), ("train_quest3", 2, "Quest3"), ("train_aria", 10, "Aria"))
+    clips: tuple = DEFAULT_CLIPS
 
 
 def bop_model_name(bop_id: int) -> str:

@@ -9,7 +9,7 @@ from pathlib import Path
 LAYOUTS = ("dexycb", "ho3d", "ho3d_v3", "hot3d")  # ho3d_v3: HO-3D v3's layout (hoidata/toy/ho3d.py); hot3d: clips
 # the toolkit's i % 5 == 4 rule puts a subject's 5th sequence in val or test: with fewer, s0/s1 val and test are empty
 DEXYCB_SPLIT_SEQUENCES = 5
-HOT3D_MAX_CLIPS = 3  # the toy HOT3D-Clips: clip-000001, clip-000002 (train), clip-000010 (val)
+HOT3D_MAX_CLIPS = 90  # toy HOT3D clips: 1, 2 (train), 10 (val), then 3, 4, ... (multiples of 10 val; toy_clips)
 HO3D_MAX_SEQUENCES = 3  # the toy HO-3D's training sequences: BB10, MC1, SM2 (hoidata/toy/ho3d.py, TRAIN_SEQUENCES)
 
 
@@ -50,9 +50,9 @@ def make_toy(out: str | Path, layout: str, sequences: int | None = None, frames:
     """Write a toy dataset in `layout` ('dexycb', 'ho3d', 'ho3d_v3' or 'hot3d') under `out`, with ``out/mano`` and
     ``out/models``.
 
-    `sequences` (per subject for DexYCB, training sequences for HO-3D, clips for HOT3D: the first 1..3 of the
-    default's) and `frames` (per sequence and camera; per clip) scale it; None keeps the default size. Returns what
-    was written and how long it took.
+    `sequences` (per subject for DexYCB, training sequences for HO-3D, clips for HOT3D: the default's 1..3, then
+    more, :func:`hoidata.toy.hot3d.toy_clips`) and `frames` (per sequence and camera; per clip) scale it; None keeps
+    the default size. Returns what was written and how long it took.
     """
     from hoidata.toy.dexycb import ToyDexYCBSize, write_toy_dexycb
     from hoidata.toy.ho3d import ToyHO3DSize, write_toy_ho3d
@@ -66,17 +66,17 @@ def make_toy(out: str | Path, layout: str, sequences: int | None = None, frames:
         raise ValueError(f"--sequences {sequences}: the toy HO-3D has {HO3D_MAX_SEQUENCES} training sequences (BB10, "
                          f"MC1, SM2); give 1 to {HO3D_MAX_SEQUENCES} (nothing was written)")
     if layout == "hot3d" and sequences is not None and sequences > HOT3D_MAX_CLIPS:
-        raise ValueError(f"--sequences {sequences}: the toy HOT3D-Clips has {HOT3D_MAX_CLIPS} clips (two train, one "
-                         f"val); give 1 to {HOT3D_MAX_CLIPS} (nothing was written)")
+        raise ValueError(f"--sequences {sequences}: the toy HOT3D-Clips writes 1 to {HOT3D_MAX_CLIPS} clips "
+                         "(nothing was written)")
     out = Path(out)
     start = time.perf_counter()
     prepare_folder(out, {"layout": layout, "sequences": sequences, "frames": frames, "seed": seed})
     mano_dir, models_dir = write_assets(out)
     if layout == "hot3d":
-        from hoidata.toy.hot3d import ToyHOT3DSize, write_toy_hot3d
+        from hoidata.toy.hot3d import ToyHOT3DSize, toy_clips, write_toy_hot3d
 
         size = ToyHOT3DSize()
-        size = replace(size, clips=size.clips[:sequences or len(size.clips)], frames=frames or size.frames)
+        size = replace(size, clips=toy_clips(sequences) if sequences else size.clips, frames=frames or size.frames)
         counts = write_toy_hot3d(out, mano_dir, models_dir, size, seed=seed, progress=progress)
     elif layout == "dexycb":
         size = ToyDexYCBSize()
