@@ -32,8 +32,8 @@ HERE = Path(__file__).resolve().parent
 CHILD = """
 import json, shutil, sys, time
 from pathlib import Path
-from hoidata.pipeline.runner import build_store
-from hoidata.pipeline.settings import load_build_config
+from hoidata.build_sdf import build_store
+from hoidata.records.settings import load_build_config
 root, out = Path(sys.argv[1]), Path(sys.argv[2])
 cfg = load_build_config("toy", ['dataset.splits=["train", "val"]', "store.records_per_shard=8"])
 build_store(cfg, root, root / "mano", root / "models", out / "warm-up", workers=1, progress=False)

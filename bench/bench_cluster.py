@@ -32,10 +32,10 @@ import time
 from pathlib import Path
 
 from bench.common import toy_root
-from hoidata.pipeline.ray_tasks import run_ray
-from hoidata.pipeline.runner import build_inputs, build_store, read_frames
-from hoidata.pipeline.settings import load_build_config
-from hoidata.pipeline.slurm import SlurmOptions, submit_parts
+from hoidata.engine.ray_tasks import run_ray
+from hoidata.build_sdf import build_inputs, build_store, read_frames
+from hoidata.records.settings import load_build_config
+from hoidata.engine.slurm import SlurmOptions, submit_parts
 from hoisdf.data import StoreSpec, build_dataset, make_loader
 
 

@@ -25,8 +25,8 @@ from pathlib import Path
 
 from bench.common import toy_train_root
 from hoidata.export import export_dataset
-from hoidata.pipeline.runner import build_store
-from hoidata.pipeline.settings import load_build_config
+from hoidata.build_sdf import build_store
+from hoidata.records.settings import load_build_config
 
 OVERRIDES = ['dataset.splits=["train"]', 'dataset.sides=["right"]', "store.records_per_shard=16"]
 

@@ -25,8 +25,8 @@ from pathlib import Path
 import numpy as np
 
 from bench.common import toy_root
-from hoidata.pipeline.runner import build_store, read_frames
-from hoidata.pipeline.settings import load_build_config
+from hoidata.build_sdf import build_store, read_frames
+from hoidata.records.settings import load_build_config
 
 GOAL = 20.0  # records/s per core (issue 33)
 RECORD = ["record.crop_size=256", "record.n_hand=4096", "record.n_object=2048", "store.records_per_shard=16"]

@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 from hoidata import store
-from hoidata.synth.render_synthetic import render_synthetic
+from hoidata.render_synthetic import render_synthetic
 from hoidata.toy.ho3d import ToyHO3DSize, write_toy_ho3d
 from hoidata.toy.make import write_assets
 

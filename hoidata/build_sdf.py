@@ -4,13 +4,13 @@ The unit of work is a shard: shard k holds the frames k*R .. (k+1)*R-1 of the re
 records per shard), so its content depends only on the frames and the record settings. Workers, parts
 (``--part i/N`` takes the shards with k % N == i) and resumed runs therefore produce byte-identical
 shards. A finished shard has a sidecar with its checksum; a resumed build keeps intact shards.
-When every planned shard is done, the zarr index is written (:mod:`hoidata.pipeline.finish`: by the last part to
+When every planned shard is done, the zarr index is written (:mod:`hoidata.records.store_writer`: by the last part to
 finish, whatever the order).
 
-build-sdf is a recipe on :mod:`hoidata.pipeline.engine`: :class:`BuildTask` plans the shards and says which are
-done; each worker process opens one :class:`hoidata.pipeline.worker.RecordWorker` (MANO, objects, mask renderers)
+build-sdf is a recipe on :mod:`hoidata.engine.engine`: :class:`BuildTask` plans the shards and says which are
+done; each worker process opens one :class:`hoidata.records.worker.RecordWorker` (MANO, objects, mask renderers)
 that builds and writes the shards it is given. The jobs run in a local process pool, or on another executor with
-the same contract (``executor``: :func:`hoidata.pipeline.ray_tasks.run_ray`); ``hoidata.pipeline.slurm`` submits
+the same contract (``executor``: :func:`hoidata.engine.ray_tasks.run_ray`); ``hoidata.engine.slurm`` submits
 the parts as a Slurm array.
 """
 
@@ -26,9 +26,9 @@ from hoidata.datasets.frame import Skip
 from hoidata.datasets.frame_list import frame_list_provenance, read_frame_list
 from hoidata.datasets.open import read_splits
 from hoidata.errors import DataError
-from hoidata.pipeline import fingerprint
-from hoidata.pipeline.engine import Plan, RunResult, run_task
-from hoidata.pipeline.finish import (  # noqa: F401 - git_commit, skip_groups: re-exported (the CLI, tests)
+from hoidata.records import fingerprint
+from hoidata.engine.engine import Plan, RunResult, run_task
+from hoidata.records.store_writer import (  # noqa: F401 - git_commit, skip_groups: re-exported (the CLI, tests)
     describe_skips,
     finish_store,
     git_commit,
@@ -36,10 +36,10 @@ from hoidata.pipeline.finish import (  # noqa: F401 - git_commit, skip_groups: r
     skip_dict,
     skip_groups,
 )
-from hoidata.pipeline.records import RecordSettings
-from hoidata.pipeline.settings import BuildConfig, stated_count_warnings
-from hoidata.pipeline.store_shards import check_build_file, shards_done
-from hoidata.pipeline.worker import RecordWorker, RecordWorkerSpec, ShardJob
+from hoidata.records.records import RecordSettings
+from hoidata.records.settings import BuildConfig, stated_count_warnings
+from hoidata.records.store_shards import check_build_file, shards_done
+from hoidata.records.worker import RecordWorker, RecordWorkerSpec, ShardJob
 
 
 def read_frames(cfg: BuildConfig, root: Path, mano_dir: Path,
@@ -82,7 +82,7 @@ class BuildSummary:
 
 @dataclass
 class BuildTask:
-    """build-sdf's task for :func:`hoidata.pipeline.engine.run_task`: shard n holds the frames n*R .. (n+1)*R-1
+    """build-sdf's task for :func:`hoidata.engine.engine.run_task`: shard n holds the frames n*R .. (n+1)*R-1
     of the reader's order (``plan.per`` = R records per shard), built by a :class:`RecordWorker` per process."""
 
     frames: list
@@ -107,7 +107,7 @@ class BuildTask:
 
 
 def build_inputs(frames, root: Path, mano_dir: Path, models_dir: Path, upstream: bool = False) -> dict:
-    """What build.json pins besides settings and keys (see hoidata.pipeline.fingerprint); ``upstream``: the
+    """What build.json pins besides settings and keys (see hoidata.records.fingerprint); ``upstream``: the
     models' whole folders (upstream's crop reads points.xyz too)."""
     return {"mano": fingerprint.files(mano_dir, fingerprint.MANO_FILES),
             "models": fingerprint.models(models_dir, {f.object_name for f in frames}, whole_folder=upstream),
@@ -117,7 +117,7 @@ def build_inputs(frames, root: Path, mano_dir: Path, models_dir: Path, upstream:
 def build_store(cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path, out: Path, workers: int = 1,
                 part: tuple[int, int] = (0, 1), progress: bool = True, executor=None) -> BuildSummary:
     """Build (or resume) the store in `out`; see the module docstring (``executor``: what runs the shard jobs,
-    see :func:`hoidata.pipeline.engine.run_task`)."""
+    see :func:`hoidata.engine.engine.run_task`)."""
     root, out, models_dir = Path(root), Path(out), Path(models_dir)
     start = time.perf_counter()
     frames, reader_skips = read_frames(cfg, root, Path(mano_dir), models_dir)

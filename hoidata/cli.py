@@ -14,7 +14,7 @@ from pathlib import Path
 from hoidata import __version__
 from hoidata.cli_types import ArgumentParser, count_type, non_negative_int, positive_int
 from hoidata.errors import run_cli
-from hoidata.pipeline.launch import add_launcher_flags, launch
+from hoidata.engine.launch import add_launcher_flags, launch
 
 
 def folder(args: argparse.Namespace, name: str, default: Path | None = None) -> Path | None:
@@ -28,7 +28,7 @@ def folder(args: argparse.Namespace, name: str, default: Path | None = None) -> 
 
 def cmd_make_toy(args: argparse.Namespace) -> int:
     """Write the procedural hand, objects and toy datasets in the real layouts, then check them."""
-    from hoidata.pipeline.inputs import format_rows, mano_rows, object_rows
+    from hoidata.records.inputs import format_rows, mano_rows, object_rows
     from hoidata.toy.make import HO3D_MAX_SEQUENCES, empty_split_notes, make_toy, split_rows
 
     out = folder(args, "out")
@@ -52,7 +52,7 @@ def cmd_make_toy(args: argparse.Namespace) -> int:
 
 def cmd_check_mano(args: argparse.Namespace) -> int:
     """Load MANO_RIGHT.pkl / MANO_LEFT.pkl from a folder and report what the pipelines will see."""
-    from hoidata.pipeline.inputs import format_rows, mano_rows
+    from hoidata.records.inputs import format_rows, mano_rows
 
     rows = mano_rows(args.mano_dir)
     print(format_rows(rows))
@@ -61,7 +61,7 @@ def cmd_check_mano(args: argparse.Namespace) -> int:
 
 def cmd_check_objects(args: argparse.Namespace) -> int:
     """Load, repair and simplify every object of a YCB-layout models folder, and report."""
-    from hoidata.pipeline.inputs import format_rows, object_rows
+    from hoidata.records.inputs import format_rows, object_rows
 
     rows = object_rows(args.models_dir, n_vertices=args.vertices, cache_dir=args.cache_dir)
     print(format_rows(rows))
@@ -80,8 +80,8 @@ def _part(text: str) -> tuple[int, int]:
 
 def cmd_build_sdf(args: argparse.Namespace) -> int:
     """Build (or resume) a training store from a dataset, as pipelines/<dataset>.toml says."""
-    from hoidata.pipeline.runner import build_store, estimate_build
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.build_sdf import build_store, estimate_build
+    from hoidata.records.settings import load_build_config
 
     root, out = folder(args, "root"), folder(args, "out")
     mano, models = folder(args, "mano", root / "mano"), folder(args, "models", root / "models")
@@ -105,7 +105,7 @@ def cmd_build_sdf(args: argparse.Namespace) -> int:
     print("index.zarr already lists every shard: nothing written" if s.index_kept else "index.zarr written"
           if s.index_written else "index not written yet: other parts still have shards to build")
     if s.index_written or s.index_kept:
-        from hoidata.pipeline.runner import mask_iou_line, supervision_line
+        from hoidata.build_sdf import mask_iou_line, supervision_line
 
         line = mask_iou_line(s.store)
         print(line or "", end="\n" if line else "")
@@ -116,7 +116,7 @@ def cmd_build_sdf(args: argparse.Namespace) -> int:
 def cmd_export(args: argparse.Namespace) -> int:
     """Write a dataset's frames as another codebase's files (docs/other-codebases.md)."""
     from hoidata.export import export_dataset
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.records.settings import load_build_config
     from hoidata.store.verify import opened_store
 
     root, out = folder(args, "root"), folder(args, "out")
@@ -143,7 +143,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 def print_skips(skips: list, who: str, limit: int = 10) -> None:
     """The reasons of a skips list, most frequent first, one line each with a count and an example file."""
-    from hoidata.pipeline.runner import skip_groups
+    from hoidata.build_sdf import skip_groups
 
     groups = skip_groups(skips)
     for reason, n, path in groups[:limit]:
@@ -154,8 +154,8 @@ def print_skips(skips: list, who: str, limit: int = 10) -> None:
 
 def cmd_render_synthetic(args: argparse.Namespace) -> int:
     """Render perturbed grasps of a store or dataset from new views into a training store."""
-    from hoidata.pipeline.records import RecordSettings
-    from hoidata.synth.render_synthetic import check_count, render_synthetic
+    from hoidata.records.records import RecordSettings
+    from hoidata.render_synthetic import check_count, render_synthetic
 
     check_count(args.count)  # here, not in each array task
     source, out = folder(args, "source"), folder(args, "out")

@@ -6,7 +6,7 @@ penetration <= 2 mm and some hand vertex within 5 mm of the object, checked with
 signed distances), a view over the sphere at 0.45-0.55 m with HO-3D-like intrinsics, skin tone,
 lights, background, blur and noise. Each sample then becomes a record exactly as ``build-sdf`` makes
 them (crop, masks, heatmap, SDF samples, labels; ``dataset: synthetic`` with the source grasp in
-``source``), written by the same shard engine (:mod:`hoidata.pipeline.engine`, with :class:`SynthTask` and a
+``source``), written by the same shard engine (:mod:`hoidata.engine.engine`, with :class:`SynthTask` and a
 :class:`SynthWorker` per process): parallel, byte-identical whatever the number of workers, resumable,
 splittable with ``--part``.
 """
@@ -24,12 +24,12 @@ from hoidata import schema
 from hoidata.datasets.frame import Frame, Skip, project
 from hoidata.errors import DataError
 from hoidata.hand.pose import change_frame
-from hoidata.pipeline.engine import Plan, run_task
-from hoidata.pipeline.finish import extra_name, finish_store, read_shard_skips
-from hoidata.pipeline.records import RecordSettings
-from hoidata.pipeline.runner import BuildSummary
-from hoidata.pipeline.store_shards import check_build_file, shards_done
-from hoidata.pipeline.worker import RecordWorker, ShardJob
+from hoidata.engine.engine import Plan, run_task
+from hoidata.records.store_writer import extra_name, finish_store, read_shard_skips
+from hoidata.records.records import RecordSettings
+from hoidata.build_sdf import BuildSummary
+from hoidata.records.store_shards import check_build_file, shards_done
+from hoidata.records.worker import RecordWorker, ShardJob
 from hoidata.synth import views
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp")
@@ -213,7 +213,7 @@ def check_count(count: int) -> None:
 
 @dataclass
 class SynthTask:
-    """render-synthetic's task for :func:`hoidata.pipeline.engine.run_task`: shard n holds samples n*R .. (n+1)*R-1."""
+    """render-synthetic's task for :func:`hoidata.engine.engine.run_task`: shard n holds samples n*R .. (n+1)*R-1."""
 
     keys: list[str]
     seed: int
@@ -237,7 +237,7 @@ def render_synthetic(source: Path, out: Path, count: int, mano_dir: Path, models
                      settings: SynthSettings = SynthSettings(), record: RecordSettings = RecordSettings(),
                      records_per_shard: int = 256, progress: bool = True, executor=None) -> BuildSummary:
     """Render `count` synthetic samples from the grasps of `source` into the store `out` (``executor``: what runs
-    the shard jobs, see :func:`hoidata.pipeline.engine.run_task`)."""
+    the shard jobs, see :func:`hoidata.engine.engine.run_task`)."""
     import time
 
     from hoidata.hand import load_mano
@@ -283,10 +283,10 @@ def _shard_stats(out: Path, number: int) -> dict:
 
 def _inputs(grasps, mano_dir: Path, models_dir: Path, backgrounds: list[str]) -> dict:
     """What build.json pins besides the settings: the MANO file, the rendered object folders, the grasps and
-    the background images (see hoidata.pipeline.fingerprint)."""
+    the background images (see hoidata.records.fingerprint)."""
     import hashlib
 
-    from hoidata.pipeline import fingerprint
+    from hoidata.records import fingerprint
 
     digest = hashlib.sha256()
     for g in grasps:

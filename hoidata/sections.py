@@ -2,7 +2,7 @@
 overrides, and each section checked against the dataclass that reads it.
 
 A pipeline file is shared by its readers: the build reads ``[dataset]``, ``[record]`` and ``[store]``
-(:mod:`hoidata.pipeline.settings`), training its own sections (``hoisdf.config``). This module names no section:
+(:mod:`hoidata.records.settings`), training its own sections (``hoisdf.config``). This module names no section:
 every reader passes the sections it reads, and those of the other readers it knows of. Nothing here reads a
 settings object: the readers turn the checked sections into their dataclasses and pass explicit values on.
 

@@ -18,8 +18,8 @@ from test_synthetic import RECORD, _render, ho3d_source, synth_store  # noqa: F4
 from hoidata import store
 from hoidata.cli import main as hoidata
 from hoidata.errors import DataError
-from hoidata.pipeline import finish
-from hoidata.pipeline.slurm import array_part, resolve_part, slurm_minutes
+from hoidata.records import store_writer as finish
+from hoidata.engine.slurm import array_part, resolve_part, slurm_minutes
 
 pytestmark = pytest.mark.slow  # Slurm/submitit/Ray builds in subprocesses
 
@@ -142,7 +142,7 @@ def test_ray_tasks_write_the_local_shards_and_resume_the_same_way(local_ray, tin
 def test_ray_renders_the_synthetic_store_of_a_local_run(local_ray, ho3d_source, synth_store, tmp_path):  # noqa: F811
     from functools import partial
 
-    from hoidata.pipeline.ray_tasks import run_ray
+    from hoidata.engine.ray_tasks import run_ray
 
     local, _ = synth_store
     out = tmp_path / "ray"

@@ -9,10 +9,10 @@ import pytest
 import torch
 
 from hoidata import schema, store
-from hoidata.pipeline.records import RecordSettings
-from hoidata.pipeline.runner import build_store
-from hoidata.pipeline.settings import load_build_config
-from hoidata.synth.render_synthetic import render_synthetic
+from hoidata.records.records import RecordSettings
+from hoidata.build_sdf import build_store
+from hoidata.records.settings import load_build_config
+from hoidata.render_synthetic import render_synthetic
 from hoidata.toy.ho3d import ToyHO3DSize, write_toy_ho3d
 from hoidata.toy.make import write_assets
 from hoisdf.data import StoreSpec, build_dataset, make_loader

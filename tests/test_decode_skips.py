@@ -28,8 +28,8 @@ def _damage(path: Path, how: str) -> None:
 
 
 def _build(root: Path, out: Path, preset: str, splits: str):
-    from hoidata.pipeline.runner import build_store
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.build_sdf import build_store
+    from hoidata.records.settings import load_build_config
 
     cfg = load_build_config(preset, [f"dataset.splits={splits}", "record.crop_size=64", "record.n_hand=32",
                                      "record.n_object=32"])

@@ -1,4 +1,4 @@
-"""The shard engine (hoidata.pipeline.engine) on a task of its own: serial and pooled runs write the same units,
+"""The shard engine (hoidata.engine.engine) on a task of its own: serial and pooled runs write the same units,
 a resumed run keeps the done ones, the worker context is opened once per process and closed, and a worker that
 cannot start is one WorkerError line. The pipelines on it (build-sdf, render-synthetic, export, the toy writer)
 have their own tests; this one needs no dataset, GL or MANO."""
@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from hoidata.errors import DataError, WorkerError
-from hoidata.pipeline.engine import Plan, ShardTask, run_task
+from hoidata.engine.engine import Plan, ShardTask, run_task
 
 
 @dataclass(frozen=True)

@@ -24,7 +24,7 @@ from hoidata.export.sdf_files import normalisation
 from hoidata.geometry.sdf import brute_force_signed_distance
 from hoidata.hand import load_mano
 from hoidata.objects import YCB_CLASSES, load_object_mesh, object_mesh_path, repair_mesh
-from hoidata.pipeline.settings import load_build_config
+from hoidata.records.settings import load_build_config
 
 pytestmark = pytest.mark.slow  # exports the toy DexYCB s0 split (rendered toy data, SDF files)
 

@@ -25,7 +25,7 @@ from hoidata.datasets.dexycb_layout import SERIALS, SUBJECTS
 from hoidata.errors import DataError
 from hoidata.export import export_dataset
 from hoidata.hand import load_mano, mean_relative_to_flat
-from hoidata.pipeline.settings import load_build_config
+from hoidata.records.settings import load_build_config
 
 pytestmark = pytest.mark.slow  # exports the toy DexYCB s0 and HO-3D trees
 

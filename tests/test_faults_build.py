@@ -25,8 +25,8 @@ import pytest
 from hoidata import store
 from hoidata.cli import main as hoidata
 from hoidata.errors import DataError
-from hoidata.pipeline.runner import build_store
-from hoidata.pipeline.settings import load_build_config
+from hoidata.build_sdf import build_store
+from hoidata.records.settings import load_build_config
 from hoisdf.data import StoreSpec, build_dataset, make_loader
 
 pytestmark = pytest.mark.slow  # each fault is a build of the tiny toy DexYCB

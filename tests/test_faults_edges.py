@@ -102,7 +102,7 @@ def test_the_slurm_launcher_without_slurm_is_one_line(tiny_dexycb, tmp_path, mon
 def test_toy_commands_build_whole_stores_inside_an_array_task(tmp_path, monkeypatch, capsys):
     """An array task's environment (a seed sweep run as an array) is not a part of toy-pipeline's stores."""
     import hoisdf.toy
-    from hoidata.pipeline import runner
+    from hoidata import build_sdf as runner
 
     def in_process(argv):  # the child's command line (python -m hoidata ...), run here so the stand-in sees it
         assert argv[:3] == [sys.executable, "-m", "hoidata"]

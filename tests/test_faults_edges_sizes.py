@@ -43,7 +43,7 @@ def test_a_repeated_name_in_a_list_setting_is_one_line_before_anything_is_writte
 
 
 def test_a_repeat_in_a_pipeline_file_names_the_file(tmp_path):
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.records.settings import load_build_config
 
     toml = tmp_path / "p.toml"
     toml.write_text('[dataset]\nname = "dexycb"\nsplits = ["train", "test", "train"]\n')
@@ -112,7 +112,7 @@ def test_more_toy_ho3d_sequences_than_it_has_is_refused(tmp_path, capsys, layout
 
 def test_make_toy_all_gives_ho3d_its_three_sequences_and_says_so(tmp_path, capsys, monkeypatch):
     """--layout all --sequences 10 (python -m hoisdf.toy's default) is DexYCB's size; HO-3D gets its 3, with a note."""
-    import hoidata.pipeline.inputs as inputs
+    import hoidata.records.inputs as inputs
     import hoidata.toy.make as make
 
     calls = []
@@ -158,7 +158,7 @@ def test_the_main_job_refuses_the_size_in_its_data_step_before_anything_is_writt
 def test_empty_splits_are_the_asked_splits_without_a_frame():
     from types import SimpleNamespace
 
-    from hoidata.pipeline.runner import empty_splits
+    from hoidata.build_sdf import empty_splits
 
     frames = [SimpleNamespace(split="train"), SimpleNamespace(split="test")]
     assert empty_splits(("train", "val", "test"), frames) == ("val",)

@@ -37,8 +37,8 @@ def ho3d_root(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def eval_store(ho3d_root, tmp_path_factory):
-    from hoidata.pipeline.runner import build_store
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.build_sdf import build_store
+    from hoidata.records.settings import load_build_config
 
     out = tmp_path_factory.mktemp("ho3d_eval") / "store"
     summary = build_store(load_build_config("ho3d_eval", ["record.crop_size=64"]), ho3d_root, ho3d_root / "mano",

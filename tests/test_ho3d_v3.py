@@ -47,7 +47,7 @@ def test_v3_layout_is_read_and_a_v2_reading_is_refused(v3_root):
 
 
 def test_version_setting_is_checked():
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.records.settings import load_build_config
 
     assert load_build_config("ho3d_v3").dataset.version == "v3"
     assert load_build_config("ho3d_v3_eval").dataset.version == "v3"
@@ -61,8 +61,8 @@ def test_v3_built_evaluated_and_scored(v3_root, untrained_run, mano_dir, tmp_pat
     from test_ho3d_eval import _oracle
 
     from hoidata import store
-    from hoidata.pipeline.runner import build_store
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.build_sdf import build_store
+    from hoidata.records.settings import load_build_config
     from hoisdf.evaluate import evaluate
     from hoisdf.model.hoisdf import HOISDF
     from hoisdf.scoring.cli import main as score_main

@@ -198,8 +198,8 @@ def test_bad_clips_are_named_and_counted_and_the_rest_is_built(hot3d_root, tmp_p
 def test_build_sdf_on_the_toy_clips_verifies_with_the_mask_qa(hot3d_root, tmp_path):
     """build-sdf --dataset hot3d_clips: one record per (frame, stream, hand) with a MANO pose, left hands mirrored,
     the store verifies, and each record's object mask IoU against the clip's RLE mask is in the summary line."""
-    from hoidata.pipeline.runner import build_store, mask_iou_line
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.build_sdf import build_store, mask_iou_line
+    from hoidata.records.settings import load_build_config
     from hoidata.store import read_index
     from hoidata.store.verify import verify_store
 

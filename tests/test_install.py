@@ -20,7 +20,7 @@ def test_presets_read_through_the_resources_api_of_any_package_kind(tmp_path, mo
     from importlib.resources.readers import MultiplexedPath
 
     from hoidata import sections
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.records.settings import load_build_config
 
     (tmp_path / "toy.toml").write_bytes((REPO / "pipelines" / "toy.toml").read_bytes())
     monkeypatch.setattr(sections, "CHECKOUT_PIPELINES", tmp_path / "no-checkout")

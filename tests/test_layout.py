@@ -110,6 +110,9 @@ def test_files_stay_within_the_size_budget():
     assert not long, f"files over {MAX_LINES} lines: {long}"
 
 
+# The recipes: each stands on the engine and records floors (their public names) and on the library layers, never on
+# another recipe.
+RECIPES = ("hoidata.build_sdf", "hoidata.render_synthetic", "hoidata.export", "hoidata.toy")
 # hoidata's layers, bottom first: a module may import its own layer and the layers below, never one above, so the
 # data flows one way (readers -> frames -> records -> shards; the toy writers and the CLI on top).
 HOIDATA_LAYERS = (
@@ -117,9 +120,10 @@ HOIDATA_LAYERS = (
     ("hoidata.safe_pickle", "hoidata.geometry", "hoidata.store", "hoidata.render", "hoidata.cli_types"),
     ("hoidata.hand", "hoidata.objects"),
     ("hoidata.datasets",),
-    ("hoidata.pipeline",),
-    ("hoidata.synth", "hoidata.export"),
-    ("hoidata.toy",),
+    ("hoidata.engine",),
+    ("hoidata.records",),
+    ("hoidata.synth",),
+    RECIPES,
     ("hoidata.cli", "hoidata.__main__"),
 )
 
@@ -172,7 +176,8 @@ HOISDF_MAY_IMPORT = (
     "hoidata.datasets.dexycb_layout",  # the DexYCB toolkit's file layout, for scoring its result files
     "hoidata.datasets.dexycb_frames",  # the toolkit's invalid-label marker (TOOLKIT_INVALID), for submissions
 )
-HOISDF_NEVER = ("hoidata.cli", "hoidata.__main__", "hoidata.pipeline", "hoidata.export", "hoidata.synth",
+HOISDF_NEVER = ("hoidata.cli", "hoidata.__main__", "hoidata.engine", "hoidata.records", "hoidata.build_sdf",
+                "hoidata.render_synthetic", "hoidata.export", "hoidata.synth",
                 "hoidata.toy", "hoidata.render")
 
 
@@ -273,12 +278,12 @@ def test_hoisdf_imports_only_the_allowed_hoidata_layers_and_never_the_build_or_i
 
 def test_the_hoisdf_check_finds_a_cli_import_and_a_build_reached_through_a_library_module():
     graph = {"hoisdf.toy": {"hoidata.cli", "hoidata.cli_types"}, "hoisdf.train": {"hoidata.store"},
-             "hoidata.cli": {"hoidata.pipeline.runner"}, "hoidata.cli_types": set(),
-             "hoidata.store": {"hoidata.pipeline.finish"}, "hoidata.pipeline.runner": set(),
-             "hoidata.pipeline.finish": set()}
+             "hoidata.cli": {"hoidata.build_sdf"}, "hoidata.cli_types": set(),
+             "hoidata.store": {"hoidata.records.store_writer"}, "hoidata.build_sdf": set(),
+             "hoidata.records.store_writer": set()}
     assert _hoisdf_problems(graph) == ["hoisdf.toy imports hoidata.cli, which is not on the allow-list",
-                                       "hoisdf reaches hoidata.cli", "hoisdf reaches hoidata.pipeline.finish",
-                                       "hoisdf reaches hoidata.pipeline.runner"]
+                                       "hoisdf reaches hoidata.cli", "hoisdf reaches hoidata.records.store_writer",
+                                       "hoisdf reaches hoidata.build_sdf"]
 
 
 def _bench_problems(bench: Path) -> list[str]:

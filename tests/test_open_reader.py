@@ -40,7 +40,7 @@ def _scaled_models(models: Path, dst: Path, scales: dict[str, float]) -> Path:
 
 
 def _dexycb(overrides=()):
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.records.settings import load_build_config
 
     return load_build_config("dexycb", [*FILTERED, *overrides])
 
@@ -53,7 +53,7 @@ def _read(root: Path, models: Path):
 @pytest.mark.slow  # reads the tiny toy DexYCB
 def test_an_unknown_dataset_name_is_one_line_naming_the_field(tiny_dexycb):
     from hoidata.export.job import export_frames
-    from hoidata.pipeline.runner import read_frames
+    from hoidata.build_sdf import read_frames
 
     cfg = _dexycb()
     cfg = replace(cfg, dataset=replace(cfg.dataset, name="ho4d"))  # past the settings' own check: the callers'

@@ -11,8 +11,8 @@ import pytest
 from hoidata import schema, store
 from hoidata.cli import main
 from hoidata.geometry.sdf import brute_force_signed_distance
-from hoidata.pipeline.runner import build_store
-from hoidata.pipeline.settings import load_build_config
+from hoidata.build_sdf import build_store
+from hoidata.records.settings import load_build_config
 from hoidata.toy.make import write_assets
 
 pytestmark = pytest.mark.slow  # build-sdf end to end on the tiny toy DexYCB

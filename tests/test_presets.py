@@ -30,8 +30,8 @@ from hoidata.datasets.dexycb_layout import SERIALS, SUBJECTS
 from hoidata.datasets.dexycb_selection import hand_box_ok, object_motion
 from hoidata.hand import load_mano
 from hoidata.objects import YCB_CLASSES
-from hoidata.pipeline import runner
-from hoidata.pipeline.settings import load_build_config, stated_count_warnings
+from hoidata import build_sdf as runner
+from hoidata.records.settings import load_build_config, stated_count_warnings
 
 STATED = {"dexycb": (29656, 5928), "dexycb_full": (401507, 78005), "dexycb_artiboost": (168280, 32968),
           "dexycb_grasping": (237256, 45624)}

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from hoidata.errors import DataError
-from hoidata.pipeline import settings as build
+from hoidata.records import settings as build
 from hoidata.sections import check_sections, refuse_unused
 from hoisdf import config as training
 
@@ -93,7 +93,8 @@ def test_a_saved_config_with_overrides_is_checked_and_left_unchanged(tmp_path):
 
 
 def test_git_commit_is_one_function_the_build_and_training_share():
-    from hoidata.pipeline import finish, runner
+    from hoidata import build_sdf as runner
+    from hoidata.records import store_writer as finish
     from hoidata.provenance import git_commit
 
     assert finish.git_commit is git_commit and runner.git_commit is git_commit

@@ -9,9 +9,9 @@ import torch
 
 from hoidata import schema, store
 from hoidata.errors import DataError
-from hoidata.pipeline.records import RecordSettings
+from hoidata.records.records import RecordSettings
 from hoidata.synth import views
-from hoidata.synth.render_synthetic import render_synthetic
+from hoidata.render_synthetic import render_synthetic
 from hoidata.toy.ho3d import ToyHO3DSize, write_toy_ho3d
 from hoidata.toy.make import write_assets
 

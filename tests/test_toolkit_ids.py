@@ -159,8 +159,8 @@ def hpe_eval(root, split: str, res_file) -> dict:
 @pytest.fixture(scope="module")
 def store_8cam(dexycb_8cam, tmp_path_factory):
     """Every valid frame of the 8-camera toy's s0_train (dexycb_full selection), small records."""
-    from hoidata.pipeline.runner import build_store
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.build_sdf import build_store
+    from hoidata.records.settings import load_build_config
 
     out = tmp_path_factory.mktemp("store_8cam") / "store"
     overrides = ['dataset.splits=["train"]', "record.crop_size=64", "record.n_hand=64", "record.n_object=32"]
@@ -209,8 +209,8 @@ def _build_listed(root, out, ids, *extra):
     list must override all three."""
     import json
 
-    from hoidata.pipeline.runner import build_store
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.build_sdf import build_store
+    from hoidata.records.settings import load_build_config
 
     listed = out.parent / f"{out.name}.json"
     listed.write_text(json.dumps([str(i).rjust(8, "0") for i in ids]))  # gSDF writes 8-digit strings
@@ -259,7 +259,7 @@ def test_frame_list_bad_files(tmp_path, content, match):
 
 
 def test_frame_list_needs_one_dexycb_split():
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.records.settings import load_build_config
 
     with pytest.raises(DataError, match="dataset.frame_list.*one DexYCB split"):
         load_build_config("dexycb", ["dataset.frame_list=train_s0_29k.json"])  # dexycb.toml builds train and test

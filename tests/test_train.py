@@ -208,8 +208,8 @@ def test_resume_two_plus_two_steps_equals_four(tiny_store, mano, tmp_path):
 
 @pytest.mark.slow
 def test_mixed_real_and_synthetic_training_reads_the_requested_ratio(tiny_store, mano, tmp_path):
-    from hoidata.pipeline.records import RecordSettings
-    from hoidata.synth.render_synthetic import render_synthetic
+    from hoidata.records.records import RecordSettings
+    from hoidata.render_synthetic import render_synthetic
     from hoidata.toy.ho3d import ToyHO3DSize, write_toy_ho3d
     from hoidata.toy.make import write_assets
 
@@ -284,7 +284,7 @@ def test_projected_grid_features_equal_direct_sampling(tiny_store, mano):
 
 def test_bad_settings_and_files_give_clear_errors(tmp_path, mano_dir, capsys):
     from hoidata.errors import DataError
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.records.settings import load_build_config
     from hoisdf.train import main
     from hoisdf.training.checkpoint import load_checkpoint
 

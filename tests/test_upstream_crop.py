@@ -18,9 +18,9 @@ from hoidata import schema, store
 from hoidata.errors import DataError
 from hoidata.geometry.upstream_crop import box21_upstream, pixel_affine, scale_translate
 from hoidata.objects import load_points, object_points_path
-from hoidata.pipeline.runner import build_store, read_frames
-from hoidata.pipeline.settings import load_build_config
-from hoidata.pipeline.upstream_records import upstream_view
+from hoidata.build_sdf import build_store, read_frames
+from hoidata.records.settings import load_build_config
+from hoidata.records.upstream import upstream_view
 
 GOLDEN = json.loads((Path(__file__).parent / "golden" / "upstream_crops" / "crops.json").read_text())
 SMALL = ["record.n_hand=64", "record.n_object=32", 'record.crop="upstream"']

@@ -42,8 +42,8 @@ def close(got, want, what: str) -> None:
 @pytest.fixture(scope="module")
 def region_stores(request, tmp_path_factory):
     """{toy fixture name: store folder} built with record.upstream_region (its train split)."""
-    from hoidata.pipeline.runner import build_store
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.build_sdf import build_store
+    from hoidata.records.settings import load_build_config
 
     out = {}
     for fixture, pipeline, overrides in sorted({(f, p, tuple(o)) for f, p, o in GROUPS.values()}):
@@ -277,7 +277,7 @@ def test_build_refuses_a_region_it_cannot_make():
     """record.upstream_region on a dataset upstream never trained on, or on splits that are upstream test crops:
     one DataError naming the key, before any frame is read."""
     from hoidata.errors import DataError
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.records.settings import load_build_config
 
     assert load_build_config("toy", ['record.upstream_region=["train"]']).record.upstream_region == ("train",)
     for overrides in (['dataset.name="hot3d_clips"', 'record.upstream_region=["train"]'],

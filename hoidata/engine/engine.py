@@ -19,7 +19,7 @@ export's chunks, the toy writer's sequences) hands :func:`run_task` one task obj
 
 Where the jobs run: with ``workers <= 1`` and no ``executor``, here, in order, in one worker context that the
 engine closes when the run ends (also on an error). Otherwise in ``executor(fn, jobs, workers, init, initargs)``
-(default :func:`hoidata.pipeline.pool.run_pool`; :func:`hoidata.pipeline.ray_tasks.run_ray` has the same
+(default :func:`hoidata.engine.pool.run_pool`; :func:`hoidata.engine.ray_tasks.run_ray` has the same
 contract), whose processes each open the task's worker context once, before their first job, keep it in this
 module's registry (``_OPEN``, the only place a task's per-process state is kept) and close it when the process
 exits normally (best effort: ``multiprocessing``'s exit finalisers in a pool worker, ``atexit`` elsewhere; a
@@ -38,7 +38,7 @@ from typing import Protocol, runtime_checkable
 from tqdm import tqdm
 
 from hoidata.errors import WorkerError
-from hoidata.pipeline.pool import describe_failure
+from hoidata.engine.pool import describe_failure
 
 
 @dataclass(frozen=True)
@@ -111,7 +111,7 @@ def run_task(task: ShardTask, workers: int = 1, part: tuple[int, int] = (0, 1), 
         part: ``(i, N)``: this run does the units with number % N == i.
         progress: show a progress bar (the plan's items, with the rate of items written per second).
         executor: ``executor(fn, jobs, workers, init, initargs)`` yielding ``fn(job)`` per job (default
-            :func:`hoidata.pipeline.pool.run_pool`).
+            :func:`hoidata.engine.pool.run_pool`).
     """
     start = time.perf_counter()
     plan, done = task.plan, getattr(task, "done", None)
@@ -148,7 +148,7 @@ def _results(task: ShardTask, jobs: list, workers: int, executor: Callable | Non
             context.close()
         return
     if executor is None:
-        from hoidata.pipeline.pool import run_pool as executor
+        from hoidata.engine.pool import run_pool as executor
     yield from executor(partial(_run_in_process, task.worker), jobs, workers, _open_in_process, (task.worker,))
 
 

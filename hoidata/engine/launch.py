@@ -1,7 +1,7 @@
 """Where the shard jobs of a part-splittable command run: ``--launcher local | slurm | ray``.
 
 - ``local`` (default): this process and a pool of ``--workers`` processes; ``--part`` explicit, else taken from a
-  Slurm array task's environment (:func:`hoidata.pipeline.slurm.array_part`), else the whole job.
+  Slurm array task's environment (:func:`hoidata.engine.slurm.array_part`), else the whole job.
 - ``slurm``: ``--slurm-array N`` parts submitted as one job array through submitit, each task a pool of
   ``--slurm-cpus`` workers; waits for them, or with ``--dry-run`` prints the equivalent ``sbatch`` line.
 - ``ray``: every shard job a Ray task on the cluster at ``--ray-address`` (a local Ray instance of ``--workers``
@@ -22,7 +22,7 @@ import time
 from collections.abc import Callable
 
 from hoidata.errors import DataError
-from hoidata.pipeline import slurm
+from hoidata.engine import slurm
 
 LAUNCHERS = ("local", "slurm", "ray")
 # what an array task's command line leaves out: where the jobs run, and the part and workers (the task's own)
@@ -124,7 +124,7 @@ def launch(args, task: Callable, command: str, finished: Callable = lambda s: s.
         part = slurm.resolve_part(args.part)
         executor = None
         if args.launcher == "ray":
-            from hoidata.pipeline.ray_tasks import run_ray
+            from hoidata.engine.ray_tasks import run_ray
 
             executor = functools.partial(run_ray, address=args.ray_address)
         return task(workers=args.workers, part=part, executor=executor)

@@ -1,6 +1,6 @@
 """``hoidata export``: a dataset (read through our readers and a pipeline setting) -> another codebase's files.
 
-The work is cut like ``build-sdf``'s (:func:`hoidata.pipeline.engine.run_task` runs :class:`ExportTask`, each
+The work is cut like ``build-sdf``'s (:func:`hoidata.engine.engine.run_task` runs :class:`ExportTask`, each
 worker process one :class:`~hoidata.export.worker.ExportWorker`): chunk k holds the
 frames k*R .. (k+1)*R-1 of the reader's order; a chunk writes its per-frame files (each to a temporary name,
 then renamed) and then its manifest ``.hoidata-export/<format>-<splits>/chunk-%06d.json`` with the annotation
@@ -26,8 +26,8 @@ from hoidata.errors import DataError, read_json
 from hoidata.export import gsdf, handoccnet
 from hoidata.export.files import write_json
 from hoidata.export.worker import ExportWorkerSpec, chunk_path
-from hoidata.pipeline.engine import Plan, run_task
-from hoidata.pipeline.settings import BuildConfig, stated_count_warnings
+from hoidata.engine.engine import Plan, run_task
+from hoidata.records.settings import BuildConfig, stated_count_warnings
 
 WORK_DIR = ".hoidata-export"
 SPEC_FILE = "export.json"
@@ -70,7 +70,7 @@ def export_frames(cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path
 
 def _spec(fmt: str, cfg: BuildConfig, splits, keys: list[str], options: dict, inputs: dict) -> dict:
     """What ``export.json`` pins: format, settings, splits, frames, options, and the fingerprints of the inputs
-    (MANO files, object models, annotations: :func:`hoidata.pipeline.runner.build_inputs`, as ``build.json``)."""
+    (MANO files, object models, annotations: :func:`hoidata.build_sdf.build_inputs`, as ``build.json``)."""
     return json.loads(json.dumps({
         "format": fmt, "config": cfg.as_dict(), "splits": list(splits), "frames": len(keys),
         "keys_sha256": hashlib.sha256("\n".join(keys).encode()).hexdigest(), "options": options,
@@ -80,7 +80,7 @@ def _spec(fmt: str, cfg: BuildConfig, splits, keys: list[str], options: dict, in
 def _check_spec(work: Path, spec: dict) -> None:
     """Pin a new export's folder to ``spec``; refuse a rerun whose settings, frames, options or inputs differ,
     naming the first difference (the chunks kept would mix with new ones)."""
-    from hoidata.pipeline import fingerprint
+    from hoidata.records import fingerprint
 
     path = work / SPEC_FILE
     if path.is_file():
@@ -131,7 +131,7 @@ def read_chunks(work: Path, numbers: list[int]):
 
 @dataclass
 class ExportTask:
-    """An export's task for :func:`hoidata.pipeline.engine.run_task`: chunk n holds frames n*R .. (n+1)*R-1."""
+    """An export's task for :func:`hoidata.engine.engine.run_task`: chunk n holds frames n*R .. (n+1)*R-1."""
 
     fmt: str
     frames: list
@@ -169,9 +169,9 @@ def export_dataset(fmt: str, cfg: BuildConfig, root: Path, mano_dir: Path, model
         workers: worker processes.
         part: ``(i, N)`` of ``--part i/N``: this run does the i-th of N equal slices of the work.
         chunk_size: frames per unit of work (and of resume).
-        executor: what runs the chunk jobs (see :func:`hoidata.pipeline.engine.run_task`).
+        executor: what runs the chunk jobs (see :func:`hoidata.engine.engine.run_task`).
     """
-    from hoidata.pipeline.runner import build_inputs
+    from hoidata.build_sdf import build_inputs
 
     if fmt not in FORMATS:
         raise ValueError(f"unknown export format {fmt!r}; expected one of {FORMATS}")

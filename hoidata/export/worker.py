@@ -1,7 +1,7 @@
 """The per-process side of an export: :class:`ExportWorker`, the engine's worker context, writes one chunk of
 frames (each frame's entry and files from its format, :mod:`~hoidata.export.handoccnet` or
 :mod:`~hoidata.export.gsdf`, then the chunk's manifest). It holds what a process loads once: the MANO layers and
-repaired objects (a :class:`~hoidata.pipeline.worker.RecordWorker`: what the store's SDF rows were computed on),
+repaired objects (a :class:`~hoidata.records.worker.RecordWorker`: what the store's SDF rows were computed on),
 the raw object files, and the store whose SDF rows a gsdf export re-uses."""
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import numpy as np
 from hoidata.errors import DataError
 from hoidata.export import gsdf, handoccnet
 from hoidata.export.files import write_json
-from hoidata.pipeline.worker import RecordWorker
+from hoidata.records.worker import RecordWorker
 
 
 def chunk_path(work: Path, number: int) -> Path:

@@ -29,8 +29,8 @@ from hoidata.geometry.mirror import (
     mirror_points,
     mirror_transform,
 )
-from hoidata.pipeline.upstream_records import crop_meta, region_view, upstream_view, uses_upstream_crop, uses_upstream_region
-from hoidata.pipeline.upstream_records import crop_box as upstream_crop_box
+from hoidata.records.upstream import crop_meta, region_view, upstream_view, uses_upstream_crop, uses_upstream_region
+from hoidata.records.upstream import crop_box as upstream_crop_box
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,5 @@
 """The parent side of a task that writes store shards (build-sdf, render-synthetic): the ``build.json`` that pins a
-store to its settings, frames and inputs, and which shards are done (resume), for :mod:`hoidata.pipeline.engine`.
+store to its settings, frames and inputs, and which shards are done (resume), for :mod:`hoidata.engine.engine`.
 """
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ from pathlib import Path
 from hoidata import schema, store
 from hoidata.atomic import write_json_atomic
 from hoidata.errors import DataError
-from hoidata.pipeline import fingerprint
-from hoidata.pipeline.finish import read_shard_skips
+from hoidata.records import fingerprint
+from hoidata.records.store_writer import read_shard_skips
 
 BUILD_FILE = "build.json"
 

@@ -25,7 +25,7 @@ from scipy.spatial.transform import Rotation
 from hoidata.datasets.dexycb_layout import SERIALS, SUBJECTS
 from hoidata.datasets.frame import project
 from hoidata.hand.pose import axis_angle_to_pca
-from hoidata.pipeline.engine import Plan, run_task
+from hoidata.engine.engine import Plan, run_task
 from hoidata.render import skin_tone
 from hoidata.toy import scenes as toy_scenes
 
@@ -177,7 +177,7 @@ class ToyWorker:
 
 @dataclass
 class ToyTask:
-    """The toy writer's task for :func:`hoidata.pipeline.engine.run_task`: one unit per sequence (no resume: a
+    """The toy writer's task for :func:`hoidata.engine.engine.run_task`: one unit per sequence (no resume: a
     toy tree is written whole)."""
 
     jobs: list  # (root, subject position, subject, sequence, size, calibration, seed) per sequence
