@@ -51,7 +51,7 @@ def timed_build(root: Path, out: Path, workers: int, backend: str) -> tuple[floa
     shutil.rmtree(out, ignore_errors=True)
     start, cpu = time.perf_counter(), time.process_time()
     summary = build_store(cfg, root, root / "mano", root / "models", out, workers=workers, progress=False)
-    return time.perf_counter() - start, summary.records, time.process_time() - cpu
+    return time.perf_counter() - start, summary.written, time.process_time() - cpu
 
 
 # stage -> (file suffix, function): each stage's cumulative time in a profile of a 1-worker build

@@ -38,7 +38,7 @@ def main() -> None:
             s = render_synthetic(source, out, args.count, mano, models, workers=workers, records_per_shard=8,
                                  progress=False)
             seconds = time.perf_counter() - start
-            print(f"{workers:>7} {s.records:>8} {seconds:>8.1f} {s.records / seconds:>10.2f} {s.records / seconds / workers:>9.2f}")
+            print(f"{workers:>7} {s.written:>8} {seconds:>8.1f} {s.written / seconds:>10.2f} {s.written / seconds / workers:>9.2f}")
         print(f"physical check: {store.read_index(work / f'store{args.workers[0]}').provenance['synthetic']}")
     finally:
         shutil.rmtree(work, ignore_errors=True)

@@ -190,7 +190,7 @@ def _build_tiny_store(tiny_dexycb, out, records_per_shard: int):
     from hoidata.build_sdf import build_store
     from hoidata.records.settings import load_build_config
 
-    overrides = ['dataset.splits=["train"]', "record.crop_size=128", "record.n_hand=256", "record.n_object=128",
+    overrides = ['dataset.splits=["train"]', "record.crop_size=128", "record.sdf_samples_hand=256", "record.sdf_samples_object=128",
                  f"store.records_per_shard={records_per_shard}"]
     build_store(load_build_config("toy", overrides), tiny_dexycb, tiny_dexycb / "mano", tiny_dexycb / "models",
                 out, workers=1, part=(0, 1), progress=False)

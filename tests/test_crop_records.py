@@ -6,8 +6,9 @@ import cv2
 import numpy as np
 
 from hoidata import schema
-from hoidata.datasets.frame import Frame, project
+from hoidata.datasets.frame import Frame
 from hoidata.geometry import crop
+from hoidata.geometry.crop import project
 from hoidata.records.records import mirror_frame, pack_masks, summed_heatmap
 
 

@@ -75,7 +75,7 @@ def test_an_export_rerun_with_other_inputs_is_refused_naming_them(tiny_dexycb, t
     labels = sorted(root.glob("*/*/*/labels_000003.npz"))[0]
     for extra, words in ((["--mano", str(mano2)], "the MANO file MANO_RIGHT.pkl changed"),
                          (["--models", str(models2)], "the object model 002_master_chef_can changed"),
-                         (["record.n_hand=512"], "the setting record.n_hand differs"),
+                         (["record.sdf_samples_hand=512"], "the setting record.sdf_samples_hand differs"),
                          (["annotations"], "the dataset's annotations")):
         if extra == ["annotations"]:
             _move_object(labels)
@@ -299,7 +299,7 @@ def test_a_synthetic_store_resumes_with_its_source_spelled_another_way(ho3d_sour
     (tmp_path / "link").symlink_to(ho3d_source)
     monkeypatch.chdir(tmp_path)
     again = _render(Path("link/./"), out)  # the same source through a link, relative: nothing to do
-    assert again.shards_written == 0 and again.shards_kept > 0
+    assert again.units_written == 0 and again.units_kept > 0
 
 
 @pytest.mark.slow

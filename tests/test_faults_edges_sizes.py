@@ -170,7 +170,7 @@ def test_a_split_asked_for_but_without_frames_is_named(tiny_dexycb, tmp_path, ca
     """The toy pipeline asks for train, val and test; the tiny toy (2 sequences a subject) has train frames only. The
     store is built from them, and the estimate and the build summary name the splits it holds none of."""
     base = ["build-sdf", "--dataset", "toy", "--root", str(tiny_dexycb), "--out", str(tmp_path / "s"),
-            "dataset.frame_stride=8", "record.crop_size=64", "record.n_hand=64", "record.n_object=32"]
+            "dataset.frame_stride=8", "record.crop_size=64", "record.sdf_samples_hand=64", "record.sdf_samples_object=32"]
     assert hoidata([*base, "--estimate"]) == 0
     assert "splits_without_frames: val, test" in capsys.readouterr().out
     assert hoidata(base) == 0

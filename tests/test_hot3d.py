@@ -203,11 +203,11 @@ def test_build_sdf_on_the_toy_clips_verifies_with_the_mask_qa(hot3d_root, tmp_pa
     from hoidata.store import read_index
     from hoidata.store.verify import verify_store
 
-    cfg = load_build_config("hot3d_clips", ["record.n_hand=256", "record.n_object=128"])  # the preset's crops
+    cfg = load_build_config("hot3d_clips", ["record.sdf_samples_hand=256", "record.sdf_samples_object=128"])  # the preset's crops
     out = tmp_path / "store"
     summary = build_store(cfg, hot3d_root, hot3d_root / "mano", hot3d_root / "object_models_eval", out, progress=False)
     frames, skipped = read(hot3d_root, "train")
-    assert summary.records == len(frames) and not summary.skipped and len(summary.reader_skipped) == len(skipped)
+    assert summary.written == len(frames) and not summary.skipped and len(summary.reader_skipped) == len(skipped)
     assert verify_store(out).ok
     labels = read_index(out).labels
     assert (labels["mirrored"] == np.array([f.side == "left" for f in frames])).all()

@@ -405,7 +405,7 @@ def test_evaluate_accepts_an_imported_run(imported, tiny_store, dexycb_s0, mano_
 
     run, _, _ = imported("dexycb")
     upstream_store = tmp_path / "upstream_store"
-    build_store(load_build_config("toy", ['dataset.splits=["test"]', "record.n_hand=64", "record.n_object=32",
+    build_store(load_build_config("toy", ['dataset.splits=["test"]', "record.sdf_samples_hand=64", "record.sdf_samples_object=32",
                                           'record.crop="upstream"']),
                 dexycb_s0, dexycb_s0 / "mano", dexycb_s0 / "models", upstream_store, progress=False)
     for store, out in ((upstream_store, tmp_path / "eval_upstream"), (tiny_store, tmp_path / "eval_project")):

@@ -24,7 +24,7 @@ CAN, BOX = "002_master_chef_can", "003_cracker_box"  # the tiny toy's right-hand
 # the dexycb preset (5 mm proximity filter) on the tiny toy: every frame of its one train camera, both hands
 FILTERED = ['dataset.splits=["train"]', "dataset.complete_subjects=false", "dataset.frame_stride=1",
             'dataset.sides=["right","left"]']
-SMALL = ["record.crop_size=128", "record.n_hand=256", "record.n_object=128", "store.records_per_shard=64"]
+SMALL = ["record.crop_size=128", "record.sdf_samples_hand=256", "record.sdf_samples_object=128", "store.records_per_shard=64"]
 
 
 

@@ -191,7 +191,7 @@ def test_a_complete_build_warns_when_its_count_differs(dexycb_s0, monkeypatch, c
     frames, _ = runner.read_frames(load_build_config("dexycb_full", ["dataset.complete_subjects=false"]), dexycb_s0,
                                    dexycb_s0 / "mano")
     monkeypatch.setattr(runner, "read_frames", lambda *a, **k: (frames, []))
-    monkeypatch.setattr(runner, "check_build_file", lambda *a, **k: (_ for _ in ()).throw(Stop()))
+    monkeypatch.setattr(runner.StoreWriter, "pin", lambda *a, **k: (_ for _ in ()).throw(Stop()))
     with pytest.raises(Stop):
         runner.build_store(cfg, dexycb_s0, dexycb_s0 / "mano", dexycb_s0 / "models", dexycb_s0 / "unused")
     err = capsys.readouterr().err.splitlines()

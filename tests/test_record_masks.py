@@ -105,7 +105,7 @@ def test_ho3d_build_stores_dataset_masks_and_skips_a_frame_without_one(ho3d_smal
     missing = segs[1]
     missing.unlink()
     out = tmp_path / "store"
-    args = ["record.crop_size=128", "record.n_hand=256", "record.n_object=128", 'record.masks="dataset"',
+    args = ["record.crop_size=128", "record.sdf_samples_hand=256", "record.sdf_samples_object=128", 'record.masks="dataset"',
             'record.sdf_points="deepsdf"']
     assert main(["build-sdf", "--dataset", "ho3d", "--root", str(root), "--out", str(out), *args]) == 0
     text = capsys.readouterr().out
@@ -130,7 +130,7 @@ def test_dexycb_build_stores_the_label_files_seg_in_the_crop(tiny_dexycb, tmp_pa
     from hoidata.store import iter_records
 
     size = 128
-    overrides = ['dataset.splits=["train"]', f"record.crop_size={size}", "record.n_hand=256", "record.n_object=128",
+    overrides = ['dataset.splits=["train"]', f"record.crop_size={size}", "record.sdf_samples_hand=256", "record.sdf_samples_object=128",
                  'record.masks="dataset"']
     build_store(load_build_config("toy", overrides), tiny_dexycb, tiny_dexycb / "mano", tiny_dexycb / "models",
                 tmp_path / "store", workers=1, progress=False)

@@ -17,7 +17,7 @@ from hoidata.toy.make import write_assets
 
 pytestmark = pytest.mark.slow  # renders and builds synthetic stores
 
-RECORD = RecordSettings(crop_size=128, n_hand=256, n_object=128)
+RECORD = RecordSettings(crop_size=128, sdf_samples_hand=256, sdf_samples_object=128)
 
 
 @pytest.fixture(scope="session")
@@ -60,7 +60,7 @@ def test_views_and_perturbations():
 
 def test_same_seed_same_store_whatever_the_workers(synth_store, ho3d_source, tmp_path):
     out, summary = synth_store
-    assert summary.index_written and summary.records == 6
+    assert summary.finished and summary.written == 6
     _render(ho3d_source, tmp_path / "two", workers=2)
     shards = sorted(p.name for p in out.glob("shard-*.tar"))
     assert shards == sorted(p.name for p in (tmp_path / "two").glob("shard-*.tar")) and len(shards) == 2

@@ -163,7 +163,7 @@ def store_8cam(dexycb_8cam, tmp_path_factory):
     from hoidata.records.settings import load_build_config
 
     out = tmp_path_factory.mktemp("store_8cam") / "store"
-    overrides = ['dataset.splits=["train"]', "record.crop_size=64", "record.n_hand=64", "record.n_object=32"]
+    overrides = ['dataset.splits=["train"]', "record.crop_size=64", "record.sdf_samples_hand=64", "record.sdf_samples_object=32"]
     build_store(load_build_config("toy", overrides), dexycb_8cam, dexycb_8cam / "mano", dexycb_8cam / "models", out,
                 progress=False)
     return out
@@ -216,7 +216,7 @@ def _build_listed(root, out, ids, *extra):
     listed.write_text(json.dumps([str(i).rjust(8, "0") for i in ids]))  # gSDF writes 8-digit strings
     overrides = ['dataset.splits=["train"]', 'dataset.sides=["right"]', "dataset.frame_stride=5",
                  "dataset.proximity_mm=5.0", f"dataset.frame_list={listed}", "record.crop_size=64",
-                 "record.n_hand=64", "record.n_object=32", *extra]
+                 "record.sdf_samples_hand=64", "record.sdf_samples_object=32", *extra]
     build_store(load_build_config("toy", overrides), root, root / "mano", root / "models", out, progress=False)
     return listed
 

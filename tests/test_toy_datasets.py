@@ -14,9 +14,9 @@ import torch
 
 from hoidata.datasets.dexycb import SETTINGS, DexYCBReader
 from hoidata.datasets.dexycb_layout import read_labels
-from hoidata.datasets.frame import project
 from hoidata.datasets.ho3d import HO3DReader
 from hoidata.errors import DataError
+from hoidata.geometry.crop import project
 from hoidata.hand import load_mano
 from hoidata.objects import load_object_mesh, object_mesh_path, repair_mesh
 from hoidata.toy.dexycb import (

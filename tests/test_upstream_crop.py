@@ -23,7 +23,7 @@ from hoidata.records.settings import load_build_config
 from hoidata.records.upstream import upstream_view
 
 GOLDEN = json.loads((Path(__file__).parent / "golden" / "upstream_crops" / "crops.json").read_text())
-SMALL = ["record.n_hand=64", "record.n_object=32", 'record.crop="upstream"']
+SMALL = ["record.sdf_samples_hand=64", "record.sdf_samples_object=32", 'record.crop="upstream"']
 ANCHOR_M = 1e-6  # the object anchor's tolerance against upstream's (metres)
 LEFT = ['dataset.splits=["train"]', 'dataset.sides=["left"]', "dataset.frame_stride=3", 'record.crop_splits=["train"]']
 

@@ -23,7 +23,7 @@ TOL = 1e-6  # K and boxes (px), anchor, joints and SDF points (m; SDF points in 
 # (~111 px) moved 2 float32 ulps (1.5e-5 px) under OPENBLAS_CORETYPE=Haswell / Prescott, more than TOL at that size
 FLOAT32_RTOL = 4 * float(np.finfo(np.float32).eps)
 SDF_SCALE = 3.1
-SMALL = ["record.n_hand=64", "record.n_object=32", 'record.upstream_region=["train"]', 'dataset.splits=["train"]']
+SMALL = ["record.sdf_samples_hand=64", "record.sdf_samples_object=32", 'record.upstream_region=["train"]', 'dataset.splits=["train"]']
 GROUPS = {"dexycb_right": ("dexycb_s0", "toy", SMALL), "dexycb_left": ("dexycb_s0", "toy", SMALL),
           "ho3d": ("ho3d_small", "ho3d", SMALL)}
 

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hoidata.datasets.frame import Frame, Skip, project
+from hoidata.datasets.frame import Frame, Skip
 from hoidata.datasets.hot3d_format import (
     SIDES,
     ClipMembers,
@@ -39,6 +39,7 @@ from hoidata.datasets.hot3d_format import (
     transform,
 )
 from hoidata.errors import DataError
+from hoidata.geometry.crop import project
 from hoidata.geometry.crop_camera import crop_maps, crop_to_fisheye, remap_crop
 from hoidata.geometry.fisheye624 import Fisheye624
 from hoidata.hand.pose import change_frame, pca_to_axis_angle

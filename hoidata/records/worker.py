@@ -115,14 +115,14 @@ class RecordWorker:
         """One frame's encoded record members; ``source`` (when given) replaces ``frame.source`` in the stored meta
         only: the frame keeps the paths its files are read from."""
         from hoidata.records.records import build_eval_record, build_record
-        from hoidata.records.upstream import record_size
 
-        obj = self.object_asset(frame.object_name, settings.crop == "upstream" or bool(settings.upstream_region))
+        crops = settings.crop_policy()
+        obj = self.object_asset(frame.object_name, crops.needs_points)
         if not frame.has_hand_pose:  # e.g. HO-3D's evaluation split: no hand mesh, so no masks or SDF
             rec = build_eval_record(frame, obj, key, settings)
         else:
             mano = self.hand_model(frame.side, frame.fix_left_shapedirs)  # the model the labels were made with
-            rec = build_record(frame, mano, obj, self.renderer(record_size(frame, settings, obj.upstream_box21)), key,
+            rec = build_record(frame, mano, obj, self.renderer(crops.record_size(frame, obj.upstream_box21)), key,
                                settings)
         if source is not None:
             rec["meta"]["source"] = source
