@@ -99,7 +99,7 @@ class ShardTask:
         """Refuse to keep these done units (a DataError), e.g. when their inputs changed; default: keep them."""
 
 
-@dataclass
+@dataclass(slots=True)  # a misspelt field is an error, not a new attribute
 class RunSummary:
     """What one run of a recipe did (this part's units), and whether its output is complete: the engine fills the
     counts, the recipe its own fields (``out``, the reader's skips, the last step's state and files).

@@ -95,14 +95,14 @@ def finish_store(out: Path, config: dict, models_dir: Path, numbers: list[int], 
     if not sum(info.count for info in infos):
         raise DataError(out, None, f"no records: every frame was skipped while building; "
                                    f"{describe_skips(build_skips, 'skipped')}")
-    summary.index_kept = True  # the index already lists these shards: nothing to write (a read-only rerun)
+    summary.finish_kept = True  # the index already lists these shards: nothing to write (a read-only rerun)
     if not _index_lists(out, infos):
         with store.index_lock(out):
             if not _index_lists(out, infos):  # nobody wrote it while this process waited for the lock
                 write_store_index(out, config, models_dir, numbers, reader_skips, provenance)
-                summary.index_kept = False
-    summary.index_written = True
-    summary.empty_shards = sum(info.count == 0 for info in infos)
+                summary.finish_kept = False
+    summary.finished = True
+    summary.empty_units = sum(info.count == 0 for info in infos)
     return build_skips
 
 
