@@ -88,3 +88,19 @@ def test_the_crop_policy_is_read_from_the_settings_once():
     assert upstream.needs_points and upstream.reads_object_folders
     region = RecordSettings(upstream_region=("train",)).crop_policy()
     assert region.needs_points and not region.reads_object_folders and not region.upstream_crop(_frame("test"))
+
+
+@pytest.mark.slow  # builds a store of the tiny toy DexYCB
+def test_a_built_store_pinned_under_the_old_names_resumes_whole_and_verifies(tiny_dexycb, tmp_path):
+    from hoidata import store
+    from hoidata.build_sdf import build_store
+
+    cfg = load_build_config("toy", ['dataset.splits=["train"]', "record.crop_size=64", "record.sdf_samples_hand=32",
+                                    "record.sdf_samples_object=32", "store.records_per_shard=8"])
+    out = tmp_path / "store"
+    first = build_store(cfg, tiny_dexycb, tiny_dexycb / "mano", tiny_dexycb / "models", out, progress=False)
+    path = out / BUILD_FILE
+    path.write_text(json.dumps(_old_names(json.loads(path.read_text()))))  # as a build before the rename left it
+    again = build_store(cfg, tiny_dexycb, tiny_dexycb / "mano", tiny_dexycb / "models", out, progress=False)
+    assert first.finished and (again.units_kept, again.units_written) == (len(first.units), 0)
+    assert again.finished and again.finish_kept and store.verify_store(out).ok
