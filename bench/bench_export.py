@@ -56,7 +56,8 @@ def main() -> None:
             out = work / label.split()[-1].strip("()-")
             start = time.perf_counter()
             s = export_dataset("gsdf", cfg, *paths, out, store=store, workers=args.workers, progress=False)
-            assert s.finished and s.sdf_sources == {"store" if store else "sampled": s.written}, s.sdf_sources
+            sources = s.extra["sdf_sources"]
+            assert s.finished and sources == {"store" if store else "sampled": s.written}, sources
             rows.append((label, s.written, time.perf_counter() - start, folder_bytes(out / "data", "*.npz")))
         load_after = os.getloadavg()
         print(f"{args.workers} worker(s); load average before {load_before[0]:.2f}, after {load_after[0]:.2f} "

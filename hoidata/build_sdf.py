@@ -89,8 +89,8 @@ def build_store(cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path, 
     writer = StoreWriter(out, cfg.as_dict(), models_dir, root)
     crops = cfg.record.crop_policy()
     writer.pin(keys, build_inputs(frames, root, Path(mano_dir), models_dir, crops.reads_object_folders))
-    task = BuildTask(frames, keys, cfg.record, writer, RecordWorkerSpec(Path(mano_dir), models_dir, cfg.record.crop_size),
-                     Plan(len(keys), cfg.store.records_per_shard))
+    spec = RecordWorkerSpec(Path(mano_dir), models_dir, cfg.record.crop_size)
+    task = BuildTask(frames, keys, cfg.record, writer, spec, Plan(len(keys), cfg.store.records_per_shard))
     summary = run_task(task, workers, part, progress, executor)
     summary.reader_skipped = [skip_dict(s) for s in reader_skips]
     summary.empty_splits = empty_splits(cfg.dataset.splits, frames)

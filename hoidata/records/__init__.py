@@ -40,7 +40,7 @@ from hoidata.records.upstream import CropPolicy
 from hoidata.records.worker import RecordWorker, RecordWorkerSpec, ShardJob, load_object_asset
 
 __all__ = ["BUILD_SECTIONS", "BuildConfig", "CropPolicy", "DatasetConfig", "ObjectAsset", "RecordSettings",
-           "RecordWorker", "RecordWorkerSpec", "ShardJob", "StoreConfig", "StoreTask", "StoreWriter", "build_eval_record",
-           "build_inputs", "build_record", "describe_skips", "extra_name", "fingerprint", "frame_seed",
-           "load_build_config", "load_object_asset", "mirror_frame", "posed_hand", "posed_object", "read_shard_skips",
-           "skip_dict", "skip_groups", "stated_count_warnings"]
+           "RecordWorker", "RecordWorkerSpec", "ShardJob", "StoreConfig", "StoreTask", "StoreWriter",
+           "build_eval_record", "build_inputs", "build_record", "describe_skips", "extra_name", "fingerprint",
+           "frame_seed", "load_build_config", "load_object_asset", "mirror_frame", "posed_hand", "posed_object",
+           "read_shard_skips", "skip_dict", "skip_groups", "stated_count_warnings"]
