@@ -35,8 +35,8 @@ import numpy as np
 
 from bench.common import toy_root
 from hoidata import schema, store
-from hoidata.pipeline.runner import build_store
-from hoidata.pipeline.settings import load_build_config
+from hoidata.build_sdf import build_store
+from hoidata.records.settings import load_build_config
 
 BACKENDS = ("bvh", "igl")  # record.sdf_backend: build-sdf's, then the baseline
 ALIGNSDF_BYTES = 2 * 20_000 * 6 * 4  # two files (hand, object) of 20k float32 rows of 6 columns, per frame
@@ -51,25 +51,25 @@ def timed_build(root: Path, out: Path, workers: int, backend: str) -> tuple[floa
     shutil.rmtree(out, ignore_errors=True)
     start, cpu = time.perf_counter(), time.process_time()
     summary = build_store(cfg, root, root / "mano", root / "models", out, workers=workers, progress=False)
-    return time.perf_counter() - start, summary.records, time.process_time() - cpu
+    return time.perf_counter() - start, summary.written, time.process_time() - cpu
 
 
 # stage -> (file suffix, function): each stage's cumulative time in a profile of a 1-worker build
 STAGES = {
-    "read frame list": ("hoidata/pipeline/runner.py", "read_frames"),
-    "object assets (load, repair)": ("hoidata/pipeline/worker.py", "load_object_asset"),
+    "read frame list": ("hoidata/build_sdf.py", "read_frames"),
+    "object assets (load, repair)": ("hoidata/records/worker.py", "load_object_asset"),
     "MANO model load": ("hoidata/hand/model.py", "load_mano"),
     "decode (frame JPEG)": ("hoidata/datasets/frame.py", "load_image"),
     "crop (warp)": ("hoidata/geometry/crop.py", "warp_image"),
-    "MANO hand": ("hoidata/pipeline/records.py", "posed_hand"),
-    "object posing": ("hoidata/pipeline/records.py", "posed_object"),
+    "MANO hand": ("hoidata/records/records.py", "posed_hand"),
+    "object posing": ("hoidata/records/records.py", "posed_object"),
     "render (masks)": ("hoidata/render/masks.py", "masks"),
-    "dataset-mask IoU": ("hoidata/pipeline/records.py", "dataset_mask_iou"),
+    "dataset-mask IoU": ("hoidata/records/records.py", "dataset_mask_iou"),
     "SDF samples": ("hoidata/geometry/sampling.py", "build_sdf_record"),
-    "heatmap": ("hoidata/pipeline/records.py", "summed_heatmap"),
+    "heatmap": ("hoidata/records/records.py", "summed_heatmap"),
     "encode (JPEG, PNG, npy, json)": ("hoidata/store/codec.py", "encode_record"),
     "write shard": ("hoidata/store/shards.py", "write_shard"),
-    "index (finish_store)": ("hoidata/pipeline/finish.py", "finish_store"),
+    "index (finish_store)": ("hoidata/records/store_writer.py", "finish_store"),
 }
 
 

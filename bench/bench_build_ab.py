@@ -32,15 +32,19 @@ HERE = Path(__file__).resolve().parent
 CHILD = """
 import json, shutil, sys, time
 from pathlib import Path
-from hoidata.pipeline.runner import build_store
-from hoidata.pipeline.settings import load_build_config
+try:
+    from hoidata.build_sdf import build_store
+    from hoidata.records import load_build_config
+except ImportError:  # a tree from before the build had its engine and records floors (issue 34)
+    from hoidata.pipeline.runner import build_store
+    from hoidata.pipeline.settings import load_build_config
 root, out = Path(sys.argv[1]), Path(sys.argv[2])
 cfg = load_build_config("toy", ['dataset.splits=["train", "val"]', "store.records_per_shard=8"])
 build_store(cfg, root, root / "mano", root / "models", out / "warm-up", workers=1, progress=False)
 start, cpu = time.perf_counter(), time.process_time()
 summary = build_store(cfg, root, root / "mano", root / "models", out / "store", workers=1, progress=False)
 print(json.dumps({"seconds": time.perf_counter() - start, "cpu": time.process_time() - cpu,
-                  "records": summary.records}))
+                  "records": summary.written if hasattr(summary, "written") else summary.records}))
 """
 
 

@@ -32,10 +32,10 @@ import time
 from pathlib import Path
 
 from bench.common import toy_root
-from hoidata.pipeline.ray_tasks import run_ray
-from hoidata.pipeline.runner import build_inputs, build_store, read_frames
-from hoidata.pipeline.settings import load_build_config
-from hoidata.pipeline.slurm import SlurmOptions, submit_parts
+from hoidata.engine.ray_tasks import run_ray
+from hoidata.build_sdf import build_inputs, build_store, read_frames
+from hoidata.records.settings import load_build_config
+from hoidata.engine.slurm import SlurmOptions, submit_parts
 from hoisdf.data import StoreSpec, build_dataset, make_loader
 
 
@@ -53,15 +53,15 @@ def build_rows(root: Path, work: Path, per: int) -> list[dict]:
         out = work / name.replace(" ", "_")
         start = time.perf_counter()
         summary = run(out)
-        return {"engine": name, "seconds": time.perf_counter() - start, "records": summary.records,
-                "shards": summary.shards_written, "out": out}
+        return {"engine": name, "seconds": time.perf_counter() - start, "records": summary.written,
+                "shards": summary.units_written, "out": out}
 
     rows = [timed("local pool", lambda out: task(out, workers=2, progress=False))]
 
     def slurm_local(out):
         results = submit_parts(functools.partial(task, out), SlurmOptions(2, 1, 30, executor="local"), out, "bench")
-        return type("S", (), {"records": sum(r.records for r in results),
-                              "shards_written": sum(r.shards_written for r in results)})()
+        return type("S", (), {"written": sum(r.written for r in results),
+                              "units_written": sum(r.units_written for r in results)})()
 
     rows.append(timed("submitit local", slurm_local))
     rows.append(timed("ray (with init)", lambda out: task(out, workers=2, progress=False,

@@ -25,8 +25,8 @@ from pathlib import Path
 
 from bench.common import toy_train_root
 from hoidata.export import export_dataset
-from hoidata.pipeline.runner import build_store
-from hoidata.pipeline.settings import load_build_config
+from hoidata.build_sdf import build_store
+from hoidata.records.settings import load_build_config
 
 OVERRIDES = ['dataset.splits=["train"]', 'dataset.sides=["right"]', "store.records_per_shard=16"]
 
@@ -50,14 +50,15 @@ def main() -> None:
         rows = []
         start = time.perf_counter()
         built = build_store(cfg, *paths, work / "store", workers=args.workers, progress=False)
-        rows.append(("build-sdf", built.records, time.perf_counter() - start,
+        rows.append(("build-sdf", built.written, time.perf_counter() - start,
                      folder_bytes(work / "store", "shard-*.tar")))
         for label, store in (("export gsdf (sampled)", None), ("export gsdf --store", work / "store")):
             out = work / label.split()[-1].strip("()-")
             start = time.perf_counter()
             s = export_dataset("gsdf", cfg, *paths, out, store=store, workers=args.workers, progress=False)
-            assert s.finished and s.sdf_sources == {"store" if store else "sampled": s.exported}, s.sdf_sources
-            rows.append((label, s.exported, time.perf_counter() - start, folder_bytes(out / "data", "*.npz")))
+            sources = s.extra["sdf_sources"]
+            assert s.finished and sources == {"store" if store else "sampled": s.written}, sources
+            rows.append((label, s.written, time.perf_counter() - start, folder_bytes(out / "data", "*.npz")))
         load_after = os.getloadavg()
         print(f"{args.workers} worker(s); load average before {load_before[0]:.2f}, after {load_after[0]:.2f} "
               f"(1 min), {os.cpu_count()} CPUs")

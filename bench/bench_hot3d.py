@@ -25,11 +25,11 @@ from pathlib import Path
 import numpy as np
 
 from bench.common import toy_root
-from hoidata.pipeline.runner import build_store, read_frames
-from hoidata.pipeline.settings import load_build_config
+from hoidata.build_sdf import build_store, read_frames
+from hoidata.records.settings import load_build_config
 
 GOAL = 20.0  # records/s per core (issue 33)
-RECORD = ["record.crop_size=256", "record.n_hand=4096", "record.n_object=2048", "store.records_per_shard=16"]
+RECORD = ["record.crop_size=256", "record.sdf_samples_hand=4096", "record.sdf_samples_object=2048", "store.records_per_shard=16"]
 SETS = {"hot3d_clips": ("hot3d_clips", ['dataset.splits=["train", "val"]'], "object_models_eval"),
         "dexycb (toy)": ("toy", ['dataset.splits=["train", "val"]'], "models")}
 
@@ -40,7 +40,7 @@ def timed_build(name: str, root: Path, out: Path) -> tuple[float, int]:
     shutil.rmtree(out, ignore_errors=True)
     start = time.perf_counter()
     summary = build_store(cfg, root, root / "mano", root / models, out, workers=1, progress=False)
-    return time.perf_counter() - start, summary.records
+    return time.perf_counter() - start, summary.written
 
 
 def crop_image_seconds(root: Path) -> tuple[float, int]:

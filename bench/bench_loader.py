@@ -46,8 +46,8 @@ import torch
 from bench.common import toy_train_root
 from bench.per_file_loaders import LABEL_FIELDS, SameCropsDataset, UpstreamDataset
 from hoidata.export import export_dataset
-from hoidata.pipeline.runner import build_store
-from hoidata.pipeline.settings import load_build_config
+from hoidata.build_sdf import build_store
+from hoidata.records.settings import load_build_config
 from hoisdf.data import StoreSpec, build_dataset, make_loader
 from hoisdf.config import load_train_config
 from hoisdf.data.augment import augment_batch, float_image, unpack_masks

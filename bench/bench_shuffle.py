@@ -37,8 +37,8 @@ from pathlib import Path
 import numpy as np
 
 from hoidata import store
-from hoidata.pipeline.runner import build_store
-from hoidata.pipeline.settings import load_build_config
+from hoidata.build_sdf import build_store
+from hoidata.records.settings import load_build_config
 from hoidata.toy.dexycb import ToyDexYCBSize, write_toy_dexycb
 from hoidata.toy.make import write_assets
 from hoisdf.data import StoreSpec, build_dataset, make_loader

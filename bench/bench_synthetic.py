@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 from hoidata import store
-from hoidata.synth.render_synthetic import render_synthetic
+from hoidata.render_synthetic import render_synthetic
 from hoidata.toy.ho3d import ToyHO3DSize, write_toy_ho3d
 from hoidata.toy.make import write_assets
 
@@ -38,7 +38,7 @@ def main() -> None:
             s = render_synthetic(source, out, args.count, mano, models, workers=workers, records_per_shard=8,
                                  progress=False)
             seconds = time.perf_counter() - start
-            print(f"{workers:>7} {s.records:>8} {seconds:>8.1f} {s.records / seconds:>10.2f} {s.records / seconds / workers:>9.2f}")
+            print(f"{workers:>7} {s.written:>8} {seconds:>8.1f} {s.written / seconds:>10.2f} {s.written / seconds / workers:>9.2f}")
         print(f"physical check: {store.read_index(work / f'store{args.workers[0]}').provenance['synthetic']}")
     finally:
         shutil.rmtree(work, ignore_errors=True)

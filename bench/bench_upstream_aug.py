@@ -34,8 +34,8 @@ import numpy as np
 
 from bench.common import toy_train_root
 from hoidata import schema
-from hoidata.pipeline.runner import build_store, read_frames
-from hoidata.pipeline.settings import load_build_config
+from hoidata.build_sdf import build_store, read_frames
+from hoidata.records.settings import load_build_config
 from hoisdf.data import StoreSpec, build_dataset, make_loader
 
 N_HAND, N_OBJECT, NEAR, SEED = 600, 200, 0.05, 0

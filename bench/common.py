@@ -52,8 +52,8 @@ def sync(device: torch.device) -> None:
 
 def toy_store(work: Path, records: int = 32, workers: int = 1) -> tuple[Path, Path]:
     """Build a toy DexYCB train store (512 px crops) of about ``records`` records; returns (store, mano dir)."""
-    from hoidata.pipeline.runner import build_store
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.build_sdf import build_store
+    from hoidata.records.settings import load_build_config
 
     root = work / "data"
     mano, models = write_assets(root)

@@ -1,7 +1,7 @@
 """MkDocs hook: the settings reference is generated from the settings dataclasses at build time.
 
 A page containing the marker ``<!-- settings-reference -->`` gets, in its place, one table per section of
-a pipeline TOML (``[dataset]``, ``[record]``, ``[store]`` from :class:`hoidata.pipeline.settings.BuildConfig`;
+a pipeline TOML (``[dataset]``, ``[record]``, ``[store]`` from :class:`hoidata.records.settings.BuildConfig`;
 ``[model]``, ``[train]``, ``[augment]``, ``[loss]`` from :class:`hoisdf.config.TrainConfig`): every key, its
 type, its default and the comment written beside the field in the source. A field added to a dataclass
 appears here at the next build, so the page cannot drift from the code.
@@ -79,7 +79,7 @@ def _section_table(name: str, cls) -> str:
 
 
 def settings_reference() -> str:
-    from hoidata.pipeline.settings import BuildConfig
+    from hoidata.records.settings import BuildConfig
     from hoisdf.config import TrainConfig
 
     parts = []

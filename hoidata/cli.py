@@ -13,8 +13,8 @@ from pathlib import Path
 
 from hoidata import __version__
 from hoidata.cli_types import ArgumentParser, count_type, non_negative_int, positive_int
+from hoidata.engine import add_launcher_flags, launch
 from hoidata.errors import run_cli
-from hoidata.pipeline.launch import add_launcher_flags, launch
 
 
 def folder(args: argparse.Namespace, name: str, default: Path | None = None) -> Path | None:
@@ -28,7 +28,7 @@ def folder(args: argparse.Namespace, name: str, default: Path | None = None) -> 
 
 def cmd_make_toy(args: argparse.Namespace) -> int:
     """Write the procedural hand, objects and toy datasets in the real layouts, then check them."""
-    from hoidata.pipeline.inputs import format_rows, mano_rows, object_rows
+    from hoidata.records.inputs import format_rows, mano_rows, object_rows
     from hoidata.toy.make import HO3D_MAX_SEQUENCES, empty_split_notes, make_toy, split_rows
 
     out = folder(args, "out")
@@ -52,7 +52,7 @@ def cmd_make_toy(args: argparse.Namespace) -> int:
 
 def cmd_check_mano(args: argparse.Namespace) -> int:
     """Load MANO_RIGHT.pkl / MANO_LEFT.pkl from a folder and report what the pipelines will see."""
-    from hoidata.pipeline.inputs import format_rows, mano_rows
+    from hoidata.records.inputs import format_rows, mano_rows
 
     rows = mano_rows(args.mano_dir)
     print(format_rows(rows))
@@ -61,7 +61,7 @@ def cmd_check_mano(args: argparse.Namespace) -> int:
 
 def cmd_check_objects(args: argparse.Namespace) -> int:
     """Load, repair and simplify every object of a YCB-layout models folder, and report."""
-    from hoidata.pipeline.inputs import format_rows, object_rows
+    from hoidata.records.inputs import format_rows, object_rows
 
     rows = object_rows(args.models_dir, n_vertices=args.vertices, cache_dir=args.cache_dir)
     print(format_rows(rows))
@@ -80,8 +80,8 @@ def _part(text: str) -> tuple[int, int]:
 
 def cmd_build_sdf(args: argparse.Namespace) -> int:
     """Build (or resume) a training store from a dataset, as pipelines/<dataset>.toml says."""
-    from hoidata.pipeline.runner import build_store, estimate_build
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.build_sdf import build_store, estimate_build
+    from hoidata.records.settings import load_build_config
 
     root, out = folder(args, "root"), folder(args, "out")
     mano, models = folder(args, "mano", root / "mano"), folder(args, "models", root / "models")
@@ -93,30 +93,30 @@ def cmd_build_sdf(args: argparse.Namespace) -> int:
     s = launch(args, functools.partial(build_store, cfg, root, mano, models, out), "build-sdf")
     if s is None:  # --dry-run
         return 0
-    empty = f" ({s.empty_shards} empty: every frame skipped)" if s.empty_shards else ""
-    print(f"{s.store}: {s.records} records written in {s.seconds:.1f} s ({s.frames_per_second:.2f} frames/s), "
-          f"{s.shards_written} shards written{empty}, {s.shards_kept} kept from an earlier run")
+    empty = f" ({s.empty_units} empty: every frame skipped)" if s.empty_units else ""
+    print(f"{s.out}: {s.written} records written in {s.seconds:.1f} s ({s.items_per_second:.2f} frames/s), "
+          f"{s.units_written} shards written{empty}, {s.units_kept} kept from an earlier run")
     print(f"skipped: {len(s.reader_skipped)} by the dataset reader (each a frame, or a whole camera or sequence), "
           f"{len(s.skipped)} frames while building")
     print_skips(s.reader_skipped, "reader")
     print_skips(s.skipped, "build")
     if s.empty_splits:  # a split asked for but without a frame: say so, the store holds none of its records
         print(f"note: no frames in split(s) {', '.join(s.empty_splits)} of {root}: the store holds none of them")
-    print("index.zarr already lists every shard: nothing written" if s.index_kept else "index.zarr written"
-          if s.index_written else "index not written yet: other parts still have shards to build")
-    if s.index_written or s.index_kept:
-        from hoidata.pipeline.runner import mask_iou_line, supervision_line
+    print("index.zarr already lists every shard: nothing written" if s.finish_kept else "index.zarr written"
+          if s.finished else "index not written yet: other parts still have shards to build")
+    if s.finished or s.finish_kept:
+        from hoidata.build_sdf import mask_iou_line, supervision_line
 
-        line = mask_iou_line(s.store)
+        line = mask_iou_line(s.out)
         print(line or "", end="\n" if line else "")
-        print(supervision_line(s.store))
+        print(supervision_line(s.out))
     return 0
 
 
 def cmd_export(args: argparse.Namespace) -> int:
     """Write a dataset's frames as another codebase's files (docs/other-codebases.md)."""
     from hoidata.export import export_dataset
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.records.settings import load_build_config
     from hoidata.store.verify import opened_store
 
     root, out = folder(args, "root"), folder(args, "out")
@@ -125,16 +125,16 @@ def cmd_export(args: argparse.Namespace) -> int:
     cfg = load_build_config(args.dataset, args.overrides)
     task = functools.partial(export_dataset, args.format, cfg, root, mano, models, out, splits=args.splits,
                              store=store)
-    s = launch(args, task, "export", finished=lambda summary: summary.finished)
+    s = launch(args, task, "export")
     if s is None:  # --dry-run
         return 0
-    print(f"{s.out}: {s.exported} of {s.frames} frames exported as {s.format} in {s.seconds:.1f} s "
-          f"({s.frames_per_second:.2f} frames/s), {s.chunks_written} chunks written, {s.chunks_kept} kept from an "
-          f"earlier run, {len(s.skipped)} frames skipped")
-    for skip in s.skipped[:10]:
+    print(f"{s.out}: {s.written} of {s.items} frames exported as {args.format} in {s.seconds:.1f} s "
+          f"({s.items_per_second:.2f} frames/s), {s.units_written} chunks written, {s.units_kept} kept from an "
+          f"earlier run, {len(s.reader_skipped) + len(s.skipped)} frames skipped")
+    for skip in (s.reader_skipped + s.skipped)[:10]:
         print(f"  skipped {skip['frame_id']}: {skip['reason']}")
-    if s.sdf_sources:
-        print("SDF rows: " + ", ".join(f"{n} frames {k}" for k, n in sorted(s.sdf_sources.items())))
+    if s.extra.get("sdf_sources"):
+        print("SDF rows: " + ", ".join(f"{n} frames {k}" for k, n in sorted(s.extra["sdf_sources"].items())))
     for line in s.notes:
         print(line)
     print("annotation files written" if s.finished else "annotation files not written yet: other parts still have work")
@@ -143,7 +143,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 def print_skips(skips: list, who: str, limit: int = 10) -> None:
     """The reasons of a skips list, most frequent first, one line each with a count and an example file."""
-    from hoidata.pipeline.runner import skip_groups
+    from hoidata.records import skip_groups
 
     groups = skip_groups(skips)
     for reason, n, path in groups[:limit]:
@@ -154,8 +154,8 @@ def print_skips(skips: list, who: str, limit: int = 10) -> None:
 
 def cmd_render_synthetic(args: argparse.Namespace) -> int:
     """Render perturbed grasps of a store or dataset from new views into a training store."""
-    from hoidata.pipeline.records import RecordSettings
-    from hoidata.synth.render_synthetic import check_count, render_synthetic
+    from hoidata.records import RecordSettings
+    from hoidata.render_synthetic import check_count, render_synthetic
 
     check_count(args.count)  # here, not in each array task
     source, out = folder(args, "source"), folder(args, "out")
@@ -167,13 +167,13 @@ def cmd_render_synthetic(args: argparse.Namespace) -> int:
     s = launch(args, task, "render-synthetic")
     if s is None:  # --dry-run
         return 0
-    print(f"{s.store}: {s.records} synthetic records in {s.seconds:.1f} s ({s.frames_per_second:.2f} renders/s), "
+    print(f"{s.out}: {s.written} synthetic records in {s.seconds:.1f} s ({s.items_per_second:.2f} renders/s), "
           f"{len(s.skipped)} samples skipped")
     print_skips(s.skipped, "render")
-    if s.index_written:
+    if s.finished:
         from hoidata.store import read_index
 
-        print(f"physical check: {read_index(s.store).provenance['synthetic']}")
+        print(f"physical check: {read_index(s.out).provenance['synthetic']}")
     return 0
 
 
@@ -257,7 +257,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="i/N: build only shards k with k %% N == i (default: a Slurm array task's, else all)")
     add_launcher_flags(p, count_type)
     p.add_argument("--estimate", action="store_true", help="time and disk estimate from a few frames; writes nothing")
-    p.add_argument("overrides", nargs="*", help="section.key=value overrides, e.g. record.n_hand=2048")
+    p.add_argument("overrides", nargs="*", help="section.key=value overrides, e.g. record.sdf_samples_hand=2048")
     p.set_defaults(func=cmd_build_sdf)
 
     p = add("export", "write a dataset as another codebase's files (HandOccNet family, gSDF)")

@@ -96,7 +96,7 @@ def decoding(path: str | os.PathLike, what: str) -> Iterator[None]:
 
 
 class WorkerError(DataError):
-    """A worker process could not start or died (a missing package, no GL, out of memory); see hoidata.pipeline.pool."""
+    """A worker process could not start or died (a missing package, no GL, out of memory); see hoidata.engine.pool."""
 
 
 def read_json(path: str | os.PathLike, what: str = "JSON file", hint: str = ""):

@@ -2,7 +2,7 @@
 overrides, and each section checked against the dataclass that reads it.
 
 A pipeline file is shared by its readers: the build reads ``[dataset]``, ``[record]`` and ``[store]``
-(:mod:`hoidata.pipeline.settings`), training its own sections (``hoisdf.config``). This module names no section:
+(:mod:`hoidata.records.settings`), training its own sections (``hoisdf.config``). This module names no section:
 every reader passes the sections it reads, and those of the other readers it knows of. Nothing here reads a
 settings object: the readers turn the checked sections into their dataclasses and pass explicit values on.
 
@@ -85,7 +85,8 @@ def limit_problem(rules: tuple[str, ...], value) -> str | None:
 
 def section(cls, values: dict, path: Path, name: str, overrides=()):
     """``cls(**values)`` after checking every key is a field of ``cls``, every value fits its annotation and the
-    range the class declares for it (``LIMITS``: field -> rules like (">= 1",); the defaults obey them too).
+    range the class declares for it (``LIMITS``: field -> rules like (">= 1",); the defaults obey them too); a key
+    the class renamed (``RENAMED``: old name -> new name) is one line naming the new key.
 
     ``values`` is the section's table, ``path`` the file named in an error and ``name`` the section's name (an
     error names the key as ``name.key``, and the command line's ``overrides`` of it with the file, see :func:`origin`)."""
@@ -93,8 +94,12 @@ def section(cls, values: dict, path: Path, name: str, overrides=()):
         raise DataError(path, name, f"must be a table of settings, got {values!r}")
     known = {f.name: f for f in fields(cls)}
     limits = getattr(cls, "LIMITS", {})
+    renamed = getattr(cls, "RENAMED", {})
     kwargs = {}
     for key, value in values.items():
+        if key in renamed:
+            raise DataError(origin(path, overrides, f"{name}.{key}"), f"{name}.{key}",
+                            f"an old name: this setting is now {name}.{renamed[key]} (same meaning; rename the key)")
         if key not in known:
             raise DataError(path, f"{name}.{key}", f"unknown setting; expected one of {sorted(known)}")
         problem = value_problem(known[key].type, value) or (key in limits and limit_problem(limits[key], value))
@@ -133,7 +138,7 @@ def apply_overrides(data: dict, overrides: list[str], path: Path) -> dict:
         key, sep, raw = item.partition("=")
         section_name, dot, name = key.partition(".")
         if not sep or not dot:
-            raise DataError(path, item, "overrides look like section.key=value, e.g. record.n_hand=2048")
+            raise DataError(path, item, "overrides look like section.key=value, e.g. record.sdf_samples_hand=2048")
         table = data.setdefault(section_name, {})
         if not isinstance(table, dict):
             raise DataError(path, key, f"[{section_name}] is not a table of settings")

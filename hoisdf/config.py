@@ -229,7 +229,7 @@ class TrainConfig:
 
 
 TRAIN_SECTIONS = section_names(TrainConfig)  # ("model", "train", "augment", "loss"): what training reads of a file
-# The build's sections of the same files (hoidata.pipeline.settings.BUILD_SECTIONS, which training does not import:
+# The build's sections of the same files (hoidata.records.settings.BUILD_SECTIONS, which training does not import:
 # it stands beside the build, not on it; tests/test_settings_floor.py holds the two equal)
 BUILD_SECTIONS = ("dataset", "record", "store")
 BUILD_READER = {name: "hoidata build-sdf" for name in BUILD_SECTIONS}  # section -> the command that reads it

@@ -52,8 +52,8 @@ print(f"check_install: hoidata from {hoidata.__file__}; presets {pipelines_dir()
 EOF
 hoidata --version
 hoidata make-toy --out toy --layout ho3d --sequences 1 --frames 1 >/dev/null
-hoidata build-sdf --dataset ho3d --root toy --out store --workers 1 record.crop_size=64 record.n_hand=64 \
-  record.n_object=64 'record.upstream_region=[]' 2>/dev/null  # the named preset, read from the installed
+hoidata build-sdf --dataset ho3d --root toy --out store --workers 1 record.crop_size=64 record.sdf_samples_hand=64 \
+  record.sdf_samples_object=64 'record.upstream_region=[]' 2>/dev/null  # the named preset, read from the installed
 # hoidata.presets (no progress bars); project crops, not its upstream frame regions: the step below trains the toy's
 # small model on them
 hoidata verify store

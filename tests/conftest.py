@@ -187,10 +187,10 @@ def tiny_store(tiny_dexycb, tmp_path_factory):
 
 def _build_tiny_store(tiny_dexycb, out, records_per_shard: int):
     """The tiny toy DexYCB's train split built into ``out``: 128 px crops, 256 + 128 SDF rows."""
-    from hoidata.pipeline.runner import build_store
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.build_sdf import build_store
+    from hoidata.records.settings import load_build_config
 
-    overrides = ['dataset.splits=["train"]', "record.crop_size=128", "record.n_hand=256", "record.n_object=128",
+    overrides = ['dataset.splits=["train"]', "record.crop_size=128", "record.sdf_samples_hand=256", "record.sdf_samples_object=128",
                  f"store.records_per_shard={records_per_shard}"]
     build_store(load_build_config("toy", overrides), tiny_dexycb, tiny_dexycb / "mano", tiny_dexycb / "models",
                 out, workers=1, part=(0, 1), progress=False)
@@ -242,8 +242,8 @@ def ho3d_small(tmp_path_factory):
 @pytest.fixture(scope="session")
 def ho3d_small_eval_store(ho3d_small, tmp_path_factory):
     """The evaluation split of ``ho3d_small`` built into a store of ``eval`` records (64 px crops); read-only."""
-    from hoidata.pipeline.runner import build_store
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.build_sdf import build_store
+    from hoidata.records.settings import load_build_config
 
     out = tmp_path_factory.mktemp("ho3d_small_eval") / "store"
     build_store(load_build_config("ho3d_eval", ["record.crop_size=64"]), ho3d_small, ho3d_small / "mano",

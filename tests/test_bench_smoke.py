@@ -90,8 +90,8 @@ def test_every_bench_script_is_covered():
 def toy_data(tmp_path_factory):
     """A toy DexYCB (its MANO and models folders inside) and a 512 px train store built from it."""
     from bench.common import toy_root
-    from hoidata.pipeline.runner import build_store
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.build_sdf import build_store
+    from hoidata.records.settings import load_build_config
 
     work = tmp_path_factory.mktemp("bench_smoke")
     root = toy_root(24, work)

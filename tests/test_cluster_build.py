@@ -18,8 +18,8 @@ from test_synthetic import RECORD, _render, ho3d_source, synth_store  # noqa: F4
 from hoidata import store
 from hoidata.cli import main as hoidata
 from hoidata.errors import DataError
-from hoidata.pipeline import finish
-from hoidata.pipeline.slurm import array_part, resolve_part, slurm_minutes
+from hoidata.records import store_writer as finish
+from hoidata.engine.slurm import array_part, resolve_part, slurm_minutes
 
 pytestmark = pytest.mark.slow  # Slurm/submitit/Ray builds in subprocesses
 
@@ -27,7 +27,7 @@ pytestmark = pytest.mark.slow  # Slurm/submitit/Ray builds in subprocesses
 @pytest.fixture(scope="module")
 def local_build(tiny_dexycb, tmp_path_factory):
     out = tmp_path_factory.mktemp("local_build") / "store"
-    assert _build(tiny_dexycb, out).index_written
+    assert _build(tiny_dexycb, out).finished
     return out
 
 
@@ -142,11 +142,11 @@ def test_ray_tasks_write_the_local_shards_and_resume_the_same_way(local_ray, tin
 def test_ray_renders_the_synthetic_store_of_a_local_run(local_ray, ho3d_source, synth_store, tmp_path):  # noqa: F811
     from functools import partial
 
-    from hoidata.pipeline.ray_tasks import run_ray
+    from hoidata.engine.ray_tasks import run_ray
 
     local, _ = synth_store
     out = tmp_path / "ray"
-    assert _render(ho3d_source, out, workers=2, executor=partial(run_ray, address=None)).index_written
+    assert _render(ho3d_source, out, workers=2, executor=partial(run_ray, address=None)).finished
     assert _files(out) == _files(local) and RECORD.crop_size == 128
 
 
@@ -198,7 +198,7 @@ def test_a_finisher_that_waited_for_the_lock_does_not_write_the_index_again(tiny
     out = tmp_path / "store"
     _build(tiny_dexycb, out, part=(0, 2))
     summary = _build(tiny_dexycb, out, part=(1, 2))
-    assert summary.index_written
+    assert summary.finished
     index = store.read_index(out)
     calls = []
     real_read = store.read_index
@@ -226,7 +226,7 @@ def test_a_shard_damaged_after_it_was_written_stops_the_finisher(tiny_dexycb, tm
     with pytest.raises(DataError, match="shard-000000.tar.*rerun the build"):
         _build(tiny_dexycb, out, part=(1, 2))
     assert not (out / "index.zarr").exists()
-    assert _build(tiny_dexycb, out).index_written  # the rerun rewrites it
+    assert _build(tiny_dexycb, out).finished  # the rerun rewrites it
 
 
 # --- the sbatch templates ----------------------------------------------------------------------------------------

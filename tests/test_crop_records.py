@@ -6,9 +6,10 @@ import cv2
 import numpy as np
 
 from hoidata import schema
-from hoidata.datasets.frame import Frame, project
+from hoidata.datasets.frame import Frame
 from hoidata.geometry import crop
-from hoidata.pipeline.records import mirror_frame, pack_masks, summed_heatmap
+from hoidata.geometry.crop import project
+from hoidata.records.records import mirror_frame, pack_masks, summed_heatmap
 
 
 def test_crop_intrinsics_follow_the_warped_pixels():
@@ -83,7 +84,7 @@ def test_mirrored_frame_poses_the_mirror_image_of_the_object():
     import trimesh
 
     from hoidata.geometry.mirror import mirror_points
-    from hoidata.pipeline.records import ObjectAsset, posed_object
+    from hoidata.records.records import ObjectAsset, posed_object
 
     box = trimesh.creation.box(extents=(0.04, 0.07, 0.1))
     box.apply_translation((0.03, -0.01, 0.02))  # not symmetric in x
@@ -109,7 +110,7 @@ def test_dataset_mask_iou_equals_one_warp_per_mask(tmp_path):
     the same IoU as warping each mask on its own."""
     from dataclasses import replace
 
-    from hoidata.pipeline.records import dataset_mask_iou
+    from hoidata.records.records import dataset_mask_iou
 
     rng = np.random.default_rng(0)
     height, width, size = 48, 64, 20

@@ -9,10 +9,10 @@ import pytest
 import torch
 
 from hoidata import schema, store
-from hoidata.pipeline.records import RecordSettings
-from hoidata.pipeline.runner import build_store
-from hoidata.pipeline.settings import load_build_config
-from hoidata.synth.render_synthetic import render_synthetic
+from hoidata.records.records import RecordSettings
+from hoidata.build_sdf import build_store
+from hoidata.records.settings import load_build_config
+from hoidata.render_synthetic import render_synthetic
 from hoidata.toy.ho3d import ToyHO3DSize, write_toy_ho3d
 from hoidata.toy.make import write_assets
 from hoisdf.data import StoreSpec, build_dataset, make_loader
@@ -24,7 +24,7 @@ pytestmark = pytest.mark.slow  # loads batches from a store built from the tiny 
 CROP, N_HAND, N_OBJECT, NEAR = 128, 32, 16, 0.05
 UPSTREAM_CROP_ENTRIES = {"upstream_crop", "grid_hand_box", "grid_object_box", "object_anchor"}  # loader.crop_entries
 # one shard per store on purpose: the two-worker test needs fewer shards than workers
-REAL = ["dataset.splits=[\"train\"]", f"record.crop_size={CROP}", "record.n_hand=256", "record.n_object=128",
+REAL = ["dataset.splits=[\"train\"]", f"record.crop_size={CROP}", "record.sdf_samples_hand=256", "record.sdf_samples_object=128",
         "store.records_per_shard=16"]
 
 
@@ -38,7 +38,8 @@ def stores(tiny_dexycb, tmp_path_factory):
     write_toy_ho3d(root, mano_dir, models_dir, ToyHO3DSize(train_sequences=2, eval_sequences=0, frames=2),
                    progress=False)
     render_synthetic(root, root / "synth", 6, mano_dir, models_dir, seed=0, workers=1,
-                     record=RecordSettings(crop_size=CROP, n_hand=128, n_object=64), records_per_shard=6,
+                     record=RecordSettings(crop_size=CROP, sdf_samples_hand=128, sdf_samples_object=64),
+                     records_per_shard=6,
                      progress=False)
     return root / "real", root / "synth"
 

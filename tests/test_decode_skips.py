@@ -28,11 +28,11 @@ def _damage(path: Path, how: str) -> None:
 
 
 def _build(root: Path, out: Path, preset: str, splits: str):
-    from hoidata.pipeline.runner import build_store
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.build_sdf import build_store
+    from hoidata.records.settings import load_build_config
 
-    cfg = load_build_config(preset, [f"dataset.splits={splits}", "record.crop_size=64", "record.n_hand=32",
-                                     "record.n_object=32"])
+    cfg = load_build_config(preset, [f"dataset.splits={splits}", "record.crop_size=64", "record.sdf_samples_hand=32",
+                                     "record.sdf_samples_object=32"])
     return build_store(cfg, root, root / "mano", root / "models", out, workers=1, progress=False)
 
 
@@ -56,7 +56,7 @@ def test_damaged_dexycb_images_and_labels_are_skips(tiny_dexycb, tmp_path):
     for f, path in damaged.items():
         hits = [r for fid, r in reasons.items() if fid.endswith(f"_{f:06d}") and str(path) in r]
         assert len(hits) == 1, (f, path, reasons)
-    assert summary.records == 16 - len(damaged) and summary.index_written
+    assert summary.written == 16 - len(damaged) and summary.finished
 
 
 def test_damaged_ho3d_images_and_meta_pickles_are_skips(ho3d_small, tmp_path):
@@ -77,7 +77,7 @@ def test_damaged_ho3d_images_and_meta_pickles_are_skips(ho3d_small, tmp_path):
     reasons = _reasons(summary)
     for frame_id, path in damaged.items():
         assert str(path) in reasons.get(frame_id, ""), (frame_id, reasons)
-    assert summary.records == 6 - len(damaged)
+    assert summary.written == 6 - len(damaged)
 
 
 @pytest.mark.parametrize("how", ["empty", "truncated", "garbage", "header+garbage"])

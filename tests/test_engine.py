@@ -1,4 +1,4 @@
-"""The shard engine (hoidata.pipeline.engine) on a task of its own: serial and pooled runs write the same units,
+"""The shard engine (hoidata.engine.engine) on a task of its own: serial and pooled runs write the same units,
 a resumed run keeps the done ones, the worker context is opened once per process and closed, and a worker that
 cannot start is one WorkerError line. The pipelines on it (build-sdf, render-synthetic, export, the toy writer)
 have their own tests; this one needs no dataset, GL or MANO."""
@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from hoidata.errors import DataError, WorkerError
-from hoidata.pipeline.engine import Plan, ShardTask, run_task
+from hoidata.engine.engine import Plan, ShardTask, run_task
 
 
 @dataclass(frozen=True)
@@ -49,7 +49,7 @@ class SquaresWorker:
 
 
 @dataclass
-class SquaresTask:
+class SquaresTask(ShardTask):
     """Unit n squares the items n*per .. (n+1)*per-1 into out/unit-n.json; done when that file exists."""
 
     out: Path
@@ -87,7 +87,7 @@ def test_the_plan_cuts_items_into_units_and_parts():
     assert plan.owned((1, 2)) == [1, 3] and Plan(0, 5).units == []
     with pytest.raises(ValueError, match="per >= 1"):
         Plan(3, 0)
-    assert isinstance(SquaresTask(Path("."), SquaresSpec(""), plan), ShardTask)  # the protocol's names
+    assert isinstance(SquaresTask(Path("."), SquaresSpec(""), plan), ShardTask)
 
 
 @pytest.mark.slow  # starts a worker pool
@@ -160,3 +160,32 @@ def test_a_worker_that_cannot_start_is_one_worker_error_line(tmp_path, workers):
     assert "\n" not in text and "could not start a worker process" in text and "no GL here (test)" in text
     assert "SquaresSpec.open" in text and "RuntimeError" in text
     assert not _units(task.out)
+
+
+@dataclass
+class PlainSquaresTask(ShardTask):
+    """The same units without ``done`` or ``check_kept``: the base's defaults (nothing done, nothing refused)."""
+
+    out: Path
+    worker: SquaresSpec
+    plan: Plan
+    desc: str = "plain squares"
+
+    def job(self, number: int):
+        start = number * self.plan.per
+        return number, list(range(start, start + self.plan.size(number))), str(self.out)
+
+
+def test_a_task_with_the_base_defaults_runs_every_unit_and_is_complete_only_when_it_ran_them_all(tmp_path):
+    task = PlainSquaresTask(_task(tmp_path, "plain").out, SquaresSpec(str(tmp_path / "plain-log")), Plan(23, 5))
+    half = run_task(task, part=(0, 2), progress=False)
+    assert (half.units_written, half.units_kept, half.all_done) == (3, 0, False)
+    whole = run_task(task, progress=False)  # no resume: every unit again
+    assert (whole.units_written, whole.units_kept, whole.all_done) == (5, 0, True)
+    assert whole.written == 20 and whole.items == 23 and whole.units == [0, 1, 2, 3, 4]
+    assert _units(task.out) == _units(_run_whole(tmp_path))
+
+
+def test_a_task_must_define_its_jobs():
+    with pytest.raises(NotImplementedError, match="defines no job"):
+        ShardTask().job(0)

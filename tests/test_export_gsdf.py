@@ -24,7 +24,7 @@ from hoidata.export.sdf_files import normalisation
 from hoidata.geometry.sdf import brute_force_signed_distance
 from hoidata.hand import load_mano
 from hoidata.objects import YCB_CLASSES, load_object_mesh, object_mesh_path, repair_mesh
-from hoidata.pipeline.settings import load_build_config
+from hoidata.records.settings import load_build_config
 
 pytestmark = pytest.mark.slow  # exports the toy DexYCB s0 split (rendered toy data, SDF files)
 
@@ -103,7 +103,7 @@ def _splits(out, summary):
 
 def test_gsdf_reads_every_sample(gsdf_export):
     out, summary = gsdf_export
-    assert summary.finished and summary.exported > 0 and summary.sdf_sources == {"sampled": len(
+    assert summary.finished and summary.written > 0 and summary.extra["sdf_sources"] == {"sampled": len(
         json.loads((out / "splits" / (_splits(out, summary)["train"] + ".json")).read_text()))}
     torch.manual_seed(0)
     for split, data_split in _splits(out, summary).items():
@@ -262,7 +262,7 @@ def test_gsdf_reuses_store_rows(tiny_dexycb, tiny_store, tmp_path):
                              store=tiny_store, progress=False)
     records = {r[schema.META]["key"]: r for r in store.iter_records(tiny_store)}
     right = [k for k, r in records.items() if not r[schema.META]["mirrored"]]
-    assert summary.sdf_sources == {"store": len(right)} and len(right) > 0
+    assert summary.extra["sdf_sources"] == {"store": len(right)} and len(right) > 0
     assert any("right hands only" in s["reason"] for s in summary.skipped)  # the mirrored left hands
     doc = json.loads((out / "dexycb_train_s0.json").read_text())
     names = {im["id"]: im["file_name"] for im in doc["images"]}
@@ -308,7 +308,7 @@ def test_gsdf_exports_a_frame_list_beside_another_split(gsdf_export, dexycb_s0, 
     cfg = load_build_config("dexycb", ["dataset.complete_subjects=false", 'dataset.splits=["test"]',
                                        f"dataset.frame_list={listed}"])
     summary = export_dataset("gsdf", cfg, dexycb_s0, dexycb_s0 / "mano", dexycb_s0 / "models", both, progress=False)
-    assert summary.finished and summary.exported == 2
+    assert summary.finished and summary.written == 2
     names = _splits(both, None)
     assert json.loads((both / "splits" / f"{names['test']}.json").read_text()) == json.loads(listed.read_text())
     assert (both / "splits" / f"{names['train']}.json").read_bytes() == (out / "splits" / f"{names['train']}.json").read_bytes()

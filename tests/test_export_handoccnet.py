@@ -25,7 +25,7 @@ from hoidata.datasets.dexycb_layout import SERIALS, SUBJECTS
 from hoidata.errors import DataError
 from hoidata.export import export_dataset
 from hoidata.hand import load_mano, mean_relative_to_flat
-from hoidata.pipeline.settings import load_build_config
+from hoidata.records.settings import load_build_config
 
 pytestmark = pytest.mark.slow  # exports the toy DexYCB s0 and HO-3D trees
 
@@ -103,7 +103,7 @@ def load_dexycb(root_dir, data_split):
 
 def test_dexycb_files_are_where_handoccnet_looks(dex_export):
     out, summary, _ = dex_export
-    assert summary.finished and summary.exported == summary.frames > 0
+    assert summary.finished and summary.written == summary.items > 0
     names = sorted(p.name for p in (out / "annotations").iterdir())
     assert names == ["DEX_YCB_s0_test_data.json", "DEX_YCB_s0_train_data.json", "DEX_YCB_s0_val_data.json"]
     assert (out / "annotations" / "DEX_YCB_s0_val_data.json").read_bytes() == \
@@ -229,7 +229,7 @@ def test_parts_resume_and_settings_guard(dex_export, dexycb_s0, tmp_path):
     manifests[1].unlink()  # an interrupted run: one chunk missing
     (split / "annotations" / "DEX_YCB_s0_train_data.json").unlink()
     again = export_dataset("handoccnet", cfg, dexycb_s0, dexycb_s0 / "mano", dexycb_s0 / "models", split, **kw)
-    assert (again.chunks_written, again.chunks_kept) == (1, len(manifests) - 1)
+    assert (again.units_written, again.units_kept) == (1, len(manifests) - 1)
     assert all((split / p).read_bytes() == b for p, b in files.items())
     other = load_build_config("dexycb_grasping", ["dataset.complete_subjects=false"])
     with pytest.raises(DataError, match="other settings"):

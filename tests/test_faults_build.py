@@ -25,13 +25,13 @@ import pytest
 from hoidata import store
 from hoidata.cli import main as hoidata
 from hoidata.errors import DataError
-from hoidata.pipeline.runner import build_store
-from hoidata.pipeline.settings import load_build_config
+from hoidata.build_sdf import build_store
+from hoidata.records.settings import load_build_config
 from hoisdf.data import StoreSpec, build_dataset, make_loader
 
 pytestmark = pytest.mark.slow  # each fault is a build of the tiny toy DexYCB
 
-SMALL = ['dataset.splits=["train"]', "record.crop_size=128", "record.n_hand=256", "record.n_object=128",
+SMALL = ['dataset.splits=["train"]', "record.crop_size=128", "record.sdf_samples_hand=256", "record.sdf_samples_object=128",
          "store.records_per_shard=4"]
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -140,7 +140,7 @@ def test_a_failed_index_write_leaves_nothing_that_breaks_the_next_run(dexycb_cop
         _build(dexycb_copy, out)
     assert not [p for p in out.iterdir() if p.name.startswith("index.zarr")]  # own and dead temp folders gone
     monkeypatch.setattr(zarr.Group, "create_array", real)
-    assert _build(dexycb_copy, out).index_written and store.verify_store(out).ok
+    assert _build(dexycb_copy, out).finished and store.verify_store(out).ok
 
 
 def test_a_lost_or_corrupt_skips_file_is_rebuilt(dexycb_copy, tmp_path):
@@ -150,7 +150,7 @@ def test_a_lost_or_corrupt_skips_file_is_rebuilt(dexycb_copy, tmp_path):
     (out / "shard-000001.skips.json").unlink()
     (out / "shard-000002.skips.json").write_text("{not json")
     summary = _build(dexycb_copy, out)
-    assert summary.shards_written == 2 and summary.index_written
+    assert summary.units_written == 2 and summary.finished
     assert {p.name: p.read_bytes() for p in out.glob("shard-*.tar")} == shards and store.verify_store(out).ok
 
 
@@ -168,7 +168,7 @@ def test_rebuilding_a_finished_store_writes_nothing(dexycb_copy, tmp_path, monke
     for module, name in ((store, "write_index"), (hoidata.atomic, "write_atomic"), (Path, "unlink")):
         monkeypatch.setattr(module, name, read_only)  # a finished store on a read-only disk
     summary = _build(dexycb_copy, out)
-    assert summary.shards_kept == 4 and summary.shards_written == 0 and summary.index_written
+    assert summary.units_kept == 4 and summary.units_written == 0 and summary.finished
 
 
 # --- 3. nothing silent ---------------------------------------------------------------------------------------
@@ -216,7 +216,7 @@ def test_a_truncated_source_file_is_a_skipped_frame_with_its_reason(dexycb_copy,
     victim.write_bytes(victim.read_bytes()[: victim.stat().st_size // 2])
     summary = _build(dexycb_copy, tmp_path / "s")
     skips = summary.skipped + summary.reader_skipped
-    assert summary.records == 15 and len(skips) == 1 and str(victim.name) in json.dumps(skips)
+    assert summary.written == 15 and len(skips) == 1 and str(victim.name) in json.dumps(skips)
     assert ("truncated JPEG" if cut == "jpeg" else "npz") in skips[0]["reason"]
 
 
@@ -297,7 +297,7 @@ def test_an_unknown_camera_serial_is_a_skip_with_a_reason(dexycb_copy, tmp_path)
     meta = sorted(dexycb_copy.glob("*/*/meta.yml"))[0]
     meta.write_text(meta.read_text().replace("836212060125", "836212060126"))  # a typo in the serial
     summary = _build(dexycb_copy, tmp_path / "s")
-    assert summary.records == 8
+    assert summary.written == 8
     assert any("836212060126" in s["reason"] for s in summary.reader_skipped)
     assert any("836212060126" in s["reason"] for s in store.read_index(tmp_path / "s").skipped)
 
@@ -310,7 +310,7 @@ def test_small_data_defects_are_named(dexycb_copy, tmp_path, monkeypatch):
     labels = dict(np.load(path))
     np.savez_compressed(path, **{**labels, "pose_m": labels["pose_m"].astype(str)})
     summary = _build(dexycb_copy, tmp_path / "s")
-    assert summary.records == 15 and "pose_m" in json.dumps(summary.reader_skipped)
+    assert summary.written == 15 and "pose_m" in json.dumps(summary.reader_skipped)
     # an OBJ with a latin-1 byte in a comment loads without any text-encoding guesser installed
     monkeypatch.setitem(sys.modules, "charset_normalizer", None)
     monkeypatch.setitem(sys.modules, "chardet", None)

@@ -37,7 +37,7 @@ def _tree(folder: Path) -> dict[str, bytes]:
 LAUNCHER_DESTS = ("launcher", "ray_address", "slurm_array", "slurm_partition", "slurm_cpus", "slurm_time",
                   "slurm_extra", "slurm_executor", "dry_run", "part", "workers")
 COMMANDS = {  # each command's own options, abbreviated where argparse lets them be (other prefixes than the probe's)
-    "build-sdf": ["--datas", "toy", "--ro", "R", "--mod", "M", "--ou", "OUT", "record.n_hand=256"],
+    "build-sdf": ["--datas", "toy", "--ro", "R", "--mod", "M", "--ou", "OUT", "record.sdf_samples_hand=256"],
     "export": ["--form", "gsdf", "--datas", "toy", "--ro", "R", "--ou", "OUT", "--sto", "{store}", "--spl",
                "train,test", "--man=-odd-mano-folder", "dataset.frame_stride=2"],
     "render-synthetic": ["--sou", "SRC", "--ou", "OUT", "--cou", "12", "--records-per", "4", "--crop", "64"],
@@ -102,7 +102,7 @@ def test_the_slurm_launcher_without_slurm_is_one_line(tiny_dexycb, tmp_path, mon
 def test_toy_commands_build_whole_stores_inside_an_array_task(tmp_path, monkeypatch, capsys):
     """An array task's environment (a seed sweep run as an array) is not a part of toy-pipeline's stores."""
     import hoisdf.toy
-    from hoidata.pipeline import runner
+    from hoidata import build_sdf as runner
 
     def in_process(argv):  # the child's command line (python -m hoidata ...), run here so the stand-in sees it
         assert argv[:3] == [sys.executable, "-m", "hoidata"]

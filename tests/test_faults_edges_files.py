@@ -75,7 +75,7 @@ def test_an_export_rerun_with_other_inputs_is_refused_naming_them(tiny_dexycb, t
     labels = sorted(root.glob("*/*/*/labels_000003.npz"))[0]
     for extra, words in ((["--mano", str(mano2)], "the MANO file MANO_RIGHT.pkl changed"),
                          (["--models", str(models2)], "the object model 002_master_chef_can changed"),
-                         (["record.n_hand=512"], "the setting record.n_hand differs"),
+                         (["record.sdf_samples_hand=512"], "the setting record.sdf_samples_hand differs"),
                          (["annotations"], "the dataset's annotations")):
         if extra == ["annotations"]:
             _move_object(labels)
@@ -90,8 +90,8 @@ def test_a_gsdf_export_uses_a_store_only_when_it_was_built_from_the_same_inputs(
                                                                                 capsys):
     from hoidata.export import gsdf
     from hoidata.export.job import export_frames
-    from hoidata.pipeline.runner import build_inputs
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.build_sdf import build_inputs
+    from hoidata.records.settings import load_build_config
 
     obj = "002_master_chef_can/textured_simple.obj"
     scaled = _changed_copy(tiny_dexycb / "models", tmp_path / "scaled", obj, _scale_obj(1.3))  # the probe's X1
@@ -208,7 +208,7 @@ def test_a_deeply_nested_build_file_is_one_line(tiny_dexycb, tmp_path, capsys):
 
 @pytest.mark.slow
 def test_render_synthetic_count_is_bounded_before_anything_is_allocated(tiny_store, tmp_path, capsys):
-    from hoidata.synth.render_synthetic import MAX_COUNT, render_synthetic
+    from hoidata.render_synthetic import MAX_COUNT, render_synthetic
 
     out = tmp_path / "synth"
     for count in (10**12, MAX_COUNT + 1):
@@ -253,7 +253,7 @@ def test_torch_refusals_are_plain_and_never_advise_running_code(tmp_path, untrai
 
 
 def test_an_error_caused_by_an_override_names_the_command_line(tmp_path):
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.records.settings import load_build_config
 
     frame_list = tmp_path / "ids.json"
     frame_list.write_text("[1, 2]")
@@ -273,8 +273,8 @@ def test_an_error_caused_by_an_override_names_the_command_line(tmp_path):
 def test_the_proximity_filter_reads_the_models_the_build_was_given(tiny_dexycb, tmp_path):
     """DexYCB's proximity filter (the dexycb preset) uses --models, as the SDF stage and export do, not ROOT/models."""
     from hoidata.export.job import export_frames
-    from hoidata.pipeline.runner import read_frames
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.build_sdf import read_frames
+    from hoidata.records.settings import load_build_config
 
     root = tmp_path / "dataset"  # the dataset without its models folder: they live elsewhere
     root.mkdir()
@@ -299,7 +299,7 @@ def test_a_synthetic_store_resumes_with_its_source_spelled_another_way(ho3d_sour
     (tmp_path / "link").symlink_to(ho3d_source)
     monkeypatch.chdir(tmp_path)
     again = _render(Path("link/./"), out)  # the same source through a link, relative: nothing to do
-    assert again.shards_written == 0 and again.shards_kept > 0
+    assert again.units_written == 0 and again.units_kept > 0
 
 
 @pytest.mark.slow

@@ -43,7 +43,7 @@ def test_a_repeated_name_in_a_list_setting_is_one_line_before_anything_is_writte
 
 
 def test_a_repeat_in_a_pipeline_file_names_the_file(tmp_path):
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.records.settings import load_build_config
 
     toml = tmp_path / "p.toml"
     toml.write_text('[dataset]\nname = "dexycb"\nsplits = ["train", "test", "train"]\n')
@@ -112,7 +112,7 @@ def test_more_toy_ho3d_sequences_than_it_has_is_refused(tmp_path, capsys, layout
 
 def test_make_toy_all_gives_ho3d_its_three_sequences_and_says_so(tmp_path, capsys, monkeypatch):
     """--layout all --sequences 10 (python -m hoisdf.toy's default) is DexYCB's size; HO-3D gets its 3, with a note."""
-    import hoidata.pipeline.inputs as inputs
+    import hoidata.records.inputs as inputs
     import hoidata.toy.make as make
 
     calls = []
@@ -158,7 +158,7 @@ def test_the_main_job_refuses_the_size_in_its_data_step_before_anything_is_writt
 def test_empty_splits_are_the_asked_splits_without_a_frame():
     from types import SimpleNamespace
 
-    from hoidata.pipeline.runner import empty_splits
+    from hoidata.build_sdf import empty_splits
 
     frames = [SimpleNamespace(split="train"), SimpleNamespace(split="test")]
     assert empty_splits(("train", "val", "test"), frames) == ("val",)
@@ -170,7 +170,7 @@ def test_a_split_asked_for_but_without_frames_is_named(tiny_dexycb, tmp_path, ca
     """The toy pipeline asks for train, val and test; the tiny toy (2 sequences a subject) has train frames only. The
     store is built from them, and the estimate and the build summary name the splits it holds none of."""
     base = ["build-sdf", "--dataset", "toy", "--root", str(tiny_dexycb), "--out", str(tmp_path / "s"),
-            "dataset.frame_stride=8", "record.crop_size=64", "record.n_hand=64", "record.n_object=32"]
+            "dataset.frame_stride=8", "record.crop_size=64", "record.sdf_samples_hand=64", "record.sdf_samples_object=32"]
     assert hoidata([*base, "--estimate"]) == 0
     assert "splits_without_frames: val, test" in capsys.readouterr().out
     assert hoidata(base) == 0

@@ -185,7 +185,7 @@ CASES = [
     (train, ["TRAIN", "train.log_every=0"], "log_every"), (train, ["TRAIN", "train.max_steps=-1"], "max_steps"),
     (train, ["TRAIN", "train.epochs=0"], "epochs"), (train, ["TRAIN", "train.epoch_samples=-5"], "epoch_samples"),
     (train, ["TRAIN", "model.grid_resolution=0"], "grid_resolution"), (train, ["TRAIN", "train.lr=inf"], "lr"),
-    (train, ["TRAIN", "record.n_hand=100"], "record.n_hand"),  # an override training does not use
+    (train, ["TRAIN", "record.sdf_samples_hand=100"], "record.sdf_samples_hand"),  # an override training does not use
     (train, ["TRAIN:0", "train.max_steps=1"], "weight"),
     (evaluate, ["EVAL", "--limit", "0"], "--limit"), (evaluate, ["EVAL", "--batch-size", "0"], "--batch-size"),
     (evaluate, ["EVAL", "--workers", "-1"], "--workers"),

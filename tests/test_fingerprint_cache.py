@@ -6,7 +6,7 @@ from __future__ import annotations
 import os
 from types import SimpleNamespace
 
-from hoidata.pipeline import fingerprint
+from hoidata.records import fingerprint
 
 
 def test_a_file_read_by_many_frames_is_hashed_once_until_it_changes(tmp_path, monkeypatch):

@@ -37,13 +37,13 @@ def ho3d_root(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def eval_store(ho3d_root, tmp_path_factory):
-    from hoidata.pipeline.runner import build_store
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.build_sdf import build_store
+    from hoidata.records.settings import load_build_config
 
     out = tmp_path_factory.mktemp("ho3d_eval") / "store"
     summary = build_store(load_build_config("ho3d_eval", ["record.crop_size=64"]), ho3d_root, ho3d_root / "mano",
                           ho3d_root / "models", out, progress=False)
-    assert summary.records == SIZE["frames"] and summary.index_written
+    assert summary.written == SIZE["frames"] and summary.finished
     return out
 
 
@@ -51,7 +51,7 @@ def eval_store(ho3d_root, tmp_path_factory):
 
 def test_eval_records_hold_only_what_the_split_gives(eval_store, ho3d_root):
     from hoidata import schema, store
-    from hoidata.datasets.frame import project
+    from hoidata.geometry.crop import project
     from hoidata.datasets.ho3d import HO3DReader
 
     assert store.verify_store(eval_store).ok

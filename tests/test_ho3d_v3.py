@@ -47,7 +47,7 @@ def test_v3_layout_is_read_and_a_v2_reading_is_refused(v3_root):
 
 
 def test_version_setting_is_checked():
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.records.settings import load_build_config
 
     assert load_build_config("ho3d_v3").dataset.version == "v3"
     assert load_build_config("ho3d_v3_eval").dataset.version == "v3"
@@ -61,21 +61,21 @@ def test_v3_built_evaluated_and_scored(v3_root, untrained_run, mano_dir, tmp_pat
     from test_ho3d_eval import _oracle
 
     from hoidata import store
-    from hoidata.pipeline.runner import build_store
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.build_sdf import build_store
+    from hoidata.records.settings import load_build_config
     from hoisdf.evaluate import evaluate
     from hoisdf.model.hoisdf import HOISDF
     from hoisdf.scoring.cli import main as score_main
 
-    small = ["record.crop_size=64", "record.n_hand=64", "record.n_object=32"]
+    small = ["record.crop_size=64", "record.sdf_samples_hand=64", "record.sdf_samples_object=32"]
     train = build_store(load_build_config("ho3d_v3", small), v3_root, v3_root / "mano", v3_root / "models",
                         tmp_path / "train", progress=False)
-    assert train.records == SIZE["frames"] and store.verify_store(tmp_path / "train").ok
+    assert train.written == SIZE["frames"] and store.verify_store(tmp_path / "train").ok
     labels = store.read_index(tmp_path / "train").labels
     assert np.isfinite(labels["joints_3d"]).all()
     ev = build_store(load_build_config("ho3d_v3_eval", ["record.crop_size=64"]), v3_root, v3_root / "mano",
                      v3_root / "models", tmp_path / "eval", progress=False)
-    assert ev.records == SIZE["frames"]
+    assert ev.written == SIZE["frames"]
 
     monkeypatch.setattr(HOISDF, "forward", _oracle(v3_root))  # predicts the ground truth
     evaluate(untrained_run, [tmp_path / "eval"], mano_dir, tmp_path / "out", batch_size=2, plausibility=0,

@@ -198,16 +198,16 @@ def test_bad_clips_are_named_and_counted_and_the_rest_is_built(hot3d_root, tmp_p
 def test_build_sdf_on_the_toy_clips_verifies_with_the_mask_qa(hot3d_root, tmp_path):
     """build-sdf --dataset hot3d_clips: one record per (frame, stream, hand) with a MANO pose, left hands mirrored,
     the store verifies, and each record's object mask IoU against the clip's RLE mask is in the summary line."""
-    from hoidata.pipeline.runner import build_store, mask_iou_line
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.build_sdf import build_store, mask_iou_line
+    from hoidata.records.settings import load_build_config
     from hoidata.store import read_index
     from hoidata.store.verify import verify_store
 
-    cfg = load_build_config("hot3d_clips", ["record.n_hand=256", "record.n_object=128"])  # the preset's crops
+    cfg = load_build_config("hot3d_clips", ["record.sdf_samples_hand=256", "record.sdf_samples_object=128"])  # the preset's crops
     out = tmp_path / "store"
     summary = build_store(cfg, hot3d_root, hot3d_root / "mano", hot3d_root / "object_models_eval", out, progress=False)
     frames, skipped = read(hot3d_root, "train")
-    assert summary.records == len(frames) and not summary.skipped and len(summary.reader_skipped) == len(skipped)
+    assert summary.written == len(frames) and not summary.skipped and len(summary.reader_skipped) == len(skipped)
     assert verify_store(out).ok
     labels = read_index(out).labels
     assert (labels["mirrored"] == np.array([f.side == "left" for f in frames])).all()

@@ -399,13 +399,13 @@ def test_evaluate_accepts_an_imported_run(imported, tiny_store, dexycb_s0, mano_
     """``python -m hoisdf.evaluate --ckpt RUN`` on an imported run, end to end with the usual result files: on a
     store of upstream's test crops (``record.crop="upstream"``) every record reaches the network as upstream's, and
     on a store of the project's crops the one-line note says what the imported weights are not seeing."""
-    from hoidata.pipeline.runner import build_store
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.build_sdf import build_store
+    from hoidata.records.settings import load_build_config
     from hoisdf.evaluate import main
 
     run, _, _ = imported("dexycb")
     upstream_store = tmp_path / "upstream_store"
-    build_store(load_build_config("toy", ['dataset.splits=["test"]', "record.n_hand=64", "record.n_object=32",
+    build_store(load_build_config("toy", ['dataset.splits=["test"]', "record.sdf_samples_hand=64", "record.sdf_samples_object=32",
                                           'record.crop="upstream"']),
                 dexycb_s0, dexycb_s0 / "mano", dexycb_s0 / "models", upstream_store, progress=False)
     for store, out in ((upstream_store, tmp_path / "eval_upstream"), (tiny_store, tmp_path / "eval_project")):

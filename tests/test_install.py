@@ -20,12 +20,12 @@ def test_presets_read_through_the_resources_api_of_any_package_kind(tmp_path, mo
     from importlib.resources.readers import MultiplexedPath
 
     from hoidata import sections
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.records.settings import load_build_config
 
     (tmp_path / "toy.toml").write_bytes((REPO / "pipelines" / "toy.toml").read_bytes())
     monkeypatch.setattr(sections, "CHECKOUT_PIPELINES", tmp_path / "no-checkout")
     monkeypatch.setattr(importlib.resources, "files", lambda name: MultiplexedPath(tmp_path))
-    assert load_build_config("toy", ["record.n_hand=8"]).record.n_hand == 8
+    assert load_build_config("toy", ["record.sdf_samples_hand=8"]).record.sdf_samples_hand == 8
     assert sections.read_pipeline("toy")[1] == sections.read_pipeline(str(REPO / "pipelines" / "toy.toml"))[1]
     from hoidata.errors import DataError
 

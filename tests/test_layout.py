@@ -110,6 +110,9 @@ def test_files_stay_within_the_size_budget():
     assert not long, f"files over {MAX_LINES} lines: {long}"
 
 
+# The recipes: each stands on the engine and records floors (their public names) and on the library layers, never on
+# another recipe.
+RECIPES = ("hoidata.build_sdf", "hoidata.render_synthetic", "hoidata.export", "hoidata.toy")
 # hoidata's layers, bottom first: a module may import its own layer and the layers below, never one above, so the
 # data flows one way (readers -> frames -> records -> shards; the toy writers and the CLI on top).
 HOIDATA_LAYERS = (
@@ -117,9 +120,10 @@ HOIDATA_LAYERS = (
     ("hoidata.safe_pickle", "hoidata.geometry", "hoidata.store", "hoidata.render", "hoidata.cli_types"),
     ("hoidata.hand", "hoidata.objects"),
     ("hoidata.datasets",),
-    ("hoidata.pipeline",),
-    ("hoidata.synth", "hoidata.export"),
-    ("hoidata.toy",),
+    ("hoidata.engine",),
+    ("hoidata.records",),
+    ("hoidata.synth",),
+    RECIPES,
     ("hoidata.cli", "hoidata.__main__"),
 )
 
@@ -148,6 +152,62 @@ def test_hoidata_imports_only_its_own_layer_and_below():
     assert not up, f"imports that run up a layer: {up}"
 
 
+FLOORS = ("hoidata.engine", "hoidata.records")  # what the recipes stand on, bottom first
+
+
+def _inside(module: str, prefixes) -> str | None:
+    """The prefix of ``prefixes`` that holds ``module`` (itself or a module under it), else None."""
+    return next((p for p in prefixes if module == p or module.startswith(p + ".")), None)
+
+
+def _public(package: str) -> set[str]:
+    """The names a package's ``__init__.py`` lists in ``__all__``."""
+    tree = ast.parse((ROOT / package.replace(".", "/") / "__init__.py").read_text())
+    for node in tree.body:
+        if isinstance(node, ast.Assign) and any(getattr(t, "id", None) == "__all__" for t in node.targets):
+            return set(ast.literal_eval(node.value))
+    return set()
+
+
+def _floor_problems(graph: dict[str, set[str]], public: dict[str, set[str]]) -> list[str]:
+    """The floors' rules: the engine imports nothing of the records floor or a recipe, the records floor nothing of a
+    recipe; a recipe imports no other recipe, and the floors only through their front doors (the package, or a
+    module its ``__all__`` names: ``public``)."""
+    problems = []
+    for m, targets in sorted(graph.items()):
+        for t in sorted(targets):
+            if _inside(m, FLOORS[:1]) and (_inside(t, FLOORS[1:]) or _inside(t, RECIPES)):
+                problems.append(f"the engine floor imports {t} ({m})")
+            if _inside(m, FLOORS[1:]) and _inside(t, RECIPES):
+                problems.append(f"the records floor imports the recipe {t} ({m})")
+            mine, theirs, floor = _inside(m, RECIPES), _inside(t, RECIPES), _inside(t, FLOORS)
+            if mine and theirs and mine != theirs:
+                problems.append(f"the recipe {m} imports another recipe, {t}")
+            if mine and floor and t != floor and t.rpartition(".")[2] not in public[floor]:
+                problems.append(f"the recipe {m} imports {t}, not a public name of {floor}")
+    return problems
+
+
+def test_the_engine_and_records_are_floors_under_recipes_that_never_import_each_other():
+    graph = _graph()
+    assert set(RECIPES) <= {m for m in graph if _inside(m, RECIPES) == m}, "a recipe module or package is missing"
+    problems = _floor_problems(graph, {floor: _public(floor) for floor in FLOORS})
+    assert not problems, "; ".join(problems)
+
+
+def test_the_floor_check_finds_each_kind_of_import():
+    graph = {"hoidata.engine.launch": {"hoidata.records.worker"}, "hoidata.engine.pool": {"hoidata.build_sdf"},
+             "hoidata.records.worker": {"hoidata.render_synthetic"},
+             "hoidata.export.job": {"hoidata.build_sdf", "hoidata.engine", "hoidata.records.fingerprint"},
+             "hoidata.toy.dexycb": {"hoidata.engine.engine", "hoidata.toy.scenes"}}
+    assert _floor_problems(graph, {"hoidata.engine": set(), "hoidata.records": {"fingerprint"}}) == [
+        "the engine floor imports hoidata.records.worker (hoidata.engine.launch)",
+        "the engine floor imports hoidata.build_sdf (hoidata.engine.pool)",
+        "the recipe hoidata.export.job imports another recipe, hoidata.build_sdf",
+        "the records floor imports the recipe hoidata.render_synthetic (hoidata.records.worker)",
+        "the recipe hoidata.toy.dexycb imports hoidata.engine.engine, not a public name of hoidata.engine"]
+
+
 # hoisdf's layers, bottom first, the same rule: the scoring of result files (any method's; its own command
 # ``hoisdf score`` included), which stands on nothing of the model; the network's parts; the data they eat; the loss
 # math; the settings (which gather the parts' settings dataclasses); the trainer and checkpoints, which read the
@@ -172,7 +232,8 @@ HOISDF_MAY_IMPORT = (
     "hoidata.datasets.dexycb_layout",  # the DexYCB toolkit's file layout, for scoring its result files
     "hoidata.datasets.dexycb_frames",  # the toolkit's invalid-label marker (TOOLKIT_INVALID), for submissions
 )
-HOISDF_NEVER = ("hoidata.cli", "hoidata.__main__", "hoidata.pipeline", "hoidata.export", "hoidata.synth",
+HOISDF_NEVER = ("hoidata.cli", "hoidata.__main__", "hoidata.engine", "hoidata.records", "hoidata.build_sdf",
+                "hoidata.render_synthetic", "hoidata.export", "hoidata.synth",
                 "hoidata.toy", "hoidata.render")
 
 
@@ -273,12 +334,12 @@ def test_hoisdf_imports_only_the_allowed_hoidata_layers_and_never_the_build_or_i
 
 def test_the_hoisdf_check_finds_a_cli_import_and_a_build_reached_through_a_library_module():
     graph = {"hoisdf.toy": {"hoidata.cli", "hoidata.cli_types"}, "hoisdf.train": {"hoidata.store"},
-             "hoidata.cli": {"hoidata.pipeline.runner"}, "hoidata.cli_types": set(),
-             "hoidata.store": {"hoidata.pipeline.finish"}, "hoidata.pipeline.runner": set(),
-             "hoidata.pipeline.finish": set()}
+             "hoidata.cli": {"hoidata.build_sdf"}, "hoidata.cli_types": set(),
+             "hoidata.store": {"hoidata.records.store_writer"}, "hoidata.build_sdf": set(),
+             "hoidata.records.store_writer": set()}
     assert _hoisdf_problems(graph) == ["hoisdf.toy imports hoidata.cli, which is not on the allow-list",
-                                       "hoisdf reaches hoidata.cli", "hoisdf reaches hoidata.pipeline.finish",
-                                       "hoisdf reaches hoidata.pipeline.runner"]
+                                       "hoisdf reaches hoidata.build_sdf", "hoisdf reaches hoidata.cli",
+                                       "hoisdf reaches hoidata.records.store_writer"]
 
 
 def _bench_problems(bench: Path) -> list[str]:

@@ -24,7 +24,7 @@ CAN, BOX = "002_master_chef_can", "003_cracker_box"  # the tiny toy's right-hand
 # the dexycb preset (5 mm proximity filter) on the tiny toy: every frame of its one train camera, both hands
 FILTERED = ['dataset.splits=["train"]', "dataset.complete_subjects=false", "dataset.frame_stride=1",
             'dataset.sides=["right","left"]']
-SMALL = ["record.crop_size=128", "record.n_hand=256", "record.n_object=128", "store.records_per_shard=64"]
+SMALL = ["record.crop_size=128", "record.sdf_samples_hand=256", "record.sdf_samples_object=128", "store.records_per_shard=64"]
 
 
 
@@ -40,7 +40,7 @@ def _scaled_models(models: Path, dst: Path, scales: dict[str, float]) -> Path:
 
 
 def _dexycb(overrides=()):
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.records.settings import load_build_config
 
     return load_build_config("dexycb", [*FILTERED, *overrides])
 
@@ -53,7 +53,7 @@ def _read(root: Path, models: Path):
 @pytest.mark.slow  # reads the tiny toy DexYCB
 def test_an_unknown_dataset_name_is_one_line_naming_the_field(tiny_dexycb):
     from hoidata.export.job import export_frames
-    from hoidata.pipeline.runner import read_frames
+    from hoidata.build_sdf import read_frames
 
     cfg = _dexycb()
     cfg = replace(cfg, dataset=replace(cfg.dataset, name="ho4d"))  # past the settings' own check: the callers'

@@ -11,13 +11,13 @@ import pytest
 from hoidata import schema, store
 from hoidata.cli import main
 from hoidata.geometry.sdf import brute_force_signed_distance
-from hoidata.pipeline.runner import build_store
-from hoidata.pipeline.settings import load_build_config
+from hoidata.build_sdf import build_store
+from hoidata.records.settings import load_build_config
 from hoidata.toy.make import write_assets
 
 pytestmark = pytest.mark.slow  # build-sdf end to end on the tiny toy DexYCB
 
-SMALL = ["dataset.splits=[\"train\"]", "record.crop_size=128", "record.n_hand=384", "record.n_object=256",
+SMALL = ["dataset.splits=[\"train\"]", "record.crop_size=128", "record.sdf_samples_hand=384", "record.sdf_samples_object=256",
          "store.records_per_shard=5"]
 
 
@@ -44,7 +44,7 @@ def _shard_bytes(out):
 
 def test_build_writes_a_verified_store(built):
     out, summary = built
-    assert summary.index_written and summary.records == 16 and summary.frames == 16
+    assert summary.finished and summary.written == 16 and summary.items == 16
     assert len(list(out.glob("shard-*.tar"))) == 4
     report = store.verify_store(out)
     assert report.ok, str(report)
@@ -65,20 +65,20 @@ def test_interrupted_build_resumes_to_the_same_store(built, tiny_root, tmp_path)
     out, _ = built
     resumed = tmp_path / "resumed"
     first = _build(tiny_root, resumed, part=(0, 2))  # as if killed after some shards
-    assert not first.index_written and first.shards_written == 2
+    assert not first.finished and first.units_written == 2
     (resumed / "shard-000001.tar.tmp").write_bytes(b"half a shard")  # a shard being written when killed
     kept = resumed / "shard-000002.tar"
     kept.write_bytes(kept.read_bytes()[:1000])  # and one whose file got damaged
     second = _build(tiny_root, resumed)
-    assert second.index_written and second.shards_kept == 1 and second.shards_written == 3
+    assert second.finished and second.units_kept == 1 and second.units_written == 3
     assert _shard_bytes(resumed) == _shard_bytes(out)
     assert not list(resumed.glob("*.tmp"))
 
 
 def test_resume_refuses_a_store_built_with_other_settings(built, tiny_root):
     out, _ = built
-    with pytest.raises(Exception, match="record.n_hand differs"):
-        _build(tiny_root, out, extra=["record.n_hand=100"])
+    with pytest.raises(Exception, match="record.sdf_samples_hand differs"):
+        _build(tiny_root, out, extra=["record.sdf_samples_hand=100"])
 
 
 def test_a_corrupt_frame_is_skipped_and_the_build_goes_on(tiny_root, tmp_path):
@@ -87,7 +87,7 @@ def test_a_corrupt_frame_is_skipped_and_the_build_goes_on(tiny_root, tmp_path):
     image = sorted(root.glob("*/*/836212060125/color_000002.jpg"))[0]
     image.write_bytes(b"not a jpeg")
     summary = _build(root, tmp_path / "store")
-    assert summary.records == 15 and summary.index_written
+    assert summary.written == 15 and summary.finished
     index = store.read_index(tmp_path / "store")
     reasons = [s["reason"] for s in index.skipped if s["frame_id"].endswith("_000002")]
     assert any("cannot decode image" in r for r in reasons)
@@ -159,9 +159,9 @@ def test_ho3d_build_converts_and_records_quality(tmp_path):
     root = tmp_path / "ho3d"
     mano_dir, models_dir = write_assets(root)
     write_toy_ho3d(root, mano_dir, models_dir, ToyHO3DSize(train_sequences=1, eval_sequences=1, frames=3), progress=False)
-    cfg = load_build_config("ho3d", ["record.crop_size=128", "record.n_hand=256", "record.n_object=128"])
+    cfg = load_build_config("ho3d", ["record.crop_size=128", "record.sdf_samples_hand=256", "record.sdf_samples_object=128"])
     summary = build_store(cfg, root, mano_dir, models_dir, tmp_path / "store", progress=False)
-    assert summary.records == 3 and summary.index_written
+    assert summary.written == 3 and summary.finished
     index = store.read_index(tmp_path / "store")
     assert set(index.labels["tip_convention"].tolist()) == {"ho3d"}
     assert (index.labels["hand_root"][:, 2] > 0).all()  # OpenGL annotations arrive in the OpenCV frame

@@ -30,8 +30,8 @@ from hoidata.datasets.dexycb_layout import SERIALS, SUBJECTS
 from hoidata.datasets.dexycb_selection import hand_box_ok, object_motion
 from hoidata.hand import load_mano
 from hoidata.objects import YCB_CLASSES
-from hoidata.pipeline import runner
-from hoidata.pipeline.settings import load_build_config, stated_count_warnings
+from hoidata import build_sdf as runner
+from hoidata.records.settings import load_build_config, stated_count_warnings
 
 STATED = {"dexycb": (29656, 5928), "dexycb_full": (401507, 78005), "dexycb_artiboost": (168280, 32968),
           "dexycb_grasping": (237256, 45624)}
@@ -191,7 +191,7 @@ def test_a_complete_build_warns_when_its_count_differs(dexycb_s0, monkeypatch, c
     frames, _ = runner.read_frames(load_build_config("dexycb_full", ["dataset.complete_subjects=false"]), dexycb_s0,
                                    dexycb_s0 / "mano")
     monkeypatch.setattr(runner, "read_frames", lambda *a, **k: (frames, []))
-    monkeypatch.setattr(runner, "check_build_file", lambda *a, **k: (_ for _ in ()).throw(Stop()))
+    monkeypatch.setattr(runner.StoreWriter, "pin", lambda *a, **k: (_ for _ in ()).throw(Stop()))
     with pytest.raises(Stop):
         runner.build_store(cfg, dexycb_s0, dexycb_s0 / "mano", dexycb_s0 / "models", dexycb_s0 / "unused")
     err = capsys.readouterr().err.splitlines()

@@ -13,8 +13,8 @@ from hoidata import schema
 from hoidata.datasets.frame import Frame
 from hoidata.errors import DataError
 from hoidata.geometry import crop as crop_ops
-from hoidata.pipeline.records import with_dataset_masks
-from hoidata.pipeline.settings import load_build_config
+from hoidata.records.records import with_dataset_masks
+from hoidata.records.settings import load_build_config
 
 SIZE = 64  # mask grid of the test's crop
 HAND, OBJ = (40, 30, 80, 60), (90, 50, 130, 100)  # x1, y1, x2, y2 rectangles in the 160 x 120 seg JPEG
@@ -105,7 +105,7 @@ def test_ho3d_build_stores_dataset_masks_and_skips_a_frame_without_one(ho3d_smal
     missing = segs[1]
     missing.unlink()
     out = tmp_path / "store"
-    args = ["record.crop_size=128", "record.n_hand=256", "record.n_object=128", 'record.masks="dataset"',
+    args = ["record.crop_size=128", "record.sdf_samples_hand=256", "record.sdf_samples_object=128", 'record.masks="dataset"',
             'record.sdf_points="deepsdf"']
     assert main(["build-sdf", "--dataset", "ho3d", "--root", str(root), "--out", str(out), *args]) == 0
     text = capsys.readouterr().out
@@ -126,11 +126,11 @@ def test_ho3d_build_stores_dataset_masks_and_skips_a_frame_without_one(ho3d_smal
 def test_dexycb_build_stores_the_label_files_seg_in_the_crop(tiny_dexycb, tmp_path):
     """Right and mirrored left hands: the stored visible planes are label["seg"] == 255 / == the grasped object's id,
     flipped for a mirrored record and warped (nearest) through the record's crop, read here from the raw file."""
-    from hoidata.pipeline.runner import build_store
+    from hoidata.build_sdf import build_store
     from hoidata.store import iter_records
 
     size = 128
-    overrides = ['dataset.splits=["train"]', f"record.crop_size={size}", "record.n_hand=256", "record.n_object=128",
+    overrides = ['dataset.splits=["train"]', f"record.crop_size={size}", "record.sdf_samples_hand=256", "record.sdf_samples_object=128",
                  'record.masks="dataset"']
     build_store(load_build_config("toy", overrides), tiny_dexycb, tiny_dexycb / "mano", tiny_dexycb / "models",
                 tmp_path / "store", workers=1, progress=False)

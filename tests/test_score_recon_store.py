@@ -17,8 +17,8 @@ pytestmark = pytest.mark.slow  # builds the tiny toy store (session fixture) and
 def test_store_ground_truth_equals_the_readers_meshes(tiny_store, tiny_dexycb, tmp_path):
     from hoidata.datasets.dexycb import DexYCBReader
     from hoidata.hand import load_mano
-    from hoidata.pipeline.records import posed_hand
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.records.records import posed_hand
+    from hoidata.records.settings import load_build_config
     from hoidata.store import read_index
     from hoisdf.scoring.recon_store import write_store_gt
 

@@ -21,7 +21,7 @@ from hoidata.geometry.sdf import (
     validate_mesh,
 )
 from hoidata.geometry.signs import is_closed, winding_numbers
-from hoidata.pipeline.settings import load_build_config
+from hoidata.records.settings import load_build_config
 
 # Metres: float64 rounding of distances up to ~0.6 m (one unit in the last place of 0.5 is 1.1e-16).
 # Both backends and the reference compute the same closest point; they differ only in rounding.

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from hoidata.errors import DataError
-from hoidata.pipeline import settings as build
+from hoidata.records import settings as build
 from hoidata.sections import check_sections, refuse_unused
 from hoisdf import config as training
 
@@ -48,7 +48,7 @@ def test_a_misspelt_build_section_is_an_error_for_the_build_and_an_unknown_one_f
 
 def test_the_build_leaves_other_readers_sections_to_them_and_training_refuses_a_section_nobody_reads(tmp_path):
     path = _toml(tmp_path, "[model]\ndepth = 18\n[optimizer]\nlr = 0.1\n")
-    assert build.load_build_config(path).record.n_hand > 0  # [model] is training's, [optimizer] no build section
+    assert build.load_build_config(path).record.sdf_samples_hand > 0  # [model] is training's, [optimizer] no build section
     with pytest.raises(DataError, match=r"'optimizer': unknown section"):
         training.load_train_config(path)
     with pytest.raises(DataError, match=r"'depth': expected a \[section\] table of settings, got 18"):
@@ -59,8 +59,8 @@ def test_the_build_leaves_other_readers_sections_to_them_and_training_refuses_a_
     (["model.depth=18"], "build", (r"'model\.depth': build-sdf does not use \[model\] settings \(it reads "
                                    r"\[dataset\], \[record\], \[store\]\)")),
     (["recrod.n_hand=8"], "build", r"'recrod\.n_hand': build-sdf does not use \[recrod\] settings"),
-    (["record.n_hand=8"], "train", (r"'record\.n_hand': training does not use \[record\] settings \(hoidata "
-                                    r"build-sdf reads them\)")),
+    (["record.sdf_samples_hand=8"], "train", (r"'record\.sdf_samples_hand': training does not use \[record\] "
+                                              r"settings \(hoidata build-sdf reads them\)")),
     (["optimizer.lr=1"], "train", (r"'optimizer\.lr': training does not use \[optimizer\] settings \(it reads "
                                    r"\[model\], \[train\], \[augment\], \[loss\]\)")),
 ])
@@ -88,15 +88,15 @@ def test_a_saved_config_with_overrides_is_checked_and_left_unchanged(tmp_path):
     config = training.overridden_config(saved, ["train.max_steps=3", "model.depth=18"], tmp_path / "last.pt")
     assert (config.train.max_steps, config.model.depth) == (3, 18)
     assert saved["train"]["max_steps"] == 0 and saved["model"]["depth"] == 50
-    with pytest.raises(DataError, match=r"last\.pt: 'record\.n_hand': training does not use \[record\]"):
-        training.overridden_config(saved, ["record.n_hand=8"], tmp_path / "last.pt")
+    with pytest.raises(DataError, match=r"last\.pt: 'record\.sdf_samples_hand': training does not use \[record\]"):
+        training.overridden_config(saved, ["record.sdf_samples_hand=8"], tmp_path / "last.pt")
 
 
 def test_git_commit_is_one_function_the_build_and_training_share():
-    from hoidata.pipeline import finish, runner
+    from hoidata.records import store_writer as finish
     from hoidata.provenance import git_commit
 
-    assert finish.git_commit is git_commit and runner.git_commit is git_commit
+    assert finish.git_commit is git_commit
     assert subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True,
                           check=False).stdout.strip() in (git_commit(), "")
 

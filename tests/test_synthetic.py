@@ -9,15 +9,15 @@ import torch
 
 from hoidata import schema, store
 from hoidata.errors import DataError
-from hoidata.pipeline.records import RecordSettings
+from hoidata.records.records import RecordSettings
 from hoidata.synth import views
-from hoidata.synth.render_synthetic import render_synthetic
+from hoidata.render_synthetic import render_synthetic
 from hoidata.toy.ho3d import ToyHO3DSize, write_toy_ho3d
 from hoidata.toy.make import write_assets
 
 pytestmark = pytest.mark.slow  # renders and builds synthetic stores
 
-RECORD = RecordSettings(crop_size=128, n_hand=256, n_object=128)
+RECORD = RecordSettings(crop_size=128, sdf_samples_hand=256, sdf_samples_object=128)
 
 
 @pytest.fixture(scope="session")
@@ -60,7 +60,7 @@ def test_views_and_perturbations():
 
 def test_same_seed_same_store_whatever_the_workers(synth_store, ho3d_source, tmp_path):
     out, summary = synth_store
-    assert summary.index_written and summary.records == 6
+    assert summary.finished and summary.written == 6
     _render(ho3d_source, tmp_path / "two", workers=2)
     shards = sorted(p.name for p in out.glob("shard-*.tar"))
     assert shards == sorted(p.name for p in (tmp_path / "two").glob("shard-*.tar")) and len(shards) == 2

@@ -159,11 +159,11 @@ def hpe_eval(root, split: str, res_file) -> dict:
 @pytest.fixture(scope="module")
 def store_8cam(dexycb_8cam, tmp_path_factory):
     """Every valid frame of the 8-camera toy's s0_train (dexycb_full selection), small records."""
-    from hoidata.pipeline.runner import build_store
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.build_sdf import build_store
+    from hoidata.records.settings import load_build_config
 
     out = tmp_path_factory.mktemp("store_8cam") / "store"
-    overrides = ['dataset.splits=["train"]', "record.crop_size=64", "record.n_hand=64", "record.n_object=32"]
+    overrides = ['dataset.splits=["train"]', "record.crop_size=64", "record.sdf_samples_hand=64", "record.sdf_samples_object=32"]
     build_store(load_build_config("toy", overrides), dexycb_8cam, dexycb_8cam / "mano", dexycb_8cam / "models", out,
                 progress=False)
     return out
@@ -209,14 +209,14 @@ def _build_listed(root, out, ids, *extra):
     list must override all three."""
     import json
 
-    from hoidata.pipeline.runner import build_store
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.build_sdf import build_store
+    from hoidata.records.settings import load_build_config
 
     listed = out.parent / f"{out.name}.json"
     listed.write_text(json.dumps([str(i).rjust(8, "0") for i in ids]))  # gSDF writes 8-digit strings
     overrides = ['dataset.splits=["train"]', 'dataset.sides=["right"]', "dataset.frame_stride=5",
                  "dataset.proximity_mm=5.0", f"dataset.frame_list={listed}", "record.crop_size=64",
-                 "record.n_hand=64", "record.n_object=32", *extra]
+                 "record.sdf_samples_hand=64", "record.sdf_samples_object=32", *extra]
     build_store(load_build_config("toy", overrides), root, root / "mano", root / "models", out, progress=False)
     return listed
 
@@ -259,7 +259,7 @@ def test_frame_list_bad_files(tmp_path, content, match):
 
 
 def test_frame_list_needs_one_dexycb_split():
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.records.settings import load_build_config
 
     with pytest.raises(DataError, match="dataset.frame_list.*one DexYCB split"):
         load_build_config("dexycb", ["dataset.frame_list=train_s0_29k.json"])  # dexycb.toml builds train and test

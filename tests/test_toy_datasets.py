@@ -14,14 +14,15 @@ import torch
 
 from hoidata.datasets.dexycb import SETTINGS, DexYCBReader
 from hoidata.datasets.dexycb_layout import read_labels
-from hoidata.datasets.frame import project
 from hoidata.datasets.ho3d import HO3DReader
 from hoidata.errors import DataError
+from hoidata.geometry.crop import project
 from hoidata.hand import load_mano
 from hoidata.objects import load_object_mesh, object_mesh_path, repair_mesh
 from hoidata.toy.dexycb import (
     INVALID_FRAME,
     ToyDexYCBSize,
+    ToyJob,
     ToyWorkerSpec,
     sequence_side,
     write_calibration,
@@ -96,7 +97,7 @@ def test_a_sequence_written_again_elsewhere_is_byte_identical(dex_root, tmp_path
     worker = ToyWorkerSpec(dex_root / "mano", dex_root / "models").open()
     try:
         for number, (pos, subject, sequence) in enumerate([(0, DEX_SIZE.subjects[0], 0), (1, DEX_SIZE.subjects[1], 1)]):
-            worker.run((number, tmp_path, pos, subject, sequence, DEX_SIZE, calib, 0))
+            worker.run(ToyJob(number, tmp_path, pos, subject, sequence, DEX_SIZE, calib, 0))
     finally:
         worker.close()
     again = sorted(p for p in tmp_path.rglob("*") if p.is_file() and "calibration" not in p.parts)

@@ -208,8 +208,8 @@ def test_resume_two_plus_two_steps_equals_four(tiny_store, mano, tmp_path):
 
 @pytest.mark.slow
 def test_mixed_real_and_synthetic_training_reads_the_requested_ratio(tiny_store, mano, tmp_path):
-    from hoidata.pipeline.records import RecordSettings
-    from hoidata.synth.render_synthetic import render_synthetic
+    from hoidata.records.records import RecordSettings
+    from hoidata.render_synthetic import render_synthetic
     from hoidata.toy.ho3d import ToyHO3DSize, write_toy_ho3d
     from hoidata.toy.make import write_assets
 
@@ -217,7 +217,8 @@ def test_mixed_real_and_synthetic_training_reads_the_requested_ratio(tiny_store,
     write_toy_ho3d(tmp_path, mano_dir, models_dir, ToyHO3DSize(train_sequences=1, eval_sequences=0, frames=2),
                    progress=False)
     render_synthetic(tmp_path, tmp_path / "synth", 4, mano_dir, models_dir, seed=0, workers=1,
-                     record=RecordSettings(crop_size=128, n_hand=128, n_object=64), records_per_shard=4, progress=False)
+                     record=RecordSettings(crop_size=128, sdf_samples_hand=128, sdf_samples_object=64),
+                     records_per_shard=4, progress=False)
     stores = [StoreSpec(tiny_store, 1.0), StoreSpec(tmp_path / "synth", 0.6)]
     trainer = _trainer(tiny_store, tmp_path / "run", mano, ["train.record_keys=true", "train.max_steps=40",
                                                             "train.batch_size=4", "train.epoch_samples=1000"], stores)
@@ -284,7 +285,7 @@ def test_projected_grid_features_equal_direct_sampling(tiny_store, mano):
 
 def test_bad_settings_and_files_give_clear_errors(tmp_path, mano_dir, capsys):
     from hoidata.errors import DataError
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.records.settings import load_build_config
     from hoisdf.train import main
     from hoisdf.training.checkpoint import load_checkpoint
 

@@ -18,12 +18,12 @@ from hoidata import schema, store
 from hoidata.errors import DataError
 from hoidata.geometry.upstream_crop import box21_upstream, pixel_affine, scale_translate
 from hoidata.objects import load_points, object_points_path
-from hoidata.pipeline.runner import build_store, read_frames
-from hoidata.pipeline.settings import load_build_config
-from hoidata.pipeline.upstream_records import upstream_view
+from hoidata.build_sdf import build_store, read_frames
+from hoidata.records.settings import load_build_config
+from hoidata.records.upstream import upstream_view
 
 GOLDEN = json.loads((Path(__file__).parent / "golden" / "upstream_crops" / "crops.json").read_text())
-SMALL = ["record.n_hand=64", "record.n_object=32", 'record.crop="upstream"']
+SMALL = ["record.sdf_samples_hand=64", "record.sdf_samples_object=32", 'record.crop="upstream"']
 ANCHOR_M = 1e-6  # the object anchor's tolerance against upstream's (metres)
 LEFT = ['dataset.splits=["train"]', 'dataset.sides=["left"]', "dataset.frame_stride=3", 'record.crop_splits=["train"]']
 

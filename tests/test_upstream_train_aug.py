@@ -23,7 +23,7 @@ TOL = 1e-6  # K and boxes (px), anchor, joints and SDF points (m; SDF points in 
 # (~111 px) moved 2 float32 ulps (1.5e-5 px) under OPENBLAS_CORETYPE=Haswell / Prescott, more than TOL at that size
 FLOAT32_RTOL = 4 * float(np.finfo(np.float32).eps)
 SDF_SCALE = 3.1
-SMALL = ["record.n_hand=64", "record.n_object=32", 'record.upstream_region=["train"]', 'dataset.splits=["train"]']
+SMALL = ["record.sdf_samples_hand=64", "record.sdf_samples_object=32", 'record.upstream_region=["train"]', 'dataset.splits=["train"]']
 GROUPS = {"dexycb_right": ("dexycb_s0", "toy", SMALL), "dexycb_left": ("dexycb_s0", "toy", SMALL),
           "ho3d": ("ho3d_small", "ho3d", SMALL)}
 
@@ -42,8 +42,8 @@ def close(got, want, what: str) -> None:
 @pytest.fixture(scope="module")
 def region_stores(request, tmp_path_factory):
     """{toy fixture name: store folder} built with record.upstream_region (its train split)."""
-    from hoidata.pipeline.runner import build_store
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.build_sdf import build_store
+    from hoidata.records.settings import load_build_config
 
     out = {}
     for fixture, pipeline, overrides in sorted({(f, p, tuple(o)) for f, p, o in GROUPS.values()}):
@@ -277,7 +277,7 @@ def test_build_refuses_a_region_it_cannot_make():
     """record.upstream_region on a dataset upstream never trained on, or on splits that are upstream test crops:
     one DataError naming the key, before any frame is read."""
     from hoidata.errors import DataError
-    from hoidata.pipeline.settings import load_build_config
+    from hoidata.records.settings import load_build_config
 
     assert load_build_config("toy", ['record.upstream_region=["train"]']).record.upstream_region == ("train",)
     for overrides in (['dataset.name="hot3d_clips"', 'record.upstream_region=["train"]'],

@@ -93,12 +93,6 @@ def read_rgb(path: Path, size: tuple[int, int] | None = None) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
-def project(points: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Camera-frame points (..., 3) -> pixels (..., 2) with intrinsics K (3, 3)."""
-    uvw = points @ np.asarray(K).T
-    return uvw[..., :2] / uvw[..., 2:3]
-
-
 @dataclass
 class Skip:
     """A frame a reader left out, and why (recorded in the store's index, never silent)."""

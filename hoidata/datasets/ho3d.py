@@ -32,8 +32,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from hoidata.datasets.frame import Frame, Skip, project
+from hoidata.datasets.frame import Frame, Skip
 from hoidata.errors import DataError, decoding
+from hoidata.geometry.crop import project
 from hoidata.hand.model import MANO_TO_DEXYCB
 from hoidata.hand.pose import change_frame
 from hoidata.objects import class_id

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hoidata.datasets.frame import Frame, Skip, project
+from hoidata.datasets.frame import Frame, Skip
 from hoidata.datasets.hot3d_format import (
     SIDES,
     ClipMembers,
@@ -41,6 +41,7 @@ from hoidata.datasets.hot3d_format import (
     transform,
 )
 from hoidata.errors import DataError
+from hoidata.geometry.crop import project
 from hoidata.geometry.crop_camera import crop_maps, fisheye_grid, remap_crop
 from hoidata.geometry.fisheye624 import Fisheye624
 from hoidata.hand.pose import change_frame, pca_to_axis_angle

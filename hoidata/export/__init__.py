@@ -9,6 +9,6 @@
 ``docs/other-codebases.md`` lists, per consumer, the command, the folder it writes and the loader it serves.
 """
 
-from hoidata.export.job import DATASETS, FORMATS, ExportSummary, default_splits, export_dataset
+from hoidata.export.job import DATASETS, FORMATS, default_splits, export_dataset
 
-__all__ = ["DATASETS", "FORMATS", "ExportSummary", "default_splits", "export_dataset"]
+__all__ = ["DATASETS", "FORMATS", "default_splits", "export_dataset"]

@@ -81,7 +81,7 @@ def annotation(frame, ident: int, raw_vertices: np.ndarray) -> dict:
 
 def check_store_inputs(store: Path, inputs: dict) -> None:
     """Refuse a ``--store`` built from other inputs than the export's (``inputs``: MANO and model fingerprints,
-    as :func:`hoidata.pipeline.runner.build_inputs` gives them): its SDF rows are distances to its own meshes.
+    as :func:`hoidata.records.build_inputs` gives them): its SDF rows are distances to its own meshes.
 
     The store's ``build.json`` must hold input fingerprints; every MANO file and every object model both
     fingerprint must be the same file. Frames are compared one by one when rows are re-used (:func:`_store_fits`:
@@ -119,7 +119,7 @@ def _store_fits(record: dict | None, frame, key: str) -> bool:
 def sdf_arrays(worker, frame, key: str) -> tuple[dict, str]:
     """The three SDF files of one frame and where their rows came from ('store' or 'sampled'); ``worker``: the
     process's :class:`~hoidata.export.worker.ExportWorker` (MANO layers, objects, the store's rows)."""
-    from hoidata.pipeline.records import frame_seed, posed_hand, posed_object
+    from hoidata.records import frame_seed, posed_hand, posed_object
 
     mano = worker.mano(frame.side, frame.fix_left_shapedirs)
     hand, hand_faces = posed_hand(frame, mano), mano.closed_faces
@@ -150,7 +150,7 @@ def sdf_arrays(worker, frame, key: str) -> tuple[dict, str]:
 def frame_entry(worker, frame, ident: int, key: str, out: Path, opts: dict) -> dict:
     """One frame's annotation, and its files: the SDF files for train, the ground-truth meshes otherwise
     (``worker``: the process's :class:`~hoidata.export.worker.ExportWorker`)."""
-    from hoidata.pipeline.records import posed_hand
+    from hoidata.records import posed_hand
 
     if frame.side != "right" or frame.mirror:
         raise ValueError("gSDF reads right hands only (its dexycb dataset sets hand_side = 1)")

@@ -1,6 +1,6 @@
 """``hoidata export``: a dataset (read through our readers and a pipeline setting) -> another codebase's files.
 
-The work is cut like ``build-sdf``'s (:func:`hoidata.pipeline.engine.run_task` runs :class:`ExportTask`, each
+The work is cut like ``build-sdf``'s (:func:`hoidata.engine.engine.run_task` runs :class:`ExportTask`, each
 worker process one :class:`~hoidata.export.worker.ExportWorker`): chunk k holds the
 frames k*R .. (k+1)*R-1 of the reader's order; a chunk writes its per-frame files (each to a temporary name,
 then renamed) and then its manifest ``.hoidata-export/<format>-<splits>/chunk-%06d.json`` with the annotation
@@ -17,44 +17,22 @@ import hashlib
 import json
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 from hoidata import schema
 from hoidata.datasets.open import read_splits
+from hoidata.engine import Plan, RunSummary, ShardTask, run_task
 from hoidata.errors import DataError, read_json
 from hoidata.export import gsdf, handoccnet
 from hoidata.export.files import write_json
-from hoidata.export.worker import ExportWorkerSpec, chunk_path
-from hoidata.pipeline.engine import Plan, run_task
-from hoidata.pipeline.settings import BuildConfig, stated_count_warnings
+from hoidata.export.worker import ExportJob, ExportWorkerSpec, chunk_path
+from hoidata.records import BuildConfig, RecordSettings, build_inputs, fingerprint, stated_count_warnings
 
 WORK_DIR = ".hoidata-export"
 SPEC_FILE = "export.json"
 FORMATS = ("handoccnet", "gsdf")
 DATASETS = {"handoccnet": ("dexycb", "ho3d"), "gsdf": ("dexycb",)}  # gSDF has no HO-3D dataset class
-
-
-@dataclass
-class ExportSummary:
-    """What an export did: frames read and exported, skips with reasons, chunks, and the files it assembled."""
-
-    out: Path
-    format: str
-    frames: int = 0
-    exported: int = 0
-    skipped: list = field(default_factory=list)
-    chunks_written: int = 0
-    chunks_kept: int = 0
-    seconds: float = 0.0
-    finished: bool = False  # every chunk done and the annotation files written
-    files: list = field(default_factory=list)  # what the last step wrote (relative to out)
-    sdf_sources: dict = field(default_factory=dict)  # gsdf: {"store": n, "sampled": m}
-    notes: list = field(default_factory=list)  # lines for the user (e.g. the gSDF config keys to set)
-
-    @property
-    def frames_per_second(self) -> float:
-        return self.exported / self.seconds if self.seconds else 0.0
 
 
 def export_frames(cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path, splits) -> tuple[list, list, list]:
@@ -70,7 +48,7 @@ def export_frames(cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path
 
 def _spec(fmt: str, cfg: BuildConfig, splits, keys: list[str], options: dict, inputs: dict) -> dict:
     """What ``export.json`` pins: format, settings, splits, frames, options, and the fingerprints of the inputs
-    (MANO files, object models, annotations: :func:`hoidata.pipeline.runner.build_inputs`, as ``build.json``)."""
+    (MANO files, object models, annotations: :func:`hoidata.records.build_inputs`, as ``build.json``)."""
     return json.loads(json.dumps({
         "format": fmt, "config": cfg.as_dict(), "splits": list(splits), "frames": len(keys),
         "keys_sha256": hashlib.sha256("\n".join(keys).encode()).hexdigest(), "options": options,
@@ -80,12 +58,10 @@ def _spec(fmt: str, cfg: BuildConfig, splits, keys: list[str], options: dict, in
 def _check_spec(work: Path, spec: dict) -> None:
     """Pin a new export's folder to ``spec``; refuse a rerun whose settings, frames, options or inputs differ,
     naming the first difference (the chunks kept would mix with new ones)."""
-    from hoidata.pipeline import fingerprint
-
     path = work / SPEC_FILE
     if path.is_file():
         old = read_json(path, "valid export.json", "use a new --out folder (nothing was changed)")
-        where = fingerprint.first_difference(old, spec)
+        where = fingerprint.first_difference(fingerprint.current_names(old, RecordSettings.RENAMED), spec)
         if where is not None:
             raise DataError(path, where, f"{fingerprint.describe_difference(where, 'export')}; this folder holds an "
                                          "export made with other settings, frames or inputs: use a new --out "
@@ -130,8 +106,8 @@ def read_chunks(work: Path, numbers: list[int]):
 
 
 @dataclass
-class ExportTask:
-    """An export's task for :func:`hoidata.pipeline.engine.run_task`: chunk n holds frames n*R .. (n+1)*R-1."""
+class ExportTask(ShardTask):
+    """An export's task for :func:`hoidata.engine.run_task`: chunk n holds frames n*R .. (n+1)*R-1."""
 
     fmt: str
     frames: list
@@ -144,9 +120,9 @@ class ExportTask:
     plan: Plan
     desc: str = "export"
 
-    def job(self, number: int) -> tuple:
+    def job(self, number: int) -> ExportJob:
         cut = slice(number * self.plan.per, (number + 1) * self.plan.per)
-        return number, self.fmt, self.frames[cut], self.ids[cut], self.keys[cut], str(self.out), self.opts
+        return ExportJob(number, self.fmt, self.frames[cut], self.ids[cut], self.keys[cut], str(self.out), self.opts)
 
     def done(self, numbers: list[int], starting: bool) -> set[int]:
         return {n for n in numbers if chunk_done(self.out, self.work, n)}
@@ -154,7 +130,7 @@ class ExportTask:
 
 def export_dataset(fmt: str, cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path, out: Path,
                    splits=None, store: Path | None = None, workers: int = 1, part: tuple[int, int] = (0, 1),
-                   chunk_size: int = 64, progress: bool = True, executor=None) -> ExportSummary:
+                   chunk_size: int = 64, progress: bool = True, executor=None) -> RunSummary:
     """Export (or resume exporting) the frames of ``cfg``'s setting into ``out`` in format ``fmt``.
 
     Args:
@@ -169,10 +145,8 @@ def export_dataset(fmt: str, cfg: BuildConfig, root: Path, mano_dir: Path, model
         workers: worker processes.
         part: ``(i, N)`` of ``--part i/N``: this run does the i-th of N equal slices of the work.
         chunk_size: frames per unit of work (and of resume).
-        executor: what runs the chunk jobs (see :func:`hoidata.pipeline.engine.run_task`).
+        executor: what runs the chunk jobs (see :func:`hoidata.engine.run_task`).
     """
-    from hoidata.pipeline.runner import build_inputs
-
     if fmt not in FORMATS:
         raise ValueError(f"unknown export format {fmt!r}; expected one of {FORMATS}")
     if cfg.dataset.name not in DATASETS[fmt]:
@@ -200,20 +174,18 @@ def export_dataset(fmt: str, cfg: BuildConfig, root: Path, mano_dir: Path, model
 
     spec = ExportWorkerSpec(Path(mano_dir), Path(models_dir), opts.get("store"))
     task = ExportTask(fmt, frames, ids, keys, out, work, opts, spec, Plan(len(frames), chunk_size), f"export {fmt}")
-    run = run_task(task, workers, part, progress, executor)
-    numbers = run.units
-    summary = ExportSummary(out, fmt, frames=len(frames), exported=run.written, chunks_written=run.units_written,
-                            chunks_kept=run.units_kept)
-    summary.skipped = [{"frame_id": s.frame_id, "reason": s.reason, "path": s.path} for s in reader_skips]
-    if run.all_done:
-        summary.skipped += [s for n in numbers for s in read_manifest(work, n)["skipped"]]
-        summary.exported = sum(1 for _ in read_chunks(work, numbers))
+    summary = run_task(task, workers, part, progress, executor)
+    summary.out = out
+    summary.reader_skipped = [{"frame_id": s.frame_id, "reason": s.reason, "path": s.path} for s in reader_skips]
+    if summary.all_done:  # the whole export's skips and frames, then the format's annotation files
+        numbers = summary.units
+        summary.skipped = [s for n in numbers for s in read_manifest(work, n)["skipped"]]
+        summary.written = sum(1 for _ in read_chunks(work, numbers))
         finish = finish_function(fmt)
-        summary.files, summary.sdf_sources, summary.notes = finish(out, cfg, splits, lambda: read_chunks(work, numbers),
-                                                                   root, Path(models_dir))
+        summary.files, sdf_sources, summary.notes = finish(out, cfg, splits, lambda: read_chunks(work, numbers), root,
+                                                           Path(models_dir))
+        summary.extra["sdf_sources"] = sdf_sources
         summary.finished = True
-    else:
-        summary.skipped += run.skipped
     summary.seconds = time.perf_counter() - start
     return summary
 

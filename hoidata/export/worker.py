@@ -1,7 +1,7 @@
 """The per-process side of an export: :class:`ExportWorker`, the engine's worker context, writes one chunk of
 frames (each frame's entry and files from its format, :mod:`~hoidata.export.handoccnet` or
 :mod:`~hoidata.export.gsdf`, then the chunk's manifest). It holds what a process loads once: the MANO layers and
-repaired objects (a :class:`~hoidata.pipeline.worker.RecordWorker`: what the store's SDF rows were computed on),
+repaired objects (a :class:`~hoidata.records.RecordWorker`: what the store's SDF rows were computed on),
 the raw object files, and the store whose SDF rows a gsdf export re-uses."""
 
 from __future__ import annotations
@@ -16,12 +16,26 @@ import numpy as np
 from hoidata.errors import DataError
 from hoidata.export import gsdf, handoccnet
 from hoidata.export.files import write_json
-from hoidata.pipeline.worker import RecordWorker
+from hoidata.records import RecordWorker
 
 
 def chunk_path(work: Path, number: int) -> Path:
     """Chunk ``number``'s manifest in the export's work folder."""
     return Path(work) / f"chunk-{number:06d}.json"
+
+
+@dataclass
+class ExportJob:
+    """One chunk to export: its frames with their consumer ids and record keys, the format, the output folder and
+    the options every chunk carries (recorded in ``export.json``; ``opts["work"]``: the chunk manifests' folder)."""
+
+    number: int
+    fmt: str
+    frames: list
+    ids: list
+    keys: list[str]
+    out: str
+    opts: dict
 
 
 @dataclass(frozen=True)
@@ -100,18 +114,17 @@ class ExportWorker:
             return handoccnet.frame_entry(self, frame, int(ident))
         return gsdf.frame_entry(self, frame, int(ident), key, out, opts)
 
-    def run(self, job) -> tuple[int, int, list]:
+    def run(self, job: ExportJob) -> tuple[int, int, list]:
         """One chunk's entries and files, then its manifest; returns (number, exported, skips)."""
-        number, fmt, frames, ids, keys, out, opts = job
         entries, skips = [], []
-        for frame, ident, key in zip(frames, ids, keys):
+        for frame, ident, key in zip(job.frames, job.ids, job.keys):
             try:
-                entries.append(self.entry(fmt, frame, ident, key, Path(out), opts))
+                entries.append(self.entry(job.fmt, frame, ident, key, Path(job.out), job.opts))
             except (DataError, ValueError) as e:  # a frame that cannot be exported is skipped with its reason
                 skips.append({"frame_id": frame.frame_id, "reason": str(e), "path": str(frame.image_path),
                               "sample_index": int(frame.sample_index)})
-        write_json(chunk_path(Path(opts["work"]), number), {"entries": entries, "skipped": skips})
-        return number, len(entries), skips
+        write_json(chunk_path(Path(job.opts["work"]), job.number), {"entries": entries, "skipped": skips})
+        return job.number, len(entries), skips
 
     def close(self) -> None:
         self.records.close()

@@ -1,4 +1,5 @@
-"""Square crops around hand and object, and the intrinsics of the cropped pixels. Pure numpy.
+"""Square crops around hand and object, the projection of camera points to pixels, and the intrinsics of the cropped
+pixels. Pure numpy.
 
 Pixel convention (OpenCV): pixel (col, row) is centred at integer (u, v). A crop of a square box
 (x1, y1, side) in source pixels resized to ``size`` pixels is the affine map
@@ -70,3 +71,9 @@ def warp_image(image: np.ndarray, affine: np.ndarray, size: int, nearest: bool =
 def apply_affine(affine: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """Pixels (..., 2) through a (3, 3) affine."""
     return uv @ affine[:2, :2].T + affine[:2, 2]
+
+
+def project(points: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Camera-frame points (..., 3) -> pixels (..., 2) with intrinsics K (3, 3)."""
+    uvw = points @ np.asarray(K).T
+    return uvw[..., :2] / uvw[..., 2:3]

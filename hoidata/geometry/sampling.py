@@ -210,7 +210,7 @@ def compute_sdf_samples(points, hand_vertices, hand_faces, hand_face_parts, obj_
 @dataclass(frozen=True)
 class SdfSampling:
     """How one frame's SDF samples are drawn and computed (the SDF part of the record settings,
-    :meth:`hoidata.pipeline.records.RecordSettings.sdf_sampling`); the fields are the arguments of
+    :meth:`hoidata.records.records.RecordSettings.sdf_sampling`); the fields are the arguments of
     :func:`sample_query_points` and :func:`compute_sdf_samples` of the same names (counts, metres)."""
 
     n_hand: int = 4096

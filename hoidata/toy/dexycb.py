@@ -23,9 +23,9 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from hoidata.datasets.dexycb_layout import SERIALS, SUBJECTS
-from hoidata.datasets.frame import project
+from hoidata.engine import Plan, ShardTask, run_task
+from hoidata.geometry.crop import project
 from hoidata.hand.pose import axis_angle_to_pca
-from hoidata.pipeline.engine import Plan, run_task
 from hoidata.render import skin_tone
 from hoidata.toy import scenes as toy_scenes
 
@@ -141,6 +141,21 @@ def _write_pose_npz(seq_dir: Path, mano, seq, other_pose) -> None:
     np.savez_compressed(seq_dir / "pose.npz", pose_y=pose_y, pose_m=pose_m)
 
 
+@dataclass
+class ToyJob:
+    """One toy sequence to write: its number, the tree's root, the subject (and its position), the sequence, the
+    tree's size, calibration and seed."""
+
+    number: int
+    root: Path
+    subject_pos: int
+    subject: int  # index into SUBJECTS
+    sequence: int
+    size: ToyDexYCBSize
+    calib: tuple  # write_calibration's
+    seed: int
+
+
 @dataclass(frozen=True)
 class ToyWorkerSpec:
     """What a worker process needs to render toy sequences (picklable: the engine sends it to every worker)."""
@@ -166,27 +181,28 @@ class ToyWorker:
         self.objects = toy_scenes.load_toy_objects(models_dir)
         self.renderer = Renderer(640, 480)
 
-    def run(self, job) -> tuple[int, int, list]:
+    def run(self, job: ToyJob) -> tuple[int, int, list]:
         """Write one sequence; returns (its number, images written, no skips)."""
-        number, root, pos, s, q, size, calib, seed = job
-        return number, write_sequence(root, self.renderer, self.manos, self.objects, pos, s, q, size, calib, seed), []
+        images = write_sequence(job.root, self.renderer, self.manos, self.objects, job.subject_pos, job.subject,
+                                job.sequence, job.size, job.calib, job.seed)
+        return job.number, images, []
 
     def close(self) -> None:
         self.renderer.close()
 
 
 @dataclass
-class ToyTask:
-    """The toy writer's task for :func:`hoidata.pipeline.engine.run_task`: one unit per sequence (no resume: a
-    toy tree is written whole)."""
+class ToyTask(ShardTask):
+    """The toy writer's task for :func:`hoidata.engine.run_task`: one unit per sequence (no resume: a toy tree is
+    written whole, so ``done`` and ``check_kept`` keep the base's no-op defaults)."""
 
-    jobs: list  # (root, subject position, subject, sequence, size, calibration, seed) per sequence
+    jobs: list[ToyJob]  # one per sequence, in unit order
     worker: ToyWorkerSpec
     plan: Plan
     desc: str = "toy dexycb sequences"
 
-    def job(self, number: int) -> tuple:
-        return (number, *self.jobs[number])
+    def job(self, number: int) -> ToyJob:
+        return self.jobs[number]
 
 
 def write_toy_dexycb(root: str | Path, mano_dir: Path, models_dir: Path, size: ToyDexYCBSize = ToyDexYCBSize(),
@@ -198,7 +214,8 @@ def write_toy_dexycb(root: str | Path, mano_dir: Path, models_dir: Path, size: T
     """
     root = Path(root)
     calib = write_calibration(root, size, np.random.default_rng(seed))
-    jobs = [(root, pos, s, q, size, calib, seed) for pos, s in enumerate(size.subjects) for q in range(size.sequences)]
+    pairs = [(pos, s, q) for pos, s in enumerate(size.subjects) for q in range(size.sequences)]
+    jobs = [ToyJob(n, root, pos, s, q, size, calib, seed) for n, (pos, s, q) in enumerate(pairs)]
     run = run_task(ToyTask(jobs, ToyWorkerSpec(Path(mano_dir), Path(models_dir)), Plan(len(jobs), 1)), workers,
                    progress=progress)
     return {"subjects": len(size.subjects), "sequences": len(jobs), "images": run.written}

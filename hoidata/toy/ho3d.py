@@ -28,9 +28,8 @@ import torch
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
-from hoidata.datasets.frame import project
 from hoidata.datasets.ho3d import VERSIONS as RGB_FORMAT
-from hoidata.geometry.crop import box_from_points
+from hoidata.geometry.crop import box_from_points, project
 from hoidata.hand.model import DEXYCB_TO_MANO
 from hoidata.hand.pose import change_frame
 from hoidata.objects import box_corners

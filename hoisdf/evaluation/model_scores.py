@@ -69,7 +69,7 @@ def mean_hand(store, mano, max_rows: int = BASELINE_ROWS, index=None) -> tuple[n
 
 def sample_meshes(objects: dict, names: list[str], mirrored) -> list[tuple[np.ndarray, np.ndarray]]:
     """Each sample's object mesh (vertices, faces) in the frame its ``object_pose`` poses: a mirrored record
-    poses the x-mirrored model (``hoidata.pipeline.records.mirror_frame``), so it gets the mirrored vertices with the
+    poses the x-mirrored model (``hoidata.records.records.mirror_frame``), so it gets the mirrored vertices with the
     faces flipped to stay outward wound. Meshes are shared between samples, not copied."""
     cache, out = {}, []
     for name, flip in zip(names, np.asarray(mirrored, bool)):

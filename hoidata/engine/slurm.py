@@ -8,7 +8,7 @@ ways in, all giving the same shards as one local run:
 - ``--launcher slurm``: :func:`submit_parts` submits the array through submitit (the ``cluster`` extra) and waits
   for every task; with ``--slurm-executor local`` the same tasks run as processes on this machine (a trial run).
 
-Whichever task finishes last writes the index (:func:`hoidata.pipeline.finish.finish_store`, serialised by a
+Whichever task finishes last writes the index (:func:`hoidata.records.store_writer.finish_store`, serialised by a
 lock, so tasks may finish in any order, and a rerun task or the launcher finds the index written and writes
 nothing).
 """

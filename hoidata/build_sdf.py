@@ -4,13 +4,14 @@ The unit of work is a shard: shard k holds the frames k*R .. (k+1)*R-1 of the re
 records per shard), so its content depends only on the frames and the record settings. Workers, parts
 (``--part i/N`` takes the shards with k % N == i) and resumed runs therefore produce byte-identical
 shards. A finished shard has a sidecar with its checksum; a resumed build keeps intact shards.
-When every planned shard is done, the zarr index is written (:mod:`hoidata.pipeline.finish`: by the last part to
+When every planned shard is done, the zarr index is written (:mod:`hoidata.records.store_writer`: by the last part to
 finish, whatever the order).
 
-build-sdf is a recipe on :mod:`hoidata.pipeline.engine`: :class:`BuildTask` plans the shards and says which are
-done; each worker process opens one :class:`hoidata.pipeline.worker.RecordWorker` (MANO, objects, mask renderers)
+build-sdf is a recipe on :mod:`hoidata.engine`: :class:`BuildTask` plans the shards, its store writer
+(:class:`hoidata.records.StoreWriter`) says which are done; each worker process opens one
+:class:`hoidata.records.RecordWorker` (MANO, objects, mask renderers)
 that builds and writes the shards it is given. The jobs run in a local process pool, or on another executor with
-the same contract (``executor``: :func:`hoidata.pipeline.ray_tasks.run_ray`); ``hoidata.pipeline.slurm`` submits
+the same contract (``executor``: :func:`hoidata.engine.ray_tasks.run_ray`); ``hoidata.engine.slurm`` submits
 the parts as a Slurm array.
 """
 
@@ -18,28 +19,28 @@ from __future__ import annotations
 
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 from hoidata import schema
 from hoidata.datasets.frame import Skip
 from hoidata.datasets.frame_list import frame_list_provenance, read_frame_list
 from hoidata.datasets.open import read_splits
+from hoidata.engine import Plan, RunSummary, run_task
 from hoidata.errors import DataError
-from hoidata.pipeline import fingerprint
-from hoidata.pipeline.engine import Plan, RunResult, run_task
-from hoidata.pipeline.finish import (  # noqa: F401 - git_commit, skip_groups: re-exported (the CLI, tests)
+from hoidata.records import (
+    BuildConfig,
+    RecordSettings,
+    RecordWorker,
+    RecordWorkerSpec,
+    ShardJob,
+    StoreTask,
+    StoreWriter,
+    build_inputs,
     describe_skips,
-    finish_store,
-    git_commit,
-    read_shard_skips,
     skip_dict,
-    skip_groups,
+    stated_count_warnings,
 )
-from hoidata.pipeline.records import RecordSettings
-from hoidata.pipeline.settings import BuildConfig, stated_count_warnings
-from hoidata.pipeline.store_shards import check_build_file, shards_done
-from hoidata.pipeline.worker import RecordWorker, RecordWorkerSpec, ShardJob
 
 
 def read_frames(cfg: BuildConfig, root: Path, mano_dir: Path,
@@ -54,70 +55,28 @@ def read_frames(cfg: BuildConfig, root: Path, mano_dir: Path,
 
 
 @dataclass
-class BuildSummary:
-    store: Path
-    frames: int = 0
-    records: int = 0
-    skipped: list = field(default_factory=list)  # frames skipped while building (every shard's, once the store is done)
-    reader_skipped: list = field(default_factory=list)  # frames the dataset reader left out, with their reasons
-    shards_written: int = 0
-    empty_shards: int = 0  # shards whose frames were all skipped
-    shards_kept: int = 0
-    seconds: float = 0.0
-    index_written: bool = False  # the store is complete: its index lists every shard
-    index_kept: bool = False  # ... and this run found it so (an earlier run or another part wrote it)
-    empty_splits: tuple = ()  # splits of dataset.splits without a frame: the store holds none of them
-
-    @property
-    def frames_per_second(self) -> float:
-        return self.records / self.seconds if self.seconds else 0.0
-
-    @classmethod
-    def of_run(cls, out: Path, run: RunResult) -> BuildSummary:
-        """The counts of an engine run (its units are store shards, its items frames)."""
-        return cls(out, frames=run.items, records=run.written, skipped=list(run.skipped),
-                   shards_written=run.units_written, empty_shards=run.empty_units, shards_kept=run.units_kept,
-                   seconds=run.seconds)
-
-
-@dataclass
-class BuildTask:
-    """build-sdf's task for :func:`hoidata.pipeline.engine.run_task`: shard n holds the frames n*R .. (n+1)*R-1
-    of the reader's order (``plan.per`` = R records per shard), built by a :class:`RecordWorker` per process."""
+class BuildTask(StoreTask):
+    """build-sdf's task for :func:`hoidata.engine.run_task`: shard n holds the frames n*R .. (n+1)*R-1 of the
+    reader's order (``plan.per`` = R records per shard), built by a :class:`RecordWorker` per process; the
+    :class:`StoreWriter` says which shards are done and refuses kept ones whose frames' files changed."""
 
     frames: list
     keys: list[str]
     settings: RecordSettings
-    out: Path
-    root: Path  # the dataset folder: the shards' skips files fingerprint the files their frames read
+    store: StoreWriter
     worker: RecordWorkerSpec
     plan: Plan
     desc: str = "build-sdf"
 
     def job(self, number: int) -> ShardJob:
         cut = slice(number * self.plan.per, (number + 1) * self.plan.per)
-        return ShardJob(number, self.frames[cut], self.keys[cut], self.settings, self.out, self.root)
-
-    def done(self, numbers: list[int], starting: bool) -> set[int]:
-        return shards_done(self.out, numbers, starting)
-
-    def check_kept(self, numbers: list[int]) -> None:
-        """Refuse kept shards whose frames' files changed since they were built."""
-        fingerprint.check_kept_inputs(lambda n: read_shard_skips(self.out, n).get("inputs", {}), numbers, self.root)
-
-
-def build_inputs(frames, root: Path, mano_dir: Path, models_dir: Path, upstream: bool = False) -> dict:
-    """What build.json pins besides settings and keys (see hoidata.pipeline.fingerprint); ``upstream``: the
-    models' whole folders (upstream's crop reads points.xyz too)."""
-    return {"mano": fingerprint.files(mano_dir, fingerprint.MANO_FILES),
-            "models": fingerprint.models(models_dir, {f.object_name for f in frames}, whole_folder=upstream),
-            "annotations": fingerprint.annotations(frames, root)}
+        return ShardJob(number, self.frames[cut], self.keys[cut], self.settings, self.store.out, self.store.root)
 
 
 def build_store(cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path, out: Path, workers: int = 1,
-                part: tuple[int, int] = (0, 1), progress: bool = True, executor=None) -> BuildSummary:
+                part: tuple[int, int] = (0, 1), progress: bool = True, executor=None) -> RunSummary:
     """Build (or resume) the store in `out`; see the module docstring (``executor``: what runs the shard jobs,
-    see :func:`hoidata.pipeline.engine.run_task`)."""
+    see :func:`hoidata.engine.run_task`). The summary counts frames (items) and shards (units)."""
     root, out, models_dir = Path(root), Path(out), Path(models_dir)
     start = time.perf_counter()
     frames, reader_skips = read_frames(cfg, root, Path(mano_dir), models_dir)
@@ -127,18 +86,15 @@ def build_store(cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path, 
     for line in stated_count_warnings(cfg.dataset, [f.split for f in frames]):
         print(line, file=sys.stderr)
     keys = [schema.record_key(f.dataset, f.split, f.frame_id) for f in frames]
-    check_build_file(out, cfg.as_dict(), keys, build_inputs(frames, root, Path(mano_dir), models_dir,
-                                                            cfg.record.crop == "upstream"))
-    task = BuildTask(frames, keys, cfg.record, out, root, RecordWorkerSpec(Path(mano_dir), models_dir,
-                                                                           cfg.record.crop_size),
-                     Plan(len(keys), cfg.store.records_per_shard))
-    run = run_task(task, workers, part, progress, executor)
-    summary = BuildSummary.of_run(out, run)
+    writer = StoreWriter(out, cfg.as_dict(), models_dir, root)
+    crops = cfg.record.crop_policy()
+    writer.pin(keys, build_inputs(frames, root, Path(mano_dir), models_dir, crops.reads_object_folders))
+    spec = RecordWorkerSpec(Path(mano_dir), models_dir, cfg.record.crop_size)
+    task = BuildTask(frames, keys, cfg.record, writer, spec, Plan(len(keys), cfg.store.records_per_shard))
+    summary = run_task(task, workers, part, progress, executor)
     summary.reader_skipped = [skip_dict(s) for s in reader_skips]
     summary.empty_splits = empty_splits(cfg.dataset.splits, frames)
-    if run.all_done:
-        summary.skipped = finish_store(out, cfg.as_dict(), models_dir, run.units, reader_skips, summary,
-                                       toolkit_provenance(cfg, root))
+    writer.finish(summary, reader_skips, toolkit_provenance(cfg, root))
     summary.seconds = time.perf_counter() - start
     return summary
 

@@ -16,9 +16,10 @@ import numpy as np
 import torch
 
 from hoidata import schema
-from hoidata.datasets.frame import Frame, project
+from hoidata.datasets.frame import Frame
 from hoidata.errors import DataError
 from hoidata.geometry import crop as crop_ops
+from hoidata.geometry.crop import project
 from hoidata.geometry.sampling import SdfSampling
 from hoidata.geometry.upstream_crop import pixel_affine
 from hoidata.geometry.mirror import (
@@ -29,8 +30,8 @@ from hoidata.geometry.mirror import (
     mirror_points,
     mirror_transform,
 )
-from hoidata.pipeline.upstream_records import crop_meta, region_view, upstream_view, uses_upstream_crop, uses_upstream_region
-from hoidata.pipeline.upstream_records import crop_box as upstream_crop_box
+from hoidata.records.upstream import CropPolicy, crop_meta, region_view, upstream_view
+from hoidata.records.upstream import crop_box as upstream_crop_box
 
 
 @dataclass(frozen=True)
@@ -39,8 +40,8 @@ class RecordSettings:
 
     crop_size: int = 512  # px: side of the stored square crop (img.jpg; masks and heatmap at half of it)
     context: float = crop_ops.DEFAULT_CONTEXT  # stored crop / hand-object box side: room for jitter, zoom, rotation
-    n_hand: int = 4096  # SDF samples per record around the hand surface (sdf.npy rows)
-    n_object: int = 2048  # SDF samples per record around the object surface
+    sdf_samples_hand: int = 4096  # SDF samples stored per record around the hand surface (sdf.npy rows)
+    sdf_samples_object: int = 2048  # SDF samples stored per record around the object surface
     uniform_fraction: float = 0.1  # fraction of each count drawn uniformly in the cube instead of near the surface
     cube: float = 0.64  # metres: side of the uniform-sample cube around the hand root
     sigmas: tuple[float, float] = (0.010, 0.003)  # metres: std of the two near-surface Gaussian offsets
@@ -52,23 +53,33 @@ class RecordSettings:
     # and object anchor in meta), what the released weights expect
     crop: str = "project"  # "project" | "upstream" (upstream HOISDF's exact test crop, docs/stores.md)
     crop_splits: tuple[str, ...] = ("test", "evaluation")  # splits whose records follow `crop` (others: "project")
-    # "project": the hand, object and uniform sets above; "deepsdf": the authors' AlignSDF/DeepSDF blocks, n_hand and
-    # n_object rows per entity in the frames' joint normalisation (hoidata.geometry.sampling_deepsdf, docs/stores.md)
+    # "project": the hand, object and uniform sets above; "deepsdf": the authors' AlignSDF/DeepSDF blocks,
+    # sdf_samples_hand and sdf_samples_object rows per entity in the frames' joint normalisation
+    # (hoidata.geometry.sampling_deepsdf, docs/stores.md)
     sdf_points: str = "project"  # "project" | "deepsdf"
     masks: str = "rendered"  # visible mask targets: "rendered" from the meshes | "dataset": the dataset's own masks
     # splits whose full records keep, in place of the crop, the original frame's file as shipped (frame.jpg / .png;
     # readers get its square at native resolution that upstream HOISDF's training augmentation samples) and
     # upstream's inputs to it (docs/stores.md)
     upstream_region: tuple[str, ...] = ()  # e.g. ["train"]; empty: off
-    LIMITS: ClassVar[dict] = {"crop_size": (">= 32", "<= 4096"), "context": ("> 0",), "n_hand": (">= 1",),
-                              "n_object": (">= 1",), "uniform_fraction": (">= 0", "<= 1"), "cube": ("> 0",),
+    LIMITS: ClassVar[dict] = {"crop_size": (">= 32", "<= 4096"), "context": ("> 0",), "sdf_samples_hand": (">= 1",),
+                              "sdf_samples_object": (">= 1",), "uniform_fraction": (">= 0", "<= 1"), "cube": ("> 0",),
                               "sigmas": ("> 0",), "part_radius": ("> 0",), "heatmap_sigma": ("> 0",)}
+
+    # old key -> its new name: an old key in a file or override is one line naming the new one, and a store whose
+    # build.json holds the old name resumes (hoidata.records.fingerprint.current_names)
+    RENAMED: ClassVar[dict] = {"n_hand": "sdf_samples_hand", "n_object": "sdf_samples_object"}
 
     def sdf_sampling(self) -> SdfSampling:
         """The SDF sampling settings of these record settings (the one place they are mapped)."""
-        return SdfSampling(n_hand=self.n_hand, n_object=self.n_object, uniform_fraction=self.uniform_fraction,
-                           cube=self.cube, sigmas=tuple(self.sigmas), part_radius=self.part_radius,
-                           backend=self.sdf_backend)
+        return SdfSampling(n_hand=self.sdf_samples_hand, n_object=self.sdf_samples_object,
+                           uniform_fraction=self.uniform_fraction, cube=self.cube, sigmas=tuple(self.sigmas),
+                           part_radius=self.part_radius, backend=self.sdf_backend)
+
+    def crop_policy(self) -> CropPolicy:
+        """Which crop each frame's record gets (the one place ``crop``, ``crop_splits`` and ``upstream_region`` are
+        read): :class:`hoidata.records.upstream.CropPolicy`."""
+        return CropPolicy(self.crop_size, self.crop == "upstream", tuple(self.crop_splits), tuple(self.upstream_region))
 
 
 @dataclass
@@ -196,14 +207,15 @@ def crop_view(raw: Frame, frame: Frame, obj: ObjectAsset, object_uv: np.ndarray,
 
     ``raw``: the frame as read; ``frame``: the same, mirrored when it is a left hand; ``object_uv`` (21, 2) and
     ``hand_uv`` (N, 2): the project crop's object and hand points in ``frame``'s pixels."""
-    if uses_upstream_crop(raw, settings):
+    crops = settings.crop_policy()
+    if crops.upstream_crop(raw):
         if obj.upstream_box21 is None:
             raise DataError(raw.image_path, "record.crop", f"no points.xyz box for {obj.name} (the upstream crop's)")
         view = upstream_view(raw, obj.upstream_box21)
         return {"img": view.image, "K": np.asarray(view.K, np.float64), "box": upstream_crop_box(view),
                 "to_pixels": pixel_affine(view.affine), "to_K": np.asarray(view.affine, np.float64),
                 "meta": crop_meta(view)}
-    if uses_upstream_region(raw, settings):
+    if crops.upstream_region(raw):
         region = region_view(raw, obj.upstream_box21)
         x0, y0 = region["meta"]["region_origin"]
         return {**region, "K": region["to_pixels"] @ frame.K, "box": np.array([x0, y0, region["img"].shape[0]]),

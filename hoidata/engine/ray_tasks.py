@@ -1,7 +1,7 @@
 """Ray as the executor of a build: every shard job a Ray task, on an existing cluster or a local Ray instance.
 
-:func:`run_ray` has :func:`hoidata.pipeline.pool.run_pool`'s signature and contract, so
-:func:`hoidata.pipeline.engine.run_task` hands it the same jobs: a shard's bytes depend only on its job, so a
+:func:`run_ray` has :func:`hoidata.engine.pool.run_pool`'s signature and contract, so
+:func:`hoidata.engine.engine.run_task` hands it the same jobs: a shard's bytes depend only on its job, so a
 Ray build writes the same shards as a local one, and resume (which shards to build) is decided before any task
 is submitted, the same way. Each task takes one CPU; a Ray worker process runs the job's initialiser (the engine
 opens the task's worker context: MANO, objects, renderer) once, before its first job. Ray is an optional
@@ -18,7 +18,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable, Iterator
 
 from hoidata.errors import WorkerError
-from hoidata.pipeline.pool import describe_failure
+from hoidata.engine.pool import describe_failure
 
 _STARTED: set[str] = set()  # in a Ray worker process: the initialisers already run here
 TASKS_PER_CPU = 2  # tasks kept in flight per cluster CPU (jobs carry their frames: not all at once)

@@ -6,14 +6,13 @@ penetration <= 2 mm and some hand vertex within 5 mm of the object, checked with
 signed distances), a view over the sphere at 0.45-0.55 m with HO-3D-like intrinsics, skin tone,
 lights, background, blur and noise. Each sample then becomes a record exactly as ``build-sdf`` makes
 them (crop, masks, heatmap, SDF samples, labels; ``dataset: synthetic`` with the source grasp in
-``source``), written by the same shard engine (:mod:`hoidata.pipeline.engine`, with :class:`SynthTask` and a
+``source``), written by the same shard engine (:mod:`hoidata.engine.engine`, with :class:`SynthTask` and a
 :class:`SynthWorker` per process): parallel, byte-identical whatever the number of workers, resumable,
 splittable with ``--part``.
 """
 
 from __future__ import annotations
 
-import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -21,15 +20,21 @@ import numpy as np
 import torch
 
 from hoidata import schema
-from hoidata.datasets.frame import Frame, Skip, project
+from hoidata.datasets.frame import Frame, Skip
+from hoidata.engine import Plan, RunSummary, run_task
 from hoidata.errors import DataError
+from hoidata.geometry.crop import project
 from hoidata.hand.pose import change_frame
-from hoidata.pipeline.engine import Plan, run_task
-from hoidata.pipeline.finish import extra_name, finish_store, read_shard_skips
-from hoidata.pipeline.records import RecordSettings
-from hoidata.pipeline.runner import BuildSummary
-from hoidata.pipeline.store_shards import check_build_file, shards_done
-from hoidata.pipeline.worker import RecordWorker, ShardJob
+from hoidata.records import (
+    RecordSettings,
+    RecordWorker,
+    ShardJob,
+    StoreTask,
+    StoreWriter,
+    extra_name,
+    fingerprint,
+    read_shard_skips,
+)
 from hoidata.synth import views
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp")
@@ -102,21 +107,20 @@ class SynthWorker:
             out = self.mano(torch.as_tensor(pose)[None], torch.as_tensor(betas)[None], torch.as_tensor(transl)[None])
         return out, self.mano.close(out.vertices)[0].double().numpy()
 
-    def run(self, job) -> tuple[int, int, list]:
+    def run(self, job: SynthJob) -> tuple[int, int, list]:
         """Render one shard's samples and write them as records; returns (number, records, skips)."""
-        number, indices, keys, seed, s, record, out = job
         frames, kept, rejected, attempts = [], [], [], 0
-        for index, key in zip(indices, keys):
+        for index, key in zip(job.indices, job.keys):
             try:
-                frame, n = make_sample(self, index, seed, s)
+                frame, n = make_sample(self, index, job.seed, job.settings)
                 frames.append(frame)
                 kept.append(key)
                 attempts += n
             except Rejected as e:
-                attempts += s.max_tries
-                rejected.append({"frame_id": f"{seed}_{index:08d}", "reason": str(e), "path": ""})
+                attempts += job.settings.max_tries
+                rejected.append({"frame_id": f"{job.seed}_{index:08d}", "reason": str(e), "path": ""})
         stats = {"attempts": attempts, "accepted": len(frames), "rejected_samples": rejected}
-        result = self.records.run(ShardJob(number, frames, kept, record, out, extra={"synthetic": stats}))
+        result = self.records.run(ShardJob(job.number, frames, kept, job.record, job.out, extra={"synthetic": stats}))
         return result[0], result[1], result[2] + rejected
 
     def close(self) -> None:
@@ -212,32 +216,43 @@ def check_count(count: int) -> None:
 
 
 @dataclass
-class SynthTask:
-    """render-synthetic's task for :func:`hoidata.pipeline.engine.run_task`: shard n holds samples n*R .. (n+1)*R-1."""
+class SynthJob:
+    """One shard to render: its sample indices and keys, the run's seed and settings, the store folder."""
 
+    number: int
+    indices: list[int]
     keys: list[str]
     seed: int
     settings: SynthSettings
     record: RecordSettings
     out: Path
+
+
+@dataclass
+class SynthTask(StoreTask):
+    """render-synthetic's task for :func:`hoidata.engine.run_task`: shard n holds samples n*R .. (n+1)*R-1."""
+
+    keys: list[str]
+    seed: int
+    settings: SynthSettings
+    record: RecordSettings
+    store: StoreWriter
     worker: SynthWorkerSpec
     plan: Plan
     desc: str = "render-synthetic"
 
-    def job(self, number: int) -> tuple:
+    def job(self, number: int) -> SynthJob:
         indices = list(range(number * self.plan.per, number * self.plan.per + self.plan.size(number)))
-        return number, indices, [self.keys[i] for i in indices], self.seed, self.settings, self.record, self.out
-
-    def done(self, numbers: list[int], starting: bool) -> set[int]:
-        return shards_done(self.out, numbers, starting)
+        return SynthJob(number, indices, [self.keys[i] for i in indices], self.seed, self.settings, self.record,
+                        self.store.out)
 
 
 def render_synthetic(source: Path, out: Path, count: int, mano_dir: Path, models_dir: Path, seed: int = 0,
                      backgrounds: Path | None = None, workers: int = 1, part: tuple[int, int] = (0, 1),
                      settings: SynthSettings = SynthSettings(), record: RecordSettings = RecordSettings(),
-                     records_per_shard: int = 256, progress: bool = True, executor=None) -> BuildSummary:
+                     records_per_shard: int = 256, progress: bool = True, executor=None) -> RunSummary:
     """Render `count` synthetic samples from the grasps of `source` into the store `out` (``executor``: what runs
-    the shard jobs, see :func:`hoidata.pipeline.engine.run_task`)."""
+    the shard jobs, see :func:`hoidata.engine.run_task`); the summary counts samples (items) and shards (units)."""
     import time
 
     from hoidata.hand import load_mano
@@ -255,20 +270,20 @@ def render_synthetic(source: Path, out: Path, count: int, mano_dir: Path, models
     # the source resolved: a resume with --source spelled another way (relative, absolute, a link) is the same run
     config = {"synthetic": asdict(settings), "record": asdict(record), "source": str(source.resolve()), "count": count,
               "seed": seed, "backgrounds": [Path(f).name for f in files], "records_per_shard": records_per_shard}
-    check_build_file(out, json.loads(json.dumps(config)), keys, _inputs(grasps, mano_dir, models_dir, files))
+    writer = StoreWriter(out, config, Path(models_dir))
+    writer.pin(keys, _inputs(grasps, mano_dir, models_dir, files))
     spec = SynthWorkerSpec(Path(mano_dir), Path(models_dir), source, tuple(files), record.crop_size)
-    run = run_task(SynthTask(keys, seed, settings, record, out, spec, Plan(count, records_per_shard)), workers, part,
-                   progress, executor)
-    summary = BuildSummary.of_run(out, run)
-    if run.all_done:
-        stats = [_shard_stats(out, n) for n in run.units]
+    summary = run_task(SynthTask(keys, seed, settings, record, writer, spec, Plan(count, records_per_shard)), workers,
+                       part, progress, executor)
+    rejected, provenance = [], None
+    if summary.all_done:
+        stats = [_shard_stats(out, n) for n in summary.units]
         attempts = sum(st["attempts"] for st in stats)
         accepted = sum(st["accepted"] for st in stats)
-        synth = {"source_grasps": len(grasps), "attempts": attempts, "accepted": accepted,
-                 "rejection_rate": round(1.0 - accepted / attempts, 4) if attempts else 0.0}
+        provenance = {"synthetic": {"source_grasps": len(grasps), "attempts": attempts, "accepted": accepted,
+                                    "rejection_rate": round(1.0 - accepted / attempts, 4) if attempts else 0.0}}
         rejected = [Skip(r["frame_id"], r["reason"], r["path"]) for st in stats for r in st["rejected_samples"]]
-        summary.skipped = finish_store(out, config, Path(models_dir), run.units, rejected, summary,
-                                       provenance={"synthetic": synth})
+    writer.finish(summary, rejected, provenance)
     summary.seconds = time.perf_counter() - start
     return summary
 
@@ -283,10 +298,8 @@ def _shard_stats(out: Path, number: int) -> dict:
 
 def _inputs(grasps, mano_dir: Path, models_dir: Path, backgrounds: list[str]) -> dict:
     """What build.json pins besides the settings: the MANO file, the rendered object folders, the grasps and
-    the background images (see hoidata.pipeline.fingerprint)."""
+    the background images (see hoidata.records.fingerprint)."""
     import hashlib
-
-    from hoidata.pipeline import fingerprint
 
     digest = hashlib.sha256()
     for g in grasps:

@@ -15,7 +15,7 @@ from typing import ClassVar
 from hoidata.datasets.dexycb import DexYCBSetting
 from hoidata.errors import DataError
 from hoidata.geometry.sdf import BACKENDS as SDF_BACKENDS
-from hoidata.pipeline.records import RecordSettings
+from hoidata.records.records import RecordSettings
 from hoidata.sections import (
     check_sections,
     origin,
@@ -110,7 +110,7 @@ def load_build_config(name_or_path: str, overrides: list[str] = ()) -> BuildConf
 def _check_crop(record: RecordSettings, dataset: DatasetConfig, path: Path) -> None:
     """record.crop names a crop; upstream's HO-3D test crop exists for its evaluation split only (its training
     split has no upstream test crop to reproduce)."""
-    from hoidata.pipeline.upstream_records import CROPS
+    from hoidata.records.upstream import CROPS
 
     if record.crop not in CROPS:
         raise DataError(path, "record.crop", f"expected one of {CROPS}, got {record.crop!r}")

@@ -2,7 +2,7 @@
 
 :class:`RecordWorker` holds what build-sdf, render-synthetic and export load once per process (the MANO layers,
 the repaired objects, the mask renderers by record size) and builds one frame's record; it is build-sdf's worker
-context for :mod:`hoidata.pipeline.engine` (``run(job)`` builds and writes one :class:`ShardJob`), and the other
+context for :mod:`hoidata.engine.engine` (``run(job)`` builds and writes one :class:`ShardJob`), and the other
 pipelines' contexts hold one. :class:`RecordWorkerSpec` is the small picklable spec the engine sends to a worker
 process to open it there.
 """
@@ -17,9 +17,9 @@ import numpy as np
 from hoidata import store
 from hoidata.atomic import write_json_atomic
 from hoidata.errors import DataError
-from hoidata.pipeline import fingerprint
-from hoidata.pipeline.finish import extra_name
-from hoidata.pipeline.records import ObjectAsset
+from hoidata.records import fingerprint
+from hoidata.records.store_writer import extra_name
+from hoidata.records.records import ObjectAsset
 
 
 def load_object_asset(models_dir: Path, name: str, upstream: bool = False) -> ObjectAsset:
@@ -114,15 +114,15 @@ class RecordWorker:
     def record(self, frame, key: str, settings, source=None) -> dict:
         """One frame's encoded record members; ``source`` (when given) replaces ``frame.source`` in the stored meta
         only: the frame keeps the paths its files are read from."""
-        from hoidata.pipeline.records import build_eval_record, build_record
-        from hoidata.pipeline.upstream_records import record_size
+        from hoidata.records.records import build_eval_record, build_record
 
-        obj = self.object_asset(frame.object_name, settings.crop == "upstream" or bool(settings.upstream_region))
+        crops = settings.crop_policy()
+        obj = self.object_asset(frame.object_name, crops.needs_points)
         if not frame.has_hand_pose:  # e.g. HO-3D's evaluation split: no hand mesh, so no masks or SDF
             rec = build_eval_record(frame, obj, key, settings)
         else:
             mano = self.hand_model(frame.side, frame.fix_left_shapedirs)  # the model the labels were made with
-            rec = build_record(frame, mano, obj, self.renderer(record_size(frame, settings, obj.upstream_box21)), key,
+            rec = build_record(frame, mano, obj, self.renderer(crops.record_size(frame, obj.upstream_box21)), key,
                                settings)
         if source is not None:
             rec["meta"]["source"] = source

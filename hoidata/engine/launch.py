@@ -1,7 +1,7 @@
 """Where the shard jobs of a part-splittable command run: ``--launcher local | slurm | ray``.
 
 - ``local`` (default): this process and a pool of ``--workers`` processes; ``--part`` explicit, else taken from a
-  Slurm array task's environment (:func:`hoidata.pipeline.slurm.array_part`), else the whole job.
+  Slurm array task's environment (:func:`hoidata.engine.slurm.array_part`), else the whole job.
 - ``slurm``: ``--slurm-array N`` parts submitted as one job array through submitit, each task a pool of
   ``--slurm-cpus`` workers; waits for them, or with ``--dry-run`` prints the equivalent ``sbatch`` line.
 - ``ray``: every shard job a Ray task on the cluster at ``--ray-address`` (a local Ray instance of ``--workers``
@@ -22,13 +22,14 @@ import time
 from collections.abc import Callable
 
 from hoidata.errors import DataError
-from hoidata.pipeline import slurm
+from hoidata.engine import slurm
+from hoidata.engine.engine import RunSummary
 
 LAUNCHERS = ("local", "slurm", "ray")
 # what an array task's command line leaves out: where the jobs run, and the part and workers (the task's own)
 _NOT_FORWARDED = {"launcher", "ray_address", "slurm_array", "slurm_partition", "slurm_cpus", "slurm_time",
                   "slurm_extra", "slurm_executor", "dry_run", "part", "workers", "help"}
-_SUMMED = ("records", "shards_written", "shards_kept", "chunks_written", "chunks_kept")  # this run's counts
+_SUMMED = ("written", "units_written", "units_kept")  # this run's counts (RunSummary)
 
 
 def add_launcher_flags(parser: argparse.ArgumentParser, count_type) -> None:
@@ -109,22 +110,20 @@ def require_sbatch(executor: str) -> None:
                                     "local runs the parts here")
 
 
-def merge(summaries: list):
-    """One summary of an array's parts: the finisher's (whole-store skips, index state) with this run's counts
-    summed over the parts."""
-    base = next((s for s in summaries if getattr(s, "index_written", False) or getattr(s, "finished", False)),
-                summaries[-1])
-    counts = {f.name: sum(getattr(s, f.name) for s in summaries) for f in dataclasses.fields(base) if f.name in _SUMMED}
-    return dataclasses.replace(base, **counts)
+def merge(summaries: list[RunSummary]) -> RunSummary:
+    """One summary of an array's parts: the finisher's (whole-output skips, the last step's state) with this run's
+    counts summed over the parts."""
+    base = next((s for s in summaries if s.finished), summaries[-1])
+    return dataclasses.replace(base, **{name: sum(getattr(s, name) for s in summaries) for name in _SUMMED})
 
 
-def launch(args, task: Callable, command: str, finished: Callable = lambda s: s.index_written):
+def launch(args, task: Callable, command: str) -> RunSummary | None:
     """Run ``task`` where ``args`` says; returns its summary (None after ``--dry-run``)."""
     if args.launcher != "slurm":
         part = slurm.resolve_part(args.part)
         executor = None
         if args.launcher == "ray":
-            from hoidata.pipeline.ray_tasks import run_ray
+            from hoidata.engine.ray_tasks import run_ray
 
             executor = functools.partial(run_ray, address=args.ray_address)
         return task(workers=args.workers, part=part, executor=executor)
@@ -137,9 +136,9 @@ def launch(args, task: Callable, command: str, finished: Callable = lambda s: s.
     require_sbatch(options.executor)
     start = time.perf_counter()
     summary = merge(slurm.submit_parts(task, options, args.out, f"hoidata-{command}"))
-    if not finished(summary):  # every part ran, yet none saw the others' files (a lagging shared filesystem)
+    if not summary.finished:  # every part ran, yet none saw the others' files (a lagging shared filesystem)
         print("every part finished; checking the store and writing the index here", flush=True)
         final = task(workers=options.cpus, part=(0, 1), executor=None)
-        summary = dataclasses.replace(final, **{k: getattr(summary, k) for k in _SUMMED if hasattr(summary, k)})
+        summary = dataclasses.replace(final, **{k: getattr(summary, k) for k in _SUMMED})
     summary.seconds = time.perf_counter() - start
     return summary

@@ -1,7 +1,7 @@
 """The shard engine: plans, resumes, runs and reports any work cut into numbered units.
 
 Every pipeline that writes its output in independent units (build-sdf's and render-synthetic's store shards,
-export's chunks, the toy writer's sequences) hands :func:`run_task` one task object (:class:`ShardTask`):
+export's chunks, the toy writer's sequences) hands :func:`run_task` one task object, a :class:`ShardTask`:
 
 - ``plan``: a :class:`Plan`, the number of items (frames, samples, sequences) and the items per unit; unit k
   holds the items k*per .. (k+1)*per-1, so a unit's content depends only on its items, never on the workers,
@@ -11,15 +11,18 @@ export's chunks, the toy writer's sequences) hands :func:`run_task` one task obj
 - ``worker``: a small picklable, hashable spec (a frozen dataclass) whose ``open()`` returns the worker context:
   the per-process state (models, caches, renderers) with ``run(job) -> (number, items written, skips)`` and
   ``close()``;
-- optional ``done(numbers, starting) -> set[int]``: which of these units are already done. ``starting``: the
-  call before this run's work, with this part's units only (the task may clear their leftovers of a killed
-  run); else the call after it, with every unit of the plan, while other parts may still be writing (read
-  only). Without it no unit is done before the run, and the run is complete when it ran every unit;
-- optional ``check_kept(numbers)``: may refuse the units a resumed run keeps (inputs that changed since).
+- ``done(numbers, starting) -> set[int]``: which of these units are already done. ``starting``: the call before
+  this run's work, with this part's units only (the task may clear their leftovers of a killed run); else the
+  call after it, with every unit of the plan, while other parts may still be writing (read only). The base's
+  default: none (no resume; the run is complete when it ran every unit);
+- ``check_kept(numbers)``: may refuse the units a resumed run keeps (inputs that changed since); the base's
+  default refuses none.
+
+:func:`run_task` returns a :class:`RunSummary`, the one summary every recipe reports (its own counts beside).
 
 Where the jobs run: with ``workers <= 1`` and no ``executor``, here, in order, in one worker context that the
 engine closes when the run ends (also on an error). Otherwise in ``executor(fn, jobs, workers, init, initargs)``
-(default :func:`hoidata.pipeline.pool.run_pool`; :func:`hoidata.pipeline.ray_tasks.run_ray` has the same
+(default :func:`hoidata.engine.pool.run_pool`; :func:`hoidata.engine.ray_tasks.run_ray` has the same
 contract), whose processes each open the task's worker context once, before their first job, keep it in this
 module's registry (``_OPEN``, the only place a task's per-process state is kept) and close it when the process
 exits normally (best effort: ``multiprocessing``'s exit finalisers in a pool worker, ``atexit`` elsewhere; a
@@ -33,12 +36,13 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import partial
+from pathlib import Path
 from typing import Protocol, runtime_checkable
 
 from tqdm import tqdm
 
 from hoidata.errors import WorkerError
-from hoidata.pipeline.pool import describe_failure
+from hoidata.engine.pool import describe_failure
 
 
 @dataclass(frozen=True)
@@ -75,34 +79,59 @@ class WorkerContext(Protocol):
     def close(self) -> None: ...
 
 
-@runtime_checkable
-class ShardTask(Protocol):
-    """What a pipeline hands the engine (see the module docstring; ``done`` and ``check_kept`` are optional)."""
+class ShardTask:
+    """What a recipe hands the engine (see the module docstring): a subclass sets ``plan``, ``desc`` and ``worker``
+    (usually as dataclass fields) and defines ``job``; ``done`` and ``check_kept`` have no-op defaults."""
 
     plan: Plan
     desc: str
     worker: object  # picklable, hashable; worker.open() -> WorkerContext
 
-    def job(self, number: int): ...
+    def job(self, number: int):
+        """Unit ``number``'s picklable job (a dataclass), made here and sent to the worker that runs it."""
+        raise NotImplementedError(f"{type(self).__name__} defines no job()")
+
+    def done(self, numbers: list[int], starting: bool) -> set[int]:
+        """The units of ``numbers`` already done (default: none; see the module docstring)."""
+        return set()
+
+    def check_kept(self, numbers: list[int]) -> None:
+        """Refuse to keep these done units (a DataError), e.g. when their inputs changed; default: keep them."""
 
 
-@dataclass
-class RunResult:
-    """What one run did (this part's units), and whether every unit of every part is done."""
+@dataclass(slots=True)  # a misspelt field is an error, not a new attribute
+class RunSummary:
+    """What one run of a recipe did (this part's units), and whether its output is complete: the engine fills the
+    counts, the recipe its own fields (``out``, the reader's skips, the last step's state and files).
 
-    units: list[int]  # every unit number of the plan, all parts
-    items: int  # items of the whole plan
-    written: int = 0  # items the units of this run wrote (records, frames, images)
-    skipped: list = field(default_factory=list)  # the skips this run's units reported
+    Units are what the recipe writes independently (store shards, export chunks, toy sequences), items what a
+    unit holds (frames, samples, sequences)."""
+
+    out: Path | None = None  # the store or folder written
+    units: list[int] = field(default_factory=list)  # every unit number of the plan, all parts
+    items: int = 0  # items of the whole plan
+    written: int = 0  # items the units of this run wrote (records, exported frames, images)
+    skipped: list = field(default_factory=list)  # items skipped (by this run's units; every unit's once finished)
+    reader_skipped: list = field(default_factory=list)  # frames the dataset reader left out, with their reasons
     units_written: int = 0
-    empty_units: int = 0  # units of this run that wrote no item
+    empty_units: int = 0  # units that wrote no item (this run's; every unit's once finished)
     units_kept: int = 0  # units of this part already done before the run
     seconds: float = 0.0
     all_done: bool = False  # every unit of the plan is done (this part's and the others')
+    finished: bool = False  # ... and the recipe's last step is written (a store's index, an export's annotations)
+    finish_kept: bool = False  # ... by an earlier run or another part: this run found it so and wrote nothing
+    empty_splits: tuple = ()  # splits asked for without a frame: the output holds none of them
+    files: list = field(default_factory=list)  # what the last step wrote (relative to ``out``)
+    notes: list = field(default_factory=list)  # lines for the user
+    extra: dict = field(default_factory=dict)  # the recipe's own counts (export: {"sdf_sources": ...})
+
+    @property
+    def items_per_second(self) -> float:
+        return self.written / self.seconds if self.seconds else 0.0
 
 
 def run_task(task: ShardTask, workers: int = 1, part: tuple[int, int] = (0, 1), progress: bool = True,
-             executor: Callable | None = None) -> RunResult:
+             executor: Callable | None = None) -> RunSummary:
     """Run the units of ``task`` that ``part`` owns and that are not done yet; returns what the run did.
 
     Args:
@@ -111,16 +140,15 @@ def run_task(task: ShardTask, workers: int = 1, part: tuple[int, int] = (0, 1), 
         part: ``(i, N)``: this run does the units with number % N == i.
         progress: show a progress bar (the plan's items, with the rate of items written per second).
         executor: ``executor(fn, jobs, workers, init, initargs)`` yielding ``fn(job)`` per job (default
-            :func:`hoidata.pipeline.pool.run_pool`).
+            :func:`hoidata.engine.pool.run_pool`).
     """
     start = time.perf_counter()
-    plan, done = task.plan, getattr(task, "done", None)
+    plan = task.plan
     owned = plan.owned(part)
-    kept = done(owned, True) if done is not None else set()
+    kept = task.done(owned, True)
     mine = [n for n in owned if n not in kept]
-    if getattr(task, "check_kept", None) is not None:
-        task.check_kept([n for n in owned if n in kept])
-    result = RunResult(plan.units, plan.items, units_kept=len(owned) - len(mine))
+    task.check_kept([n for n in owned if n in kept])
+    result = RunSummary(units=plan.units, items=plan.items, units_kept=len(owned) - len(mine))
     bar = tqdm(total=sum(plan.size(n) for n in mine), desc=task.desc, unit="item", disable=not progress)
     results = _results(task, [task.job(n) for n in mine], workers, executor) if mine else iter(())
     try:
@@ -130,10 +158,9 @@ def run_task(task: ShardTask, workers: int = 1, part: tuple[int, int] = (0, 1), 
         if hasattr(results, "close"):
             results.close()  # an interrupted run: the serial context is closed now, the pool's workers stopped
     result.seconds = time.perf_counter() - start
-    if done is not None:
-        result.all_done = done(plan.units, False) >= set(plan.units)
-    else:
-        result.all_done = len(mine) == len(plan.units)
+    # done before, written now, or reported done now (another part's): a task without done() is complete when this
+    # run wrote every unit
+    result.all_done = set(kept) | set(mine) | task.done(plan.units, False) >= set(plan.units)
     return result
 
 
@@ -148,7 +175,7 @@ def _results(task: ShardTask, jobs: list, workers: int, executor: Callable | Non
             context.close()
         return
     if executor is None:
-        from hoidata.pipeline.pool import run_pool as executor
+        from hoidata.engine.pool import run_pool as executor
     yield from executor(partial(_run_in_process, task.worker), jobs, workers, _open_in_process, (task.worker,))
 
 
@@ -162,7 +189,7 @@ def open_worker(spec) -> WorkerContext:
         raise WorkerError(None, None, describe_failure(type(spec).open, exc)) from exc
 
 
-def _tally(results, plan: Plan, result: RunResult, bar, start: float) -> None:
+def _tally(results, plan: Plan, result: RunSummary, bar, start: float) -> None:
     for number, written, skips in results:
         result.written += written
         result.units_written += 1

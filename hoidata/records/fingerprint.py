@@ -180,6 +180,18 @@ def first_difference(old, new, prefix: str = "") -> str | None:
     return None if old == new else prefix
 
 
+def current_names(spec, renamed: dict[str, str], section: str = "record"):
+    """``spec`` (a ``build.json`` or ``export.json`` as read) with the settings of ``config[section]`` that were
+    renamed since (``renamed``: old name -> new name) under their new names, so that a store or export started
+    before a rename compares equal to the same settings today and resumes; anything else is returned as it is."""
+    config = spec.get("config") if isinstance(spec, dict) else None
+    table = config.get(section) if isinstance(config, dict) else None
+    if not isinstance(table, dict) or not set(renamed) & set(table):
+        return spec
+    table = {renamed.get(key, key): value for key, value in table.items()}
+    return {**spec, "config": {**config, section: table}}
+
+
 def describe_difference(where: str, what: str = "store") -> str:
     """Plain words for a first_difference path of build.json (or an export's export.json: ``what`` "export")."""
     head, _, rest = where.partition(".")
@@ -205,3 +217,12 @@ def check_kept_inputs(read_stamps, numbers, root: Path) -> None:
             raise DataError(Path(root) / name, None, f"changed since shard {number} of this store was built from it; "
                                                       "resuming would mix old and new records: use a new --out "
                                                       "folder (nothing was changed)")
+
+
+def build_inputs(frames, root: Path, mano_dir: Path, models_dir: Path, whole_folders: bool = False) -> dict:
+    """What a store's ``build.json`` (and an export's ``export.json``) pins besides settings and keys: the MANO
+    files, the frames' object models (``whole_folders``: every file of their folders, for upstream's crop, which
+    reads points.xyz too) and the frames' annotations."""
+    return {"mano": files(mano_dir, MANO_FILES),
+            "models": models(models_dir, {f.object_name for f in frames}, whole_folder=whole_folders),
+            "annotations": annotations(frames, root)}

@@ -17,6 +17,7 @@ mesh the project's crop uses.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -32,25 +33,44 @@ HAND_GRID_FACTOR = {"dexycb": 1.1, "ho3d": 1.2}
 REGION_STEP = 64  # px: a record.upstream_region square's side is a multiple of this
 
 
-def uses_upstream_crop(frame: Frame, settings) -> bool:
-    """Whether ``frame`` gets upstream's crop under the record settings (``crop``, ``crop_splits``)."""
-    return settings.crop == "upstream" and frame.split in settings.crop_splits
+@dataclass(frozen=True)
+class CropPolicy:
+    """Which crop each frame's record gets, chosen once from the ``[record]`` settings
+    (:meth:`hoidata.records.RecordSettings.crop_policy`; nothing downstream reads ``record.crop`` again): upstream's
+    test crop, the frame region upstream's training warp samples, or the project's crop of ``crop_size`` px."""
 
+    crop_size: int  # px: the project's crop
+    upstream: bool = False  # record.crop = "upstream": its splits' records are upstream's test crop
+    upstream_splits: tuple[str, ...] = ()  # record.crop_splits, under record.crop = "upstream"
+    region_splits: tuple[str, ...] = ()  # record.upstream_region
 
-def uses_upstream_region(frame: Frame, settings) -> bool:
-    """Whether ``frame``'s record keeps the frame region upstream's training warp samples (``upstream_region``:
-    the splits; labelled frames only)."""
-    return frame.split in settings.upstream_region and frame.has_hand_pose
+    def upstream_crop(self, frame: Frame) -> bool:
+        """Whether ``frame`` gets upstream's test crop."""
+        return self.upstream and frame.split in self.upstream_splits
 
+    def upstream_region(self, frame: Frame) -> bool:
+        """Whether ``frame``'s record keeps the frame region upstream's training warp samples (labelled frames)."""
+        return frame.split in self.region_splits and frame.has_hand_pose
 
-def record_size(frame: Frame, settings, box3d: np.ndarray | None = None) -> int:
-    """Side (px) of the frame's stored crop: upstream's 256 px input, the frame region's side (record.upstream_region;
-    ``box3d``: the object's upstream 21-point box), or ``settings.crop_size``."""
-    if uses_upstream_crop(frame, settings):
-        return up.INPUT_SIZE
-    if uses_upstream_region(frame, settings):
-        return region_square(frame, box3d)[2]
-    return settings.crop_size
+    @property
+    def needs_points(self) -> bool:
+        """Whether records may need an object's ``points.xyz`` box (upstream's crop or region)."""
+        return self.upstream or bool(self.region_splits)
+
+    @property
+    def reads_object_folders(self) -> bool:
+        """Whether a build reads more of an object's folder than its mesh (upstream's crop reads points.xyz): the
+        store's fingerprint then hashes the whole folders."""
+        return self.upstream
+
+    def record_size(self, frame: Frame, box3d: np.ndarray | None = None) -> int:
+        """Side (px) of the frame's stored crop: upstream's 256 px input, the frame region's side (``box3d``: the
+        object's upstream 21-point box), or ``crop_size``."""
+        if self.upstream_crop(frame):
+            return up.INPUT_SIZE
+        if self.upstream_region(frame):
+            return region_square(frame, box3d)[2]
+        return self.crop_size
 
 
 def decode_as_upstream(frame: Frame, data: bytes | None = None):

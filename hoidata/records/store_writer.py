@@ -1,24 +1,39 @@
-"""The end of a build: per-shard skips files, skip summaries, and the index written once every shard is done.
+"""The one store writer of the recipes that write store shards (build-sdf, render-synthetic): the parent's side of a
+store, from its first file to its last.
 
-:func:`finish_store` is what the last process to finish a store's shards calls (whichever part, node or engine
-that is): it is safe to call from many processes at once (see its docstring).
+- ``build.json`` pins a store folder to its settings, record keys and input fingerprints (:func:`check_build_file`;
+  a resume with others is refused, naming the first difference);
+- which shards are done (:func:`shards_done`: intact on disk, with a skips file that agrees), for the engine's
+  resume, and whether the files a kept shard was built from changed since (:mod:`hoidata.records.fingerprint`);
+- the per-shard skips files and their summaries; the index, written once every shard is done, by whichever
+  process finishes last (:func:`finish_store`: safe to call from many processes at once, see its docstring);
+- the run's :class:`~hoidata.engine.RunSummary`, completed with the store's state.
+
+:class:`StoreWriter` holds the four for one store; :class:`StoreTask` is the engine task base of a recipe that
+writes one.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 from hoidata import schema, store
+from hoidata.atomic import write_json_atomic
+from hoidata.engine import RunSummary, ShardTask
 from hoidata.errors import DataError
-from hoidata.provenance import git_commit  # the runner also names it from here
+from hoidata.provenance import git_commit
+from hoidata.records import fingerprint
+from hoidata.records.records import RecordSettings
+
+BUILD_FILE = "build.json"
 
 
 def extra_name(number: int) -> str:
     """The name of shard ``number``'s skips file (beside its tar and sidecar)."""
     return f"shard-{number:06d}.skips.json"
-
 
 
 def read_shard_skips(out: Path, number: int) -> dict:
@@ -80,14 +95,14 @@ def finish_store(out: Path, config: dict, models_dir: Path, numbers: list[int], 
     if not sum(info.count for info in infos):
         raise DataError(out, None, f"no records: every frame was skipped while building; "
                                    f"{describe_skips(build_skips, 'skipped')}")
-    summary.index_kept = True  # the index already lists these shards: nothing to write (a read-only rerun)
+    summary.finish_kept = True  # the index already lists these shards: nothing to write (a read-only rerun)
     if not _index_lists(out, infos):
         with store.index_lock(out):
             if not _index_lists(out, infos):  # nobody wrote it while this process waited for the lock
                 write_store_index(out, config, models_dir, numbers, reader_skips, provenance)
-                summary.index_kept = False
-    summary.index_written = True
-    summary.empty_shards = sum(info.count == 0 for info in infos)
+                summary.finish_kept = False
+    summary.finished = True
+    summary.empty_units = sum(info.count == 0 for info in infos)
     return build_skips
 
 
@@ -130,3 +145,91 @@ def write_store_index(out: Path, config: dict, models_dir: Path, numbers: list[i
         meshes[name] = (simple.vertices, simple.faces)
     labels = store.index_labels(metas)
     store.write_index(out, shards, labels, meshes, skipped, config, {"git_commit": git_commit(), **(provenance or {})})
+
+
+def check_build_file(out: Path, config: dict, keys: list[str], inputs: dict) -> None:
+    """Pin a new store folder to ``config``, the record ``keys`` and the ``inputs``' fingerprints (writes
+    ``build.json``); refuse to resume into a store built with other settings, frames or inputs (it would mix
+    records), naming the first difference."""
+    spec = {"config": config, "keys_sha256": hashlib.sha256("\n".join(keys).encode()).hexdigest(),
+            "frames": len(keys), "schema_version": schema.SCHEMA_VERSION, "inputs": inputs}
+    spec = json.loads(json.dumps(spec))
+    path = Path(out) / BUILD_FILE
+    if path.is_file():
+        try:
+            old = json.loads(path.read_text())
+        except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:  # RecursionError: nested too deeply
+            raise DataError(path, None, f"unreadable ({type(exc).__name__}: {exc}); use a new --out folder") from None
+        where = fingerprint.first_difference(fingerprint.current_names(old, RecordSettings.RENAMED), spec)
+        if where is not None:
+            raise DataError(path, where, f"{fingerprint.describe_difference(where)}; resuming would mix records: "
+                                         "use a new --out folder (nothing was changed)")
+    else:
+        Path(out).mkdir(parents=True, exist_ok=True)
+        write_json_atomic(path, spec)
+
+
+def shards_done(out: Path, numbers: list[int], starting: bool) -> set[int]:
+    """The shards of ``numbers`` that are done: intact on disk (size and sidecar; with ``starting`` also their
+    bytes) and with a readable skips file that agrees with the sidecar (a lost or damaged one makes the shard be
+    built again: the same bytes). ``starting``: the engine's call before a run, with this part's shards only, which
+    also clears their leftovers of a killed run; else the call after it, while other parts may still be writing."""
+    plan = [store.ShardInfo(n, store.shard_name(n), None) for n in numbers]  # counts open: skipped frames shorten
+    complete = store.completed_shards(out, plan, clean=starting, check_bytes=starting)
+    return {n for n in complete if _skips_agree(out, n)}
+
+
+def _skips_agree(out: Path, number: int) -> bool:
+    try:
+        return read_shard_skips(out, number)["records"] == store.read_sidecar(out, number).count
+    except DataError:
+        return False
+
+
+@dataclass(frozen=True)
+class StoreWriter:
+    """One store's parent side (see the module docstring): ``out`` the store folder, ``config`` the settings its
+    ``build.json`` and index record, ``models_dir`` the object models (the index's simplified meshes), ``root`` the
+    dataset folder whose files the shards' skips files stamp (None: nothing to check on resume)."""
+
+    out: Path
+    config: dict
+    models_dir: Path
+    root: Path | None = None
+
+    def pin(self, keys: list[str], inputs: dict) -> None:
+        """Write ``build.json`` into a new store folder, or refuse a store built with other settings, keys or
+        inputs (:func:`check_build_file`)."""
+        check_build_file(self.out, self.config, keys, inputs)
+
+    def done(self, numbers: list[int], starting: bool) -> set[int]:
+        """The engine's ``done``: :func:`shards_done`."""
+        return shards_done(self.out, numbers, starting)
+
+    def check_kept(self, numbers: list[int]) -> None:
+        """Refuse kept shards whose frames' files changed since they were built (with a ``root``)."""
+        if self.root is not None:
+            fingerprint.check_kept_inputs(lambda n: read_shard_skips(self.out, n).get("inputs", {}), numbers,
+                                          self.root)
+
+    def finish(self, run: RunSummary, reader_skips: list, provenance: dict | None = None) -> RunSummary:
+        """``run`` as the store's summary: its folder and, once every shard is done, the index written (or found
+        written) and every shard's skips (:func:`finish_store`)."""
+        run.out = self.out
+        if run.all_done:
+            run.skipped = finish_store(self.out, self.config, self.models_dir, run.units, reader_skips, run,
+                                       provenance)
+        return run
+
+
+class StoreTask(ShardTask):
+    """An engine task that writes the shards of one store: a subclass has a ``store`` (:class:`StoreWriter`), which
+    says which shards are done and which kept ones to refuse."""
+
+    store: StoreWriter
+
+    def done(self, numbers: list[int], starting: bool) -> set[int]:
+        return self.store.done(numbers, starting)
+
+    def check_kept(self, numbers: list[int]) -> None:
+        self.store.check_kept(numbers)
