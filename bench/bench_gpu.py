@@ -8,7 +8,8 @@ Two steps, because the GPU machine has torch but not the data packages (webdatas
 
    builds a toy DexYCB store (512 px crops), draws 3 batches of 22 with the full-size model's settings, applies
    the training augmentation (2 training batches) and the test-time crop (1 batch of test inputs), and saves
-   them (images as uint8) with the model and loss settings and the toy MANO files: about 20 MB;
+   them (images as uint8) with the model and loss settings and the toy MANO files: about 20 MB (``--config`` and
+   trailing ``section.key=value`` overrides choose another model: the test suite's smoke run uses a tiny one);
 
 2. on the GPU machine, with only torch, numpy and scipy (``run`` imports no data code)::
 
