@@ -1,6 +1,6 @@
 """Cluster engines and remote stores, side by side in one run: what they cost over the local tools.
 
-Usage: python -m bench.bench_cluster [--frames 192] [--records-per-shard 8] [--rounds 3] [--json out.json]
+Usage: python -m bench.bench_cluster [--frames 192] [--records-per-shard 8] [--rounds 3] [--passes 3] [--json out.json]
        [--root DIR]  (an existing toy DexYCB with its mano and models folders, instead of writing one)
 
 1. build-sdf wall time on the same toy DexYCB frames (default record settings) with
@@ -10,8 +10,8 @@ Usage: python -m bench.bench_cluster [--frames 192] [--records-per-shard 8] [--r
    - Ray (``--launcher ray``, a local instance of 2 CPUs): once including ``ray.init``, once on a running instance;
    every store checked byte-identical to the local one. Overhead per shard job = (engine - local) / shards.
 2. Loader samples/s over one store, read from its folder and from a loopback HTTP server (``python -m
-   http.server`` in its own process, 127.0.0.1), alternating for ``--rounds`` rounds (evaluation order, three
-   passes each, batch 8), with 0 and 2 loader workers.
+   http.server`` in its own process, 127.0.0.1), alternating for ``--rounds`` rounds (evaluation order, ``--passes``
+   passes each, default 3, batch 8), with 0 and 2 loader workers.
 3. The fixed cost every part pays before its first shard: reading the frame list (``read_frames``) and the input
    fingerprints (``build_inputs``), per frame, twice (the second with a warm page cache).
 The machine's load average is printed before and after.
@@ -97,7 +97,7 @@ def free_port() -> int:
         return sock.getsockname()[1]
 
 
-def samples_per_second(location, workers: int, passes: int = 3) -> tuple[float, int]:
+def samples_per_second(location, workers: int, passes: int) -> tuple[float, int]:
     """Samples per second of ``passes`` passes over a store (the index read and shard sizes asked once)."""
     data = build_dataset([StoreSpec(location)], 8, n_hand=600, n_object=200, training=False)
     start, n = time.perf_counter(), 0
@@ -107,7 +107,7 @@ def samples_per_second(location, workers: int, passes: int = 3) -> tuple[float, 
     return n / (time.perf_counter() - start), n
 
 
-def loader_rows(folder: Path, rounds: int) -> list[dict]:
+def loader_rows(folder: Path, rounds: int, passes: int = 3) -> list[dict]:
     port = free_port()
     server = subprocess.Popen([sys.executable, "-m", "http.server", str(port), "--bind", "127.0.0.1", "--directory",
                                str(folder.parent)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -123,7 +123,7 @@ def loader_rows(folder: Path, rounds: int) -> list[dict]:
         for _ in range(rounds):
             for workers in (0, 2):
                 for name, location in (("folder", folder), ("http", url)):
-                    rate, n = samples_per_second(location, workers)
+                    rate, n = samples_per_second(location, workers, passes)
                     results.setdefault((name, workers), []).append(rate)
         return [{"source": name, "workers": w, "samples": n, "median samples/s": sorted(r)[len(r) // 2],
                  "all": [round(x, 1) for x in r]} for (name, w), r in results.items()]
@@ -137,6 +137,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=192)
     parser.add_argument("--records-per-shard", type=int, default=8)
     parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--passes", type=int, default=3, help="passes over the store per loader measurement")
     parser.add_argument("--json", default=None)
     parser.add_argument("--root", type=Path, default=None, help="an existing toy DexYCB (default: write one)")
     args = parser.parse_args()
@@ -157,9 +158,9 @@ def main() -> None:
             print(f"{row['engine']:<16} {row['seconds']:>8.1f} {row['records'] / row['seconds']:>9.2f} "
                   f"{row['records'] / row['seconds'] / 2:>9.2f} {extra:>8.1f} {extra / base['shards']:>9.2f} "
                   f"{row['identical']}")
-        loads = loader_rows(builds[0]["out"], args.rounds)
+        loads = loader_rows(builds[0]["out"], args.rounds, args.passes)
         load.append(os.getloadavg()[0])
-        print(f"\nloader, three passes in evaluation order, batch 8, {args.rounds} alternating rounds (median)")
+        print(f"\nloader, {args.passes} passes in evaluation order, batch 8, {args.rounds} alternating rounds (median)")
         print(f"{'source':<7} {'workers':>7} {'samples':>8} {'samples/s':>10}  all rounds")
         for row in loads:
             print(f"{row['source']:<7} {row['workers']:>7} {row['samples']:>8} {row['median samples/s']:>10.1f}  "

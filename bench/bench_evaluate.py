@@ -1,7 +1,7 @@
 """Evaluation throughput of ``hoisdf.evaluate`` with a freshly initialised HOISDF (no training: speed only).
 
 Usage: python -m bench.bench_evaluate [--config toy] [--store STORE] [--mano DIR] [--device cuda]
-           [--frames N] [--batch-size B] [--workers N] [--json OUT]
+           [--frames N] [--batch-size B] [--workers N] [--json OUT] [section.key=value ...]
 
 Model: the paper's full-size HOISDF by default (``--config toy`` for the small one), randomly
 initialised and saved as a checkpoint payload ``{"model", "config", "progress"}`` with
@@ -95,6 +95,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--batch-size", type=int, default=None, help="evaluation batch (default 22 on CUDA, 4 on CPU)")
     p.add_argument("--workers", type=int, default=None, help="loader processes (default min(4, CPU cores))")
     p.add_argument("--json", type=Path, default=None, metavar="OUT", help="write the numbers to this file")
+    p.add_argument("overrides", nargs="*", metavar="section.key=value", help="model settings, e.g. model.depth=18")
     return p
 
 
@@ -113,7 +114,7 @@ def main() -> None:
     try:
         store, mano_dir = store_and_mano(args, work, records=frames)
         mano = load_mano(mano_dir, side="right")
-        config = load_train_config(args.config)
+        config = load_train_config(args.config, args.overrides)
         ckpt = fresh_run(work / "run", config, mano)
         index = read_index(store)
         objects = index.objects

@@ -8,7 +8,8 @@ Two steps, because the GPU machine has torch but not the data packages (webdatas
 
    builds a toy DexYCB store (512 px crops), draws 3 batches of 22 with the full-size model's settings, applies
    the training augmentation (2 training batches) and the test-time crop (1 batch of test inputs), and saves
-   them (images as uint8) with the model and loss settings and the toy MANO files: about 20 MB;
+   them (images as uint8) with the model and loss settings and the toy MANO files: about 20 MB (``--config`` and
+   trailing ``section.key=value`` overrides choose another model: the test suite's smoke run uses a tiny one);
 
 2. on the GPU machine, with only torch, numpy and scipy (``run`` imports no data code)::
 
@@ -52,7 +53,7 @@ def _unpack(batch: dict, device: torch.device) -> dict:
 
 
 def prepare(out: Path, config_name: str | None, store: Path | None = None, mano: Path | None = None,
-            batch: int = BATCH) -> None:
+            batch: int = BATCH, overrides: tuple[str, ...] = ()) -> None:
     from bench.common import store_and_mano, test_inputs
     from hoisdf.config import load_train_config
     from hoisdf.data import StoreSpec, build_dataset
@@ -62,7 +63,7 @@ def prepare(out: Path, config_name: str | None, store: Path | None = None, mano:
     try:
         args = argparse.Namespace(store=store, mano=mano)
         store, mano_dir = store_and_mano(args, work, records=3 * batch)
-        config = load_train_config(config_name, [f"train.batch_size={batch}"])
+        config = load_train_config(config_name, [*overrides, f"train.batch_size={batch}"])
         m, t = config.model, config.train
         data = build_dataset([StoreSpec(store)], batch, 3 * batch, t.seed, m.n_hand, m.n_object, t.near,
                              t.shuffle_buffer, training=True)
@@ -135,6 +136,7 @@ def main(argv=None) -> int:
     prep.add_argument("--store", type=Path, default=None, help="an existing store (default: a toy store in a temp folder)")
     prep.add_argument("--mano", type=Path, default=None, help="MANO folder (default: the procedural toy hand)")
     prep.add_argument("--batch", type=int, default=BATCH, help="batch of the saved batches (the larger inference batch)")
+    prep.add_argument("overrides", nargs="*", metavar="section.key=value", help="model settings, e.g. model.depth=18")
     go = sub.add_parser("run", help="time eager vs compiled (needs only torch, numpy, scipy)")
     go.add_argument("--inputs", type=Path, default=Path("bench/gpu_inputs"))
     go.add_argument("--json", type=Path, default=None)
@@ -146,7 +148,7 @@ def main(argv=None) -> int:
     go.add_argument("--backend", default="inductor", help="torch.compile backend (eager: a quick check of the script)")
     args = p.parse_args(argv)
     if args.cmd == "prepare":
-        prepare(args.out, args.config, args.store, args.mano, args.batch)
+        prepare(args.out, args.config, args.store, args.mano, args.batch, args.overrides)
     else:
         run(args.inputs, args.json, args.frames, args.warmup, args.steps, args.precision, args.skip, args.backend)
     return 0

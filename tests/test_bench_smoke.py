@@ -21,10 +21,11 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 SMALL_SDF = ["--frames", "1", "--rounds", "1", "--n-hand", "256", "--n-object", "128"]
 TOY_MODEL = ["--config", "toy", "--store", "{store}", "--mano", "{mano}", "--device", "cpu"]
-TINY_RECIPE = ["model.depth=18", "model.image_size=64", "model.d_model=64", "model.ff=128", "model.hand_layers=1",
+TINY_MODEL = ["model.depth=18", "model.image_size=64", "model.d_model=64", "model.ff=128", "model.hand_layers=1",
                "model.decoder_layers=1", "model.object_layers=1", "model.sdf_features=32", "model.sdf_hidden=96",
                "model.token_hidden=[48]", "model.n_hand=32", "model.n_object=16", "model.grid_resolution=12",
-               "model.chunk=1000", "train.batch_size=2",
+               "model.chunk=1000"]
+TINY_RECIPE = [*TINY_MODEL, "train.batch_size=2",
                "augment.upstream=false"]  # the smoke store is a project-crop store (a region store: 256 px)
 
 # module -> list of (arguments, a piece of the table it prints); several entries run one after the other
@@ -47,12 +48,12 @@ SCRIPTS: dict[str, list[tuple[list[str], str]]] = {
                       "--infer-batch", "2", "--workers", "0", "--loader-batches", "2"], "augment_batch on cpu")],
     "bench_train_step": [([*TOY_MODEL, "--batch-size", "2", "--rounds", "1", "--steps", "1", "--variants", "nchw"],
                           "backbone alone")],
-    "bench_evaluate": [([*TOY_MODEL, "--frames", "4", "--batch-size", "2", "--workers", "0"],
+    "bench_evaluate": [([*TOY_MODEL, "--frames", "4", "--batch-size", "2", "--workers", "0", *TINY_MODEL],
                         "evaluate end to end")],
     # the GPU rows: inputs prepared here, then the run on the CPU when there is no CUDA, without code generation
     # (--backend eager): every row of the table, no inductor compile
     "bench_gpu": [(["prepare", "--config", "toy", "--store", "{store}", "--mano", "{mano}", "--out", "{tmp}/gpu",
-                    "--batch", "2"],
+                    "--batch", "2", *TINY_MODEL],
                    "inputs.pt"),
                   (["run", "--inputs", "{tmp}/gpu", "--backend", "eager", "--frames", "2", "--warmup", "1",
                     "--steps", "1", "--precision", "fp32"], "compiled fixed")],
@@ -61,7 +62,8 @@ SCRIPTS: dict[str, list[tuple[list[str], str]]] = {
                            *TINY_RECIPE], "inputs.pt"),
                          (["run", "--inputs", "{tmp}/recipe", "--steps", "1", "--warmup", "0", "--compare", "1"],
                           "projected 70 epochs")],
-    "bench_cluster": [(["--root", "{root}", "--rounds", "1", "--records-per-shard", "8"], "ray (running)")],
+    "bench_cluster": [(["--root", "{root}", "--rounds", "1", "--records-per-shard", "8", "--passes", "1"],
+                       "ray (running)")],
     "bench_volume": [(["--frames", "1", "--split-frames", "2", "--workers", "1"], "mean seconds per frame: exact cells")],
     "bench_recon": [(["--frames", "1", "--tolerance", "0.1", "--max-queries", "100000"],
                      "mean CPU seconds per frame: gsdf")],
