@@ -6,17 +6,26 @@ gradient (its norm, a 128-bucket count sketch for the cosine, 64 sampled entries
 and the learning rate of every epoch. Here the project's trainer path (``make_optimizer``, ``optimisation_step``,
 ``HOISDFLoss`` with the configured weights, ``epoch_lr``) runs on the same batch and weights with the settings that
 give upstream's step, set explicitly below. Dropout is 0 on both sides; the GT-guided points are upstream's, noise
-included (upstream's noise is drawn inside its forward; here they are fed as the near rows with noise 0)."""
+included (upstream's noise is drawn inside its forward; here they are fed as the near rows with noise 0).
+
+The ``dexycb_dropout`` golden is the same step with dropout on at upstream's rates (0.1 in the transformers, their
+attention weights included, 0.2 in the SDF decoders), both sides drawing the same masks: each dropout call gets its
+mask from a recipe keyed by upstream's module and the call's rank in it (:func:`keep_mask`); here the masks are
+replayed into the project's forward by patching ``torch.nn.functional`` for the duration of the step
+(:func:`replayed_dropout`), a test-only mechanism: the model's code is the one that trains."""
 
 from __future__ import annotations
 
 import json
+import re
 import zlib
+from contextlib import contextmanager, nullcontext
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
 from hoidata.hand import load_mano
 from hoisdf.config import load_train_config
@@ -31,7 +40,7 @@ from test_import_upstream import _rodrigues, lazily, rebuild_network
 GOLDEN = Path(__file__).parent / "golden" / "train_step"
 SKETCH, SAMPLE = 128, 64
 SAMPLE_REL = 1e-2  # sampled gradient entries: absolute tolerance as a fraction of the parameter's gradient norm
-SETTINGS = ("dexycb", "ho3d")
+SETTINGS = ("dexycb", "ho3d", "dexycb_dropout")  # golden names; a "dropout" entry in the json: masks replayed
 # upstream's training step, key by key (the upstream recipe sets these; dropout 0 only for this comparison)
 UPSTREAM_STEP = ['model.normalize_input=false', 'model.pixel_convention="upstream"', 'model.sheared_grid=true',
                  'model.density_sign="code"', 'model.rot6d="raw"', 'model.beta_floor="project"',
@@ -66,8 +75,94 @@ def sketch(grad: torch.Tensor, bucket: torch.Tensor, sign: torch.Tensor) -> torc
     return torch.zeros(SKETCH, dtype=torch.float64).index_add_(0, bucket, sign * grad.detach().reshape(-1).double())
 
 
-def settings(setting: str):
-    return load_train_config(None, UPSTREAM_STEP + [f'model.decoder="{DECODER[setting]}"'])
+def settings(setting: str, dropout: bool = False):
+    """The project's settings of upstream's step; ``dropout``: the recipe's rates (upstream's) instead of 0."""
+    keys = [k for k in UPSTREAM_STEP if not (dropout and k.startswith(("model.dropout=", "model.sdf_dropout=")))]
+    return load_train_config(None, keys + [f'model.decoder="{DECODER[setting]}"'])
+
+
+# the project's modules that draw dropout -> (upstream's module, how its mask lies in ours): "flat" the same order
+# (SDF decoders: upstream's (B*N, C) rows; attention weights: upstream's (B*heads, L, S)), "seq" upstream's
+# sequence-first (T, B, C) transposed to the project's batch-first (B, T, C)
+DROPOUT_SITES = (
+    (r"(hand|obj)_sdf", r"\1_sdf_decoder", "flat"),
+    (r"(hand|obj)_encoder\.layers\.(\d+)\.self_attn", r"\1_transformer.encoder.layers.\2.self_attn", "flat"),
+    (r"(hand|obj)_encoder\.layers\.(\d+)\.ffn\.dropout", r"\1_transformer.encoder.layers.\2.dropout", "seq"),
+    (r"(hand|obj)_encoder\.layers\.(\d+)\.(dropout[12])", r"\1_transformer.encoder.layers.\2.\3", "seq"),
+    (r"hand_decoder\.layers\.(\d+)\.self_attn", r"hand_transformer.decoder.layers.\1.self_attn", "flat"),
+    (r"hand_decoder\.layers\.(\d+)\.cross_attn", r"hand_transformer.decoder.layers.\1.multihead_attn", "flat"),
+    (r"hand_decoder\.layers\.(\d+)\.ffn\.dropout", r"hand_transformer.decoder.layers.\1.dropout", "seq"),
+    (r"hand_decoder\.layers\.(\d+)\.(dropout[123])", r"hand_transformer.decoder.layers.\1.\2", "seq"),
+)
+
+
+def upstream_site(module: str) -> tuple[str, str]:
+    """(upstream's module, layout) of the project's module that called dropout."""
+    for pattern, target, layout in DROPOUT_SITES:
+        m = re.fullmatch(pattern, module)
+        if m:
+            return m.expand(target), layout
+    raise AssertionError(f"dropout called in {module!r}, which has no upstream counterpart")
+
+
+def keep_mask(site: str, k: int, shape, p: float) -> torch.Tensor:
+    """The golden's mask recipe: the k-th dropout call of upstream module ``site`` keeps the entries where
+    ``rand(shape)`` from ``Generator().manual_seed(crc32(f"{site}#{k}"))`` is >= p (upstream's layout)."""
+    g = torch.Generator().manual_seed(zlib.crc32(f"{site}#{k}".encode()))
+    return torch.rand(tuple(shape), generator=g) >= p
+
+
+def masked(x: torch.Tensor, keep: torch.Tensor, p: float) -> torch.Tensor:
+    """Dropout with a given mask, as the scratch run applied it on upstream's side."""
+    return x * keep.to(x.dtype) * (1.0 / (1.0 - p))
+
+
+@contextmanager
+def replayed_dropout(model: torch.nn.Module, calls: list, used: list):
+    """While open, every dropout in ``model``'s forward (``nn.Dropout``, the SDF decoders' functional dropout, the
+    attention weights' dropout inside ``nn.MultiheadAttention``) applies the mask upstream's run drew at the same
+    site and rank (``calls``: the golden's ``[site, k, shape, p, kept]`` rows); each replayed (site, k) is appended
+    to ``used``. The attention, which trains through ``scaled_dot_product_attention`` (its dropout internal), is
+    computed explicitly here so that its weights' mask can be given."""
+    log = {(site, k): (shape, p, kept) for site, k, shape, p, kept in calls}
+    names = {m: n for n, m in model.named_modules()}
+    stack, count = [], {}
+
+    def dropout(x, p=0.5, training=True, inplace=False):
+        if not training or p == 0.0:
+            return x
+        site, layout = upstream_site(stack[-1])
+        k = count[site] = count.get(site, -1) + 1
+        shape, p_up, kept = log[(site, k)]
+        keep = keep_mask(site, k, shape, p)
+        assert p == p_up and int(keep.sum()) == kept, (site, k, p, p_up)
+        keep = keep.transpose(0, 1) if layout == "seq" else keep.reshape(x.shape)
+        assert keep.shape == x.shape, (site, k, tuple(keep.shape), tuple(x.shape))
+        used.append((site, k))
+        return masked(x, keep, p)
+
+    def attention(q, k, v, attn_mask=None, dropout_p=0.0, is_causal=False, scale=None, enable_gqa=False):
+        assert not is_causal and not enable_gqa
+        w = (q * (q.shape[-1] ** -0.5 if scale is None else scale)) @ k.transpose(-2, -1)
+        if attn_mask is not None:
+            w = w.masked_fill(~attn_mask, float("-inf")) if attn_mask.dtype == torch.bool else w + attn_mask
+        return F.dropout(torch.softmax(w, dim=-1), p=dropout_p) @ v
+
+    def push(module, args):  # hooks return None: the module's inputs and output stay as they are
+        stack.append(names[module])
+
+    def pop(module, args, out):
+        stack.pop()
+
+    hooks = [h for m in model.modules() for h in (m.register_forward_pre_hook(push), m.register_forward_hook(pop))]
+    try:
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(F, "dropout", dropout)
+            mp.setattr(F, "scaled_dot_product_attention", attention)
+            yield
+    finally:
+        for h in hooks:
+            h.remove()
 
 
 def upstream_batch(gold_points: dict) -> dict:
@@ -93,13 +188,15 @@ def upstream_batch(gold_points: dict) -> dict:
             "obj_near_points": gold_points["obj"] / scale + shift}
 
 
-def run_step(setting: str, mano_dir) -> dict:
+def run_step(golden: str, mano_dir) -> dict:
     """The project's step on upstream's batch and weights; per upstream parameter name: gradient norm, sketch and
     sampled entries (recorded by an optimizer pre-hook, which then puts upstream's gradient at the sampled entries:
-    the step there is AdamW on upstream's gradients), and the parameter at the sampled entries before and after."""
-    gold = np.load(GOLDEN / f"{setting}.npz")
-    info = json.loads((GOLDEN / f"{setting}.json").read_text())
-    cfg = settings(setting)
+    the step there is AdamW on upstream's gradients), and the parameter at the sampled entries before and after.
+    A golden with a ``dropout`` entry runs at the recipe's dropout rates with upstream's masks replayed."""
+    gold = np.load(GOLDEN / f"{golden}.npz")
+    info = json.loads((GOLDEN / f"{golden}.json").read_text())
+    setting, calls = info["setting"], info.get("dropout", {}).get("calls")
+    cfg = settings(setting, dropout=calls is not None)
     t, m = cfg.train, cfg.model
     mano = load_mano(mano_dir, side="right")
     model = build_model(m, mano)
@@ -131,8 +228,10 @@ def run_step(setting: str, mano_dir) -> dict:
 
     optimizer.register_step_pre_hook(pre_hook)
     gold_points = {"hand": torch.from_numpy(gold["points.hand"]), "obj": torch.from_numpy(gold["points.obj"])}
-    total, terms = optimisation_step(model, loss, optimizer, upstream_batch(gold_points), "gt", 0.0,
-                                     torch.Generator().manual_seed(0), autocast=t.bf16)
+    rec["replayed"], rec["dropout"] = [], (m.dropout, m.sdf_dropout)
+    with replayed_dropout(model, calls, rec["replayed"]) if calls is not None else nullcontext():
+        total, terms = optimisation_step(model, loss, optimizer, upstream_batch(gold_points), "gt", 0.0,
+                                         torch.Generator().manual_seed(0), autocast=t.bf16)
     for up, mine in names.items():
         if up in rec["before"]:
             rec["after"][up] = ours[mine].detach().reshape(-1)[plan(up, ours[mine].numel())[2]].clone()
@@ -145,7 +244,7 @@ def run_step(setting: str, mano_dir) -> dict:
 
 @pytest.fixture(scope="module")
 def step(mano_dir, tmp_path_factory):
-    return lazily(tmp_path_factory.mktemp("train_step"), lambda setting, folder: run_step(setting, mano_dir))
+    return lazily(tmp_path_factory.mktemp("train_step"), lambda golden, folder: run_step(golden, mano_dir))
 
 
 def _golden(setting):
@@ -216,6 +315,19 @@ def test_adamw_step_on_upstreams_gradients_is_upstreams(step, setting):
         assert torch.equal(rec["before"][name], before), name  # the same weights (the seeded rules)
         ulp = torch.finfo(torch.float32).eps * torch.maximum(before.abs(), after.abs())
         assert torch.all((rec["after"][name] - after).abs() <= 2 * ulp + 1e-12), name
+
+
+@pytest.mark.slow
+def test_every_upstream_dropout_mask_is_replayed_once(step):
+    """The dropout golden runs at the upstream recipe's rates, and each of upstream's 84 dropout calls (24 in the SDF
+    decoders, 48 in the hand transformer, 12 in the object one; attention weights included) found its counterpart
+    in the project's forward, in the same order per module, exactly once: no call of the project's went unmatched
+    (that raises) and none of upstream's was left over."""
+    rec, (_, info) = step("dexycb_dropout"), _golden("dexycb_dropout")
+    calls = info["dropout"]["calls"]
+    assert rec["dropout"] == (0.1, 0.2)
+    assert len(calls) == 84 and len({(site, k) for site, k, *_ in calls}) == 84
+    assert sorted(rec["replayed"]) == sorted((site, k) for site, k, *_ in calls)
 
 
 def test_learning_rates_equal_upstreams():
