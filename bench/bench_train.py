@@ -198,7 +198,7 @@ def run_infer(config, mano, batches: list[dict], infer_batch: int, frames: int, 
     inputs = test_inputs(first_samples(batches, infer_batch), config, device)
     rows = []
     for grid_path in ("direct", "projected"):  # the baseline grid path and the default one, same weights
-        model.project_grid = grid_path == "projected"
+        model.features.project_grid = grid_path == "projected"
         for b in sorted({1, infer_batch}):
             rows.append({"grid_path": grid_path, **bench_infer(model, inputs, b, frames, warmup, device)})
     print(f"\ninference (field-guided points, eval, no_grad{', bf16' if device.type == 'cuda' else ''}); paper: "
