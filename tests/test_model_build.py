@@ -139,3 +139,26 @@ def test_rotations_are_written_once():
                 found.setdefault(node.name, []).append(str(path.relative_to(root)))
     assert set(found) >= names - {"batch_rodrigues", "rodrigues", "_skew"}
     assert all(files == ["hoidata/geometry/rotation.py"] for files in found.values()), found
+
+
+def test_a_run_folder_from_before_the_parts_loads_with_its_settings(tmp_path):
+    """A checkpoint as the flat model wrote it (flat keys, ``model.n_hand`` / ``n_object`` in its config) loads
+    through :func:`hoisdf.training.checkpoint.load_model`, weights and settings as they were."""
+    from hoisdf.config import TrainConfig
+    from hoisdf.training.checkpoint import load_model, save_checkpoint
+
+    config = load_train_config(None, TINY)
+    torch.manual_seed(5)
+    model = B.build_model(config.model, None)
+    inverse = {new: old for old, new in STATE_RENAMES.items()}
+    flat = {}
+    for key, value in model.state_dict().items():
+        new = next((n for n in inverse if key == n or (n.endswith(".") and key.startswith(n))), None)
+        flat[key if new is None else inverse[new] + key[len(new):]] = value
+    stored = config.as_dict()
+    stored["model"]["n_hand"], stored["model"]["n_object"] = stored["model"].pop("hand_queries"), stored["model"].pop(
+        "object_queries")
+    save_checkpoint(tmp_path / "checkpoints" / "last.pt", {"model": flat, "config": stored})
+    loaded, loaded_config = load_model(tmp_path, None)
+    assert isinstance(loaded_config, TrainConfig) and loaded_config.model == config.model
+    assert all(torch.equal(loaded.state_dict()[k], v) for k, v in model.state_dict().items())
