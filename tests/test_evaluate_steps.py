@@ -81,3 +81,21 @@ def test_the_result_dict_is_built_in_one_place(tmp_path):
     assert "has no hand labels" in result["baseline"]["overall"]["skipped"]
     assert result["overall"] == scored.summary["all"] and result["per_object"] == {"cube": scored.summary["cube"]}
     assert Path(result["stores"][0]) == store
+
+
+def test_write_outputs_writes_the_result_files_without_a_model(tmp_path, capsys):
+    from hoisdf.evaluate import write_outputs
+
+    store = tmp_path / "store"
+    col = _collected()
+    index = _index()
+    index.labels.update({"dataset": np.array(["dexycb"] * 4), "split": np.array(["test"] * 4),
+                         "sample_index": np.arange(4)})
+    index.provenance, index.skipped = {}, []
+    scored = score_collected(col, None, [store], {store: index}, EvalOptions(plausibility=0))
+    written = write_outputs(tmp_path / "out", col, scored, None, [store], {store: index}, None, EvalOptions())
+    hpe = tmp_path / "out" / "dexycb_hpe_unknown_test_subset.txt"  # the store records no toolkit split size
+    assert written["files"] == {f"hpe:{store}:unknown_test": str(hpe)} and hpe.is_file()
+    assert written["dexycb_hpe"][hpe.name]["samples"] == 4 and "ho3d_challenge" not in written
+    assert (tmp_path / "out" / "per_object.csv").read_text().count("cube") == 1
+    assert not (tmp_path / "out" / "vis").exists() and "a subset of unknown_test" in capsys.readouterr().out
