@@ -50,7 +50,7 @@ from pathlib import Path
 import torch
 
 from bench.common import NOISE, resolve_device, store_and_mano, sync, test_inputs
-from hoisdf.config import load_train_config
+from hoisdf.config import load_train_config, sdf_rows
 from hoisdf.data import StoreSpec, build_dataset, make_loader
 from hoisdf.data.augment import augment_batch
 from hoisdf.model import build_model
@@ -147,8 +147,8 @@ def bench_infer(model, inputs: dict, batch: int, frames: int, warmup: int, devic
 # --- 3. loader and augmentation ----------------------------------------------------------------------------
 def bench_loader(store: Path, config, batch: int, workers: int, batches: int, device: torch.device) -> dict:
     m, t = config.model, config.train
-    data = build_dataset([StoreSpec(store)], batch, batch * (batches + 1) * max(1, workers), t.seed, m.n_hand,
-                         m.n_object, t.near, t.shuffle_buffer, training=True)
+    data = build_dataset([StoreSpec(store)], batch, batch * (batches + 1) * max(1, workers), t.seed,
+                         *sdf_rows(config), t.near, t.shuffle_buffer, training=True)
     start = time.perf_counter()
     it = iter(make_loader(data, workers, pin_memory=device.type == "cuda"))
     next(it)
@@ -307,7 +307,7 @@ def main() -> None:
         config = load_train_config(args.config, [f"train.batch_size={batch}", "train.workers=0",
                                                  f"train.epoch_samples={batch * n_batches}"])
         m = config.model
-        print(f"device {device}; model ResNet-{m.depth}, {m.image_size} px, {m.n_hand}+{m.n_object} points, "
+        print(f"device {device}; model ResNet-{m.depth}, {m.image_size} px, {m.hand_queries}+{m.object_queries} points, "
               f"{m.grid_resolution}^3 grid, layers {m.hand_layers}+{m.decoder_layers}/{m.object_layers}; "
               f"store {store}; {cores} CPU cores", flush=True)
 
