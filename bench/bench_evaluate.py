@@ -119,7 +119,7 @@ def main() -> None:
         index = read_index(store)
         objects = index.objects
         m = config.model
-        print(f"device {device}; model ResNet-{m.depth}, {m.image_size} px, {m.n_hand}+{m.n_object} points, "
+        print(f"device {device}; model ResNet-{m.depth}, {m.image_size} px, {m.hand_queries}+{m.object_queries} points, "
               f"{m.grid_resolution}^3 grid (randomly initialised); store {store} ({len(index.keys)} records); "
               f"batch {batch}, {workers} loader workers", flush=True)
 
@@ -133,8 +133,8 @@ def main() -> None:
         peak = torch.cuda.max_memory_allocated(device) / 2**30 if cuda else None
         summary, metrics_s = timed(lambda: metrics_of(col, objects), device)
         _, baseline_s = timed(lambda: baseline_of(col, objects, store, mano, index), device)
-        result, total_s = timed(lambda: evaluate(ckpt, [store], mano_dir, work / "eval", batch, device, limit=frames,
-                                                 plausibility=0, progress=False, workers=workers), device)
+        result, total_s = timed(lambda: evaluate(ckpt, [store], mano_dir, work / "eval", batch_size=batch, device=device,
+                                                 limit=frames, plausibility=0, progress=False, workers=workers), device)
 
         print(f"\n{n} frames; paper: {PAPER_FPS} FPS on a TITAN RTX (model only)")
         print(f"{'stage':<36} {'seconds':>8} {'ms/frame':>9} {'frames/s':>9}")

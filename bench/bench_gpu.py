@@ -55,7 +55,7 @@ def _unpack(batch: dict, device: torch.device) -> dict:
 def prepare(out: Path, config_name: str | None, store: Path | None = None, mano: Path | None = None,
             batch: int = BATCH, overrides: tuple[str, ...] = ()) -> None:
     from bench.common import store_and_mano, test_inputs
-    from hoisdf.config import load_train_config
+    from hoisdf.config import load_train_config, sdf_rows
     from hoisdf.data import StoreSpec, build_dataset
     from hoisdf.data.augment import augment_batch
 
@@ -65,7 +65,7 @@ def prepare(out: Path, config_name: str | None, store: Path | None = None, mano:
         store, mano_dir = store_and_mano(args, work, records=3 * batch)
         config = load_train_config(config_name, [*overrides, f"train.batch_size={batch}"])
         m, t = config.model, config.train
-        data = build_dataset([StoreSpec(store)], batch, 3 * batch, t.seed, m.n_hand, m.n_object, t.near,
+        data = build_dataset([StoreSpec(store)], batch, 3 * batch, t.seed, *sdf_rows(config), t.near,
                              t.shuffle_buffer, training=True)
         batches = [b for _, b in zip(range(3), data)]
         generator = torch.Generator().manual_seed(0)

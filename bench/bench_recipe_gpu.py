@@ -52,7 +52,7 @@ DEXYCB_TRAIN = 29656  # records of the dexycb training split (pipelines/dexycb.t
 def prepare(out: Path, config_name: str, overrides: list[str], store: Path | None, mano: Path | None,
             batches: int) -> None:
     from bench.common import store_and_mano
-    from hoisdf.config import load_train_config
+    from hoisdf.config import load_train_config, sdf_rows
     from hoisdf.data import StoreSpec, build_dataset
     from hoisdf.data.augment import augment_batch
 
@@ -61,7 +61,7 @@ def prepare(out: Path, config_name: str, overrides: list[str], store: Path | Non
     work = Path(tempfile.mkdtemp(prefix="bench_recipe_"))
     try:
         store, mano_dir = store_and_mano(argparse.Namespace(store=store, mano=mano), work, records=batches * t.batch_size)
-        data = build_dataset([StoreSpec(store)], t.batch_size, batches * t.batch_size, t.seed, m.n_hand, m.n_object,
+        data = build_dataset([StoreSpec(store)], t.batch_size, batches * t.batch_size, t.seed, *sdf_rows(config),
                              t.near, training=True, progress=False, upstream=config.augment.upstream)
         generator = torch.Generator().manual_seed(t.seed)
         saved = []

@@ -50,7 +50,7 @@ from pathlib import Path
 import torch
 
 from bench.common import NOISE, resolve_device, store_and_mano, sync, test_inputs
-from hoisdf.config import load_train_config
+from hoisdf.config import load_train_config, sdf_rows
 from hoisdf.data import StoreSpec, build_dataset, make_loader
 from hoisdf.data.augment import augment_batch
 from hoisdf.model import build_model
@@ -147,8 +147,8 @@ def bench_infer(model, inputs: dict, batch: int, frames: int, warmup: int, devic
 # --- 3. loader and augmentation ----------------------------------------------------------------------------
 def bench_loader(store: Path, config, batch: int, workers: int, batches: int, device: torch.device) -> dict:
     m, t = config.model, config.train
-    data = build_dataset([StoreSpec(store)], batch, batch * (batches + 1) * max(1, workers), t.seed, m.n_hand,
-                         m.n_object, t.near, t.shuffle_buffer, training=True)
+    data = build_dataset([StoreSpec(store)], batch, batch * (batches + 1) * max(1, workers), t.seed,
+                         *sdf_rows(config), t.near, t.shuffle_buffer, training=True)
     start = time.perf_counter()
     it = iter(make_loader(data, workers, pin_memory=device.type == "cuda"))
     next(it)
@@ -198,7 +198,7 @@ def run_infer(config, mano, batches: list[dict], infer_batch: int, frames: int, 
     inputs = test_inputs(first_samples(batches, infer_batch), config, device)
     rows = []
     for grid_path in ("direct", "projected"):  # the baseline grid path and the default one, same weights
-        model.project_grid = grid_path == "projected"
+        model.features.project_grid = grid_path == "projected"
         for b in sorted({1, infer_batch}):
             rows.append({"grid_path": grid_path, **bench_infer(model, inputs, b, frames, warmup, device)})
     print(f"\ninference (field-guided points, eval, no_grad{', bf16' if device.type == 'cuda' else ''}); paper: "
@@ -307,7 +307,7 @@ def main() -> None:
         config = load_train_config(args.config, [f"train.batch_size={batch}", "train.workers=0",
                                                  f"train.epoch_samples={batch * n_batches}"])
         m = config.model
-        print(f"device {device}; model ResNet-{m.depth}, {m.image_size} px, {m.n_hand}+{m.n_object} points, "
+        print(f"device {device}; model ResNet-{m.depth}, {m.image_size} px, {m.hand_queries}+{m.object_queries} points, "
               f"{m.grid_resolution}^3 grid, layers {m.hand_layers}+{m.decoder_layers}/{m.object_layers}; "
               f"store {store}; {cores} CPU cores", flush=True)
 

@@ -53,8 +53,8 @@ class ModelSettings:
     sdf_hidden: int = 512  # must exceed sdf_features + 33 (DeepSDF skip connection)
     sdf_dropout: float = 0.2  # dropout in the SDF decoders
     token_hidden: tuple[int, ...] = (1024, 512, 256)  # hidden widths of the pixel feature -> token MLP
-    n_hand: int = 600  # query points of the hand field passed to the pose stage
-    n_object: int = 200  # query points of the object field passed to the pose stage
+    hand_queries: int = 600  # query points of the hand field passed to the pose stage (was n_hand)
+    object_queries: int = 200  # query points of the object field passed to the pose stage (was n_object)
     grid_resolution: int = 64  # inference grid: resolution^3 points around the hand root and the object centre
     sheared_grid: bool = False  # reproduce the reference's sheared inference lattice
     fixed_shape: bool = False  # field-guided sampling over the whole grid, boxes as masks (torch.compile, CUDA graphs)
@@ -77,7 +77,8 @@ class ModelSettings:
     LIMITS: ClassVar[dict] = {
         "image_size": (">= 32",), "sdf_scale": ("> 0",), "sdf_clamp": ("> 0",), "n_freq": (">= 0",),
         **{k: (">= 1",) for k in ("d_model", "heads", "ff", "hand_layers", "decoder_layers", "object_layers",
-                                  "sdf_features", "sdf_hidden", "token_hidden", "n_hand", "n_object", "chunk")},
+                                  "sdf_features", "sdf_hidden", "token_hidden", "hand_queries", "object_queries",
+                                  "chunk")},
         "dropout": (">= 0", "< 1"), "sdf_dropout": (">= 0", "< 1"), "grid_resolution": (">= 2",),
         "beta_init": ("> 0",), "beta_min": ("> 0",), "mask_threshold": ("> 0", "< 1"), "cls_dist": ("> 0",)}
     CHOICES: ClassVar[dict] = {
@@ -88,7 +89,7 @@ class ModelSettings:
         "density_sign": ("paper", "code"),
         "object_rotation": ("chordal", "axis_angle"),
         "test_boxes": ("gt", "predicted"),
-        "pixel_convention": PIXEL_CONVENTIONS,
+        "pixel_convention": tuple(PIXEL_CONVENTIONS),
         "rot6d": ("offset", "raw"),
         "beta_floor": ("clamp", "project"),
         "field_density": ("fresh", "ranking")}
@@ -136,7 +137,8 @@ RECIPES: dict[str, dict[str, dict]] = {
                   "sheared_grid": True,  # the sheared 64^3 lattice (main/model.py:260-273)
                   "object_rotation": "axis_angle",  # mean of the per-point axis-angles (validation only)
                   # pinned at upstream's values, today also the defaults (main/config.py)
-                  "image_size": 256, "n_hand": 600, "n_object": 200, "grid_resolution": 64, "dropout": 0.1,
+                  "image_size": 256, "hand_queries": 600, "object_queries": 200, "grid_resolution": 64,
+                  "dropout": 0.1,
                   "sdf_dropout": 0.2, "freeze_bn_affine": True, "sampling": "absolute",
                   "feature_augmentation": "density", "cross_field": "sdf", "test_boxes": "gt", "fixed_shape": False,
                   "sdf_scale": 3.1, "sdf_clamp": 0.15, "beta_init": 0.1, "beta_min": 2e-3, "cls_dist": 0.04,
@@ -170,6 +172,8 @@ RECIPES: dict[str, dict[str, dict]] = {
 """``train.recipe`` presets, per section: their values fill every key the TOML and the overrides leave unset
 (explicit TOML or override > recipe > the dataclass defaults)."""
 RENAMED_RECIPES = {"released": "project"}  # old name -> new name (checkpoints and run folders store the old one)
+RENAMED_KEYS = {("model", "n_hand"): "hand_queries", ("model", "n_object"): "object_queries"}
+"""(section, old key) -> new name: refused in a file or an override, read silently from a checkpoint's config."""
 OPTIMIZERS = ("adamw", "adam")
 VAL_SCHEDULES = ("every", "upstream")  # train.val_schedule (hoisdf.training.trainer.validates_after)
 
@@ -192,6 +196,8 @@ class TrainSettings:
     noise_ratios: tuple[float, ...] = (0.3, 0.7)  # epoch progress where the noise steps up
     noise_dists: tuple[float, ...] = (0.03, 0.05, 0.07)  # scaled units: query-point noise half-widths
     near: float = 0.05  # m: |sdf| below which SDF rows are "near" (training query points)
+    sdf_rows_hand: int = 0  # SDF rows the loader draws per sample for the hand (0: model.hand_queries, see sdf_rows)
+    sdf_rows_object: int = 0  # the same for the object (0: model.object_queries)
     epoch_samples: int = 0  # 0: the stores' sizes times their weights
     workers: int = 4  # loader worker processes per rank
     seed: int = 0  # seed of initialisation, data order, SDF row draws and augmentation
@@ -212,6 +218,7 @@ class TrainSettings:
         "lr_gamma": ("> 0",), "lr_min": (">= 0",), "point_sampling_epoch": (">= 0",), "field_prob": (">= 0", "<= 1"),
         "noise_ratios": (">= 0", "<= 1"), "noise_dists": (">= 0",), "near": ("> 0",),
         "epoch_samples": (">= 0",),  # 0: the stores' sizes times their weights
+        "sdf_rows_hand": (">= 0",), "sdf_rows_object": (">= 0",),  # 0: the model's query counts
         "workers": (">= 0",),  # 0: load in the training process
         "seed": (">= 0",), "log_every": (">= 1",), "val_every": (">= 0",), "val_batches": (">= 0",),
         "ckpt_every": (">= 0",), "max_steps": (">= 0",), "shuffle_buffer": (">= 0",)}
@@ -261,6 +268,7 @@ def resolve_train_config(name_or_path: str | None, overrides: list[str] = ()) ->
         path, file_data = where, {}
         data = apply_overrides({}, overrides, path)
     check_sections(data, path, TRAIN_SECTIONS, BUILD_SECTIONS)  # training knows every reader of the file
+    refuse_renamed_keys(data, path, overrides)
     name = data.get("train", {}).get("recipe", TrainSettings.recipe)
     recipe = recipe_sections(name, origin(path, overrides, "train.recipe"))
     merged = {s: {**recipe.get(s, {}), **data.get(s, {})} for s in TRAIN_SECTIONS}
@@ -283,7 +291,43 @@ def resolve_train_config(name_or_path: str | None, overrides: list[str] = ()) ->
                                      else "derived")  # augment.input_size from model.image_size
     config = TrainConfig(model, replace(train, noise_ratios=tuple(train.noise_ratios),
                                         noise_dists=tuple(train.noise_dists)), augment, loss)
+    check_sdf_rows(config, path, overrides)
     return config, sources
+
+
+def refuse_renamed_keys(data: dict, path: Path, overrides=()) -> None:
+    """A key of :data:`RENAMED_KEYS` in a file's sections or an override is a DataError naming the new key."""
+    for (name, old), new in RENAMED_KEYS.items():
+        if old in data.get(name, {}):
+            raise DataError(origin(path, overrides, f"{name}.{old}"), f"{name}.{old}",
+                            f"renamed: set {name}.{new} (the query points of the pose stage; the SDF rows the loader "
+                            f"draws are train.sdf_rows_{new.split('_')[0]}, docs/settings.md)")
+
+
+def renamed_keys(data: dict) -> dict:
+    """A stored config (:meth:`TrainConfig.as_dict`, left as it is) with :data:`RENAMED_KEYS`' old names as the new."""
+    out = {name: dict(values) if isinstance(values, dict) else values for name, values in data.items()}
+    for (name, old), new in RENAMED_KEYS.items():
+        if isinstance(out.get(name), dict) and old in out[name]:
+            out[name].setdefault(new, out[name].pop(old))
+    return out
+
+
+def sdf_rows(config: TrainConfig) -> tuple[int, int]:
+    """SDF rows the loader draws per training sample (hand, object): ``train.sdf_rows_*``, or where 0 the model's
+    query counts, as upstream (the GT-guided query points are the first rows drawn; docs/settings.md)."""
+    t, m = config.train, config.model
+    return t.sdf_rows_hand or m.hand_queries, t.sdf_rows_object or m.object_queries
+
+
+def check_sdf_rows(config: TrainConfig, path, overrides=()) -> None:
+    """``train.sdf_rows_*`` is 0 or at least the model's query count, else a DataError naming the key."""
+    for who, queries in (("hand", "hand_queries"), ("object", "object_queries")):
+        rows, need = getattr(config.train, f"sdf_rows_{who}"), getattr(config.model, queries)
+        if 0 < rows < need:
+            raise DataError(origin(path, overrides, f"train.sdf_rows_{who}", f"model.{queries}"),
+                            f"train.sdf_rows_{who}", f"must be 0 (model.{queries}) or at least model.{queries} "
+                            f"({need}): the training query points are the first rows drawn, got {rows}")
 
 
 def recipe_sections(name, where) -> dict[str, dict]:
@@ -313,6 +357,7 @@ def config_from_dict(data: dict, path: Path | str = "<checkpoint>") -> TrainConf
     path = Path(path)
     if not isinstance(data, dict) or not all(isinstance(data.get(k, {}), dict) for k in ("model", "train", "augment", "loss")):
         raise DataError(path, "config", "expected a dict of settings sections")
+    data = renamed_keys(data)
     model = _model_section(data.get("model", {}), path)
     train_values = dict(data.get("train", {}))
     if train_values.get("recipe") in RENAMED_RECIPES:
@@ -321,7 +366,9 @@ def config_from_dict(data: dict, path: Path | str = "<checkpoint>") -> TrainConf
     check_choices(train, path, "train")
     loss = section(LossWeights, data.get("loss", {}), path, "loss")
     check_choices(loss, path, "loss")
-    return TrainConfig(model, train, section(AugmentSettings, data.get("augment", {}), path, "augment"), loss)
+    config = TrainConfig(model, train, section(AugmentSettings, data.get("augment", {}), path, "augment"), loss)
+    check_sdf_rows(config, path)
+    return config
 
 
 def overridden_config(data: dict, overrides: list[str], path: Path | str) -> TrainConfig:
@@ -331,6 +378,7 @@ def overridden_config(data: dict, overrides: list[str], path: Path | str) -> Tra
     import copy
 
     refuse_build_overrides(list(overrides), Path(path))
+    refuse_renamed_keys(apply_overrides({}, list(overrides), Path(path)), Path(path), list(overrides))
     if any(item.partition("=")[0].strip() == "train.recipe" for item in overrides):
         raise DataError(path, "train.recipe", "a recipe fills a run's settings when it starts; a saved run holds "
                                               "them resolved: override the keys themselves")

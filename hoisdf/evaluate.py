@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -32,7 +33,7 @@ from hoidata.errors import DataError, run_cli
 from hoidata.schema import FULL
 from hoidata.store import RemoteStore, read_index, resolve_store
 from hoidata.store.paths import refuse_repeated_stores
-from hoisdf.evaluation.inference import infer, load_for_eval, resolve_device, run_folder
+from hoisdf.evaluation.inference import Collected, infer, load_for_eval, resolve_device, run_folder
 from hoisdf.evaluation.model_scores import (
     BASELINE_ROWS,
     baseline_scores,
@@ -54,12 +55,60 @@ from hoisdf.scoring.official import format_ho3d_scores
 from hoisdf.scoring.results_json import json_safe
 
 UNSEEN_HO3D = "019_pitcher_base"  # excluded from HO-3D object metrics (upstream test.py)
+BOX_SOURCES = (None, "gt", "predicted")  # --boxes: the model's test_boxes, or one of these
 
 
-def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=None, vis: int = 0,
-             limit: int | None = None, boxes: str | None = None, plausibility: int = 32, ho3d_order=None,
-             baseline_store=None, progress: bool = True, workers: int = 4, ho3d_gt=None,
-             precision: str = "fp32") -> dict:
+@dataclass(frozen=True)
+class EvalOptions:
+    """What an evaluation is asked for (the command's flags; ``python -m hoisdf.evaluate --help``).
+
+    batch_size: samples per forward. device: default CUDA when present. vis: pictures of the first ``vis`` samples.
+    limit: evaluate only the first ``limit`` samples. boxes: override the model's ``test_boxes`` ("gt" |
+    "predicted"). plausibility: samples (the first ones) for the plausibility report (0: none). ho3d_order: HO-3D
+    ``evaluation.txt`` -> pred.json / pred.zip; checked before any work against every HO-3D store
+    (:mod:`hoisdf.scoring.ho3d_list`); a store or list that cannot give a complete submission is a DataError, never a
+    missing file. baseline_store: store whose labels give the mean pose (default: the first evaluated store).
+    progress: progress bars. workers: loader processes, and processes for the plausibility report. ho3d_gt: folder
+    with the challenge's ``evaluation_xyz.json`` / ``evaluation_verts.json``: the written pred.json is scored against
+    them (``metrics.json["ho3d_challenge"]``, ``scores.txt``). precision: "fp32" (as upstream) or "bf16" (autocast;
+    geometry, ranking and head outputs stay fp32).
+    """
+
+    batch_size: int = 8
+    device: str | None = None
+    vis: int = 0
+    limit: int | None = None
+    boxes: str | None = None
+    plausibility: int = 32
+    ho3d_order: str | Path | None = None
+    baseline_store: str | Path | None = None
+    progress: bool = True
+    workers: int = 4
+    ho3d_gt: str | Path | None = None
+    precision: str = "fp32"
+
+    def check(self) -> None:
+        """A combination no evaluation can run is a ValueError (before any work)."""
+        if self.boxes not in BOX_SOURCES:
+            raise ValueError(f"boxes must be 'gt' or 'predicted', got {self.boxes!r}")
+        if self.ho3d_gt is not None and self.ho3d_order is None:
+            raise ValueError("--ho3d-gt scores the pred.json that --ho3d-order writes: give both")
+
+
+@dataclass
+class Scored:
+    """What :func:`score_collected` makes of the collected samples."""
+
+    per_sample: dict  # metric -> (N,) per-sample values (NaN where a sample has no ground truth)
+    summary: dict  # "all" and every object name -> metric -> mean
+    counts: dict  # object name -> samples
+    meshes: list  # each sample's object mesh (vertices, faces), in the frame its pose poses
+    baseline: dict | None  # the mean-pose baseline's summary, None: its store has no hand labels
+    baseline_store: object  # the store the mean pose came from
+    plausibility: dict
+
+
+def evaluate(run, stores, mano_dir, out_dir=None, options: EvalOptions | None = None, **flags) -> dict:
     """Evaluate a checkpoint on stores; write the result files to ``out_dir`` and return metrics.json's content
     (plus ``table``, the printed table). The result files an earlier run left in ``out_dir`` are removed first
     (:func:`~hoisdf.evaluation.outputs.clear_results`), so a failed run never leaves one of them looking current;
@@ -67,37 +116,49 @@ def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=No
 
     Args:
         run: run folder or checkpoint file. stores: store folders or URLs (hoidata.store.resolve_store). mano_dir:
-            MANO folder.
-        out_dir: default ``RUN/eval-<store name>``. device: default CUDA when present.
-        vis: pictures of the first ``vis`` samples. limit: evaluate only the first ``limit`` samples.
-        boxes: override the model's ``test_boxes`` ("gt" | "predicted").
-        plausibility: samples (the first ones) for the plausibility report (0: none).
-        ho3d_order: HO-3D ``evaluation.txt`` -> pred.json / pred.zip; checked before any work against every HO-3D
-            store (:mod:`hoisdf.scoring.ho3d_list`); a store or list that cannot give a complete submission is
-            a DataError, never a missing file. baseline_store: store whose labels
-            give the mean pose (default: the first evaluated store). workers: loader processes, and processes for the
-            plausibility report.
-        ho3d_gt: folder with the challenge's ``evaluation_xyz.json`` / ``evaluation_verts.json``: the written
-            pred.json is scored against them (``metrics.json["ho3d_challenge"]``, ``scores.txt``).
-        precision: "fp32" (as upstream) or "bf16" (autocast; geometry, ranking and head outputs stay fp32).
+            MANO folder. out_dir: default ``RUN/eval-<store name>``.
+        options: :class:`EvalOptions`; ``flags`` replace single fields of it (``batch_size=4``).
+
+    The steps: :func:`collect` (the model over the stores), :func:`score_collected` (metrics, baseline,
+    plausibility), :func:`write_outputs` (result files), :func:`result_dict` (metrics.json's content).
     """
     from hoidata.hand import load_mano
 
+    opts = replace(options or EvalOptions(), **flags)
     stores = [resolve_store(s) for s in ([stores] if isinstance(stores, (str, Path, RemoteStore)) else stores)]
     refuse_repeated_stores(stores, "the stores to evaluate (--shards)")  # each record is scored once
     out_dir = Path(out_dir) if out_dir else run_folder(Path(run)) / f"eval-{'+'.join(s.name for s in stores)}"
     clear_results(out_dir)  # whatever happens next, no earlier run's result file stays beside this run's
-    if boxes not in (None, "gt", "predicted"):
-        raise ValueError(f"boxes must be 'gt' or 'predicted', got {boxes!r}")
-    if ho3d_gt is not None and ho3d_order is None:
-        raise ValueError("--ho3d-gt scores the pred.json that --ho3d-order writes: give both")
+    opts.check()
     indexes = {s: read_index(s) for s in stores}
-    order = checked_ho3d_order(ho3d_order, ho3d_gt, indexes, limit) if ho3d_order is not None else None
-    device = resolve_device(device)
+    order = (checked_ho3d_order(opts.ho3d_order, opts.ho3d_gt, indexes, opts.limit) if opts.ho3d_order is not None
+             else None)
+    device = resolve_device(opts.device)
     mano = load_mano(mano_dir, side="right")
-    model, config, info = load_for_eval(run, mano, device, boxes)
+    model, config, info = load_for_eval(run, mano, device, opts.boxes)
+    col = collect(model, mano, config, stores, indexes, device, opts)
+    scored = score_collected(col, mano, stores, indexes, opts)
+    written = write_outputs(out_dir, col, scored, mano, stores, indexes, order, opts)
+    result = result_dict(info, stores, device, col, scored, crop_note(config.model, col.get("upstream_crop"),
+                                                                      len(col.keys)), written, opts)
+    write_atomic(out_dir / "metrics.json", json.dumps(json_safe(result), indent=2).encode())  # last: the run is done
+    rows = {"HOISDF (this run)": scored.summary["all"],
+            **({"mean-pose baseline": scored.baseline} if scored.baseline else {})}
+    return {**result, "table": format_table(rows, col.get("verts") is not None, bool(col.get("ho3d").any()))}
+
+
+def collect(model, mano, config, stores: list, indexes: dict, device, opts: EvalOptions) -> Collected:
+    """The model's predictions and the ground truth of the stores' records, in stored order
+    (:func:`hoisdf.evaluation.inference.infer`); ``model`` any :class:`hoisdf.model.HOISDF` in eval mode."""
+    return infer(model, mano, config, stores, opts.batch_size, device, opts.limit, opts.vis, opts.progress,
+                 opts.workers, indexes, opts.precision)
+
+
+def score_collected(col: Collected, mano, stores: list, indexes: dict, opts: EvalOptions) -> Scored:
+    """Per-sample and summary metrics of the collected samples, the mean-pose baseline's (when its store has hand
+    labels) and the plausibility report; object meshes come from the stores' indexes (a missing one is a
+    DataError naming the first store)."""
     objects = {name: mesh for index in indexes.values() for name, mesh in index.objects.items()}
-    col = infer(model, mano, config, stores, batch_size, device, limit, vis, progress, workers, indexes, precision)
     missing = sorted(set(col.names) - set(objects))
     if missing:
         raise DataError(stores[0], "objects", f"no mesh in the store index for {missing}")
@@ -108,39 +169,53 @@ def evaluate(run, stores, mano_dir, out_dir=None, batch_size: int = 8, device=No
     per_sample = score(col.get("joints"), col.get("gt_joints"), col.get("verts"), col.get("gt_verts"),
                        col.get("obj_pose"), col.get("gt_obj_pose"), obj_verts, obj_valid)
     summary = M.summarize(per_sample, names)
-    base_src = resolve_store(baseline_store) if baseline_store else stores[0]
+    base_src = resolve_store(opts.baseline_store) if opts.baseline_store else stores[0]
     base_index = indexes.get(base_src) or read_index(base_src)
-    base_summary = None
+    baseline = None
     if (base_index.labels["kind"] == FULL).any():
-        base_summary = M.summarize(baseline_scores(col, mano, base_src, obj_verts, obj_valid, base_index))["all"]
+        baseline = M.summarize(baseline_scores(col, mano, base_src, obj_verts, obj_valid, base_index))["all"]
     counts = {str(name): int(c) for name, c in zip(*np.unique(names, return_counts=True))}
-    result = {
+    plausibility = plausibility_summary(col, meshes, mano, opts.plausibility, opts.progress, opts.workers)
+    return Scored(per_sample, summary, counts, meshes, baseline, base_src, plausibility)
+
+
+def write_outputs(out_dir: Path, col: Collected, scored: Scored, mano, stores: list, indexes: dict, order,
+                  opts: EvalOptions) -> dict:
+    """The result files (toolkit files, HO-3D pred.json with ``order``, ``per_object.csv``, pictures) in
+    ``out_dir``; returns what metrics.json says of them: ``files``, ``dexycb_hpe`` (and ``ho3d_challenge``)."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    files, hpe = export(col, stores, out_dir, order, indexes)
+    written = {"files": files, "dexycb_hpe": hpe}
+    if opts.ho3d_gt is not None:
+        written["ho3d_challenge"] = score_ho3d_files(files, opts.ho3d_gt, out_dir)
+    write_per_object(out_dir / "per_object.csv", scored.summary, scored.counts)
+    if opts.vis:
+        write_vis(col, scored.meshes, mano, out_dir / "vis")
+    return written
+
+
+def result_dict(info: dict, stores: list, device, col: Collected, scored: Scored, note: str | None, written: dict,
+                opts: EvalOptions) -> dict:
+    """metrics.json's content, built here only: the checkpoint ``info``, the stores, the scores, the baseline, the
+    plausibility report, the notes and what :func:`write_outputs` wrote."""
+    flags = col.get("upstream_crop")
+    per_sample, base_src = scored.per_sample, scored.baseline_store
+    return {
         **info, "stores": [str(s) for s in stores], "device": str(device), "samples": len(col.keys),
-        "precision": {"mode": precision, "dtypes": col.dtypes},
-        "counts": {"per_object": counts, "hand_metrics": int(np.isfinite(per_sample["rr_mje"]).sum()),
+        "precision": {"mode": opts.precision, "dtypes": col.dtypes},
+        "counts": {"per_object": scored.counts, "hand_metrics": int(np.isfinite(per_sample["rr_mje"]).sum()),
                    "object_metrics": int(np.isfinite(per_sample["oce"]).sum())},
-        "overall": summary["all"], "per_object": {k: v for k, v in summary.items() if k != "all"},
+        "overall": scored.summary["all"], "per_object": {k: v for k, v in scored.summary.items() if k != "all"},
         "baseline": {"method": "mean wrist-relative joints/verts placed at the GT wrist; object at obj_center, "
                                "identity rotation", "mean_pose_from": str(base_src), "rows_max": BASELINE_ROWS,
                      "peeks_at_evaluated_labels": base_src.resolve() in [s.resolve() for s in stores],
-                     "overall": base_summary or {"skipped": f"{base_src} has no hand labels; --baseline-store TRAIN"}},
-        "plausibility": plausibility_summary(col, meshes, mano, plausibility, progress, workers),
+                     "overall": scored.baseline or {"skipped": f"{base_src} has no hand labels; --baseline-store TRAIN"}},
+        "plausibility": scored.plausibility,
         "units": "mm for lengths, ratios for AUC and F-scores",
+        "upstream_crop_records": 0 if flags is None else int((flags > 0.5).sum()),
+        "notes": [note] if note else [],
+        **written,
     }
-    out_dir.mkdir(parents=True, exist_ok=True)
-    flags = col.get("upstream_crop")
-    result["upstream_crop_records"] = 0 if flags is None else int((flags > 0.5).sum())
-    note = crop_note(config.model, flags, len(col.keys))
-    result["notes"] = [note] if note else []
-    result["files"], result["dexycb_hpe"] = export(col, stores, out_dir, order, indexes)
-    if ho3d_gt is not None:
-        result["ho3d_challenge"] = score_ho3d_files(result["files"], ho3d_gt, out_dir)
-    write_per_object(out_dir / "per_object.csv", summary, counts)
-    if vis:
-        write_vis(col, meshes, mano, out_dir / "vis")
-    write_atomic(out_dir / "metrics.json", json.dumps(json_safe(result), indent=2).encode())  # last: the run is done
-    rows = {"HOISDF (this run)": summary["all"], **({"mean-pose baseline": base_summary} if base_summary else {})}
-    return {**result, "table": format_table(rows, col.get("verts") is not None, bool(col.get("ho3d").any()))}
 
 
 def crop_note(model_settings, flags, n: int) -> str | None:
@@ -196,11 +271,14 @@ def main(argv: list[str] | None = None) -> int:
     return run_cli("", lambda: _run(args), args.debug)
 
 
+def options_from_args(args) -> EvalOptions:
+    """The command's flags as :class:`EvalOptions` (each option is the flag of the same name)."""
+    values = {f.name: getattr(args, f.name) for f in fields(EvalOptions) if f.name != "progress"}
+    return EvalOptions(**values, progress=not args.no_progress)
+
+
 def _run(args) -> int:
-    result = evaluate(args.ckpt, args.shards, args.mano, args.out, args.batch_size, args.device, args.vis,
-                      args.limit, args.boxes, args.plausibility, args.ho3d_order, args.baseline_store,
-                      progress=not args.no_progress, workers=args.workers, ho3d_gt=args.ho3d_gt,
-                      precision=args.precision)
+    result = evaluate(args.ckpt, args.shards, args.mano, args.out, options_from_args(args))
     print(f"{result['samples']} samples, checkpoint {result['checkpoint']} (epoch {result['epoch']}), "
           f"boxes {result['test_boxes']}; lengths in mm")
     print(result["table"])

@@ -58,7 +58,7 @@ hoidata build-sdf --dataset ho3d --root toy --out store --workers 1 record.crop_
 # small model on them
 hoidata verify store
 python -m hoisdf.train --config toy --shards store --mano toy/mano --out run --no-progress model.depth=18 \
-  model.image_size=64 model.n_hand=32 model.n_object=16 model.grid_resolution=16 model.hand_layers=1 \
+  model.image_size=64 model.hand_queries=32 model.object_queries=16 model.grid_resolution=16 model.hand_layers=1 \
   model.decoder_layers=1 model.object_layers=1 train.batch_size=1 train.workers=0 train.max_steps=1 \
   train.val_every=0 >/dev/null
 test -f run/checkpoints/last.pt

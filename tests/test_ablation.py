@@ -11,7 +11,7 @@ from hoisdf.ablation import TABLES, markdown_table, run_table, training_runs
 
 pytestmark = pytest.mark.slow  # trains and evaluates several runs
 
-SMALL = ["model.image_size=64", "model.grid_resolution=12", "model.n_hand=24", "model.n_object=12",
+SMALL = ["model.image_size=64", "model.grid_resolution=12", "model.hand_queries=24", "model.object_queries=12",
          "model.hand_layers=1", "model.decoder_layers=1", "train.batch_size=2", "train.workers=0",
          "train.point_sampling_epoch=0", "train.log_every=1"]
 

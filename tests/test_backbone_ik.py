@@ -10,7 +10,7 @@ import torchvision
 from torch import nn
 
 from hoidata.geometry.rotation import axis_angle_to_matrix, matrix_to_axis_angle
-from hoisdf.model.backbone import ResNetUNet, frozen_bn_parameters
+from hoisdf.model.backbone import BIG, DECODERS, SMALL, ResNetUNet, frozen_bn_parameters
 from hoisdf.model.ik import kabsch_rotation, minimal_rotation, solve_ik
 
 # ---------------------------------------------------------------------------------------------- backbone
@@ -20,7 +20,7 @@ from hoisdf.model.ik import kabsch_rotation, minimal_rotation, solve_ik
                                                pytest.param("big", [32, 64, 128, 256, 512], marks=pytest.mark.slow)])
 def test_r18_shapes(decoder, channels):
     torch.manual_seed(0)
-    net = ResNetUNet(depth=18, decoder=decoder)
+    net = ResNetUNet(depth=18, decoder=DECODERS[decoder])
     assert net.channels == channels
     pyramid, maps = net(torch.rand(2, 3, 64, 64))
     assert [tuple(f.shape) for f in pyramid] == [(2, c, 64 // s, 64 // s) for c, s in zip(channels, (2, 4, 8, 16, 32))]
@@ -31,7 +31,7 @@ def test_r18_shapes(decoder, channels):
 @pytest.mark.parametrize("decoder, total, first_fuse_in", [("small", 992, 96),
                                                           pytest.param("big", 3968, 192, marks=pytest.mark.slow)])
 def test_r50_channels(decoder, total, first_fuse_in):
-    net = ResNetUNet(depth=50, decoder=decoder).eval()
+    net = ResNetUNet(depth=50, decoder=DECODERS[decoder]).eval()
     assert sum(net.channels) == net.feature_dim == total
     assert net.decoder.up2.fuse[0].in_channels == first_fuse_in
     if decoder == "small":  # one forward pass (the big decoder is slow on CPU)
@@ -44,7 +44,7 @@ def test_r50_channels(decoder, total, first_fuse_in):
 
 
 def test_heads_are_separate_stacks():
-    net = ResNetUNet(depth=18, decoder="big")
+    net = ResNetUNet(depth=18, decoder=BIG)
     convs = [m for m in net.heatmap_head.modules() if isinstance(m, nn.Conv2d)]
     assert [(c.in_channels, c.out_channels, c.kernel_size) for c in convs] == [(32, 32, (1, 1)), (32, 16, (1, 1)),
                                                                                 (16, 1, (1, 1))]
@@ -53,7 +53,7 @@ def test_heads_are_separate_stacks():
 
 
 def test_decoder_init():
-    net = ResNetUNet(depth=18, decoder="small")
+    net = ResNetUNet(depth=18, decoder=SMALL)
     w = torch.cat([m.weight.flatten() for m in net.decoder.modules() if isinstance(m, (nn.Conv2d, nn.ConvTranspose2d))])
     assert 0.5e-3 < w.std().item() < 2e-3
     assert all(m.bias.abs().max() == 0 for m in net.decoder.modules() if isinstance(m, nn.Conv2d))
@@ -126,7 +126,7 @@ def test_load_state_dict_file(tmp_path):
 @pytest.mark.slow
 def test_gradients_reach_decoder_and_backbone():
     torch.manual_seed(0)
-    net = ResNetUNet(depth=18, decoder="small")
+    net = ResNetUNet(depth=18, decoder=SMALL)
     pyramid, maps = net(torch.rand(2, 3, 64, 64))
     loss = sum(f.square().mean() for f in pyramid) + maps.square().mean()
     loss.backward()

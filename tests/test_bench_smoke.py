@@ -23,8 +23,8 @@ SMALL_SDF = ["--frames", "1", "--rounds", "1", "--n-hand", "256", "--n-object", 
 TOY_MODEL = ["--config", "toy", "--store", "{store}", "--mano", "{mano}", "--device", "cpu"]
 TINY_MODEL = ["model.depth=18", "model.image_size=64", "model.d_model=64", "model.ff=128", "model.hand_layers=1",
                "model.decoder_layers=1", "model.object_layers=1", "model.sdf_features=32", "model.sdf_hidden=96",
-               "model.token_hidden=[48]", "model.n_hand=32", "model.n_object=16", "model.grid_resolution=12",
-               "model.chunk=1000"]
+               "model.token_hidden=[48]", "model.hand_queries=32", "model.object_queries=16",
+               "model.grid_resolution=12", "model.chunk=1000"]
 TINY_RECIPE = [*TINY_MODEL, "train.batch_size=2",
                "augment.upstream=false"]  # the smoke store is a project-crop store (a region store: 256 px)
 

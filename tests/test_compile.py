@@ -19,7 +19,7 @@ pytestmark = pytest.mark.slow  # torch.compile
 
 TINY = ["model.depth=18", "model.image_size=64", "model.d_model=64", "model.ff=128", "model.hand_layers=1",
         "model.decoder_layers=1", "model.object_layers=1", "model.sdf_features=32", "model.sdf_hidden=96",
-        "model.token_hidden=[48]", "model.n_hand=32", "model.n_object=16", "model.grid_resolution=12",
+        "model.token_hidden=[48]", "model.hand_queries=32", "model.object_queries=16", "model.grid_resolution=12",
         "model.chunk=1000"]
 
 

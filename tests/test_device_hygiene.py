@@ -21,7 +21,7 @@ from hoisdf.training.trainer import Trainer
 
 TINY = ["model.depth=18", "model.image_size=64", "model.d_model=64", "model.ff=128", "model.hand_layers=2",
         "model.decoder_layers=2", "model.object_layers=1", "model.sdf_features=32", "model.sdf_hidden=96",
-        "model.token_hidden=[48]", "model.n_hand=32", "model.n_object=16", "model.grid_resolution=16",
+        "model.token_hidden=[48]", "model.hand_queries=32", "model.object_queries=16", "model.grid_resolution=16",
         "model.chunk=2048", "train.batch_size=2", "train.workers=0", "train.val_every=0"]
 VARIANTS = {"default": [], "ik": ['model.pose_regressor="ik"'], "voting": ['model.pose_regressor="voting"'],
             "predicted boxes": ['model.test_boxes="predicted"', 'model.sampling="gradient"',
@@ -39,8 +39,8 @@ def _setup(store, mano, run_dir, extra):
     cfg = load_train_config(None, TINY + extra)
     torch.manual_seed(0)
     trainer = Trainer(cfg, [StoreSpec(store)], mano, run_dir, torch.device("cpu"))
-    batch = next(iter(build_dataset([StoreSpec(store)], 2, seed=0, n_hand=cfg.model.n_hand,
-                                    n_object=cfg.model.n_object, training=True)))
+    batch = next(iter(build_dataset([StoreSpec(store)], 2, seed=0, n_hand=cfg.model.hand_queries,
+                                    n_object=cfg.model.object_queries, training=True)))
     eval_batch = next(iter(build_dataset([StoreSpec(store)], 2, n_hand=1, n_object=1, training=False)))
     # one ordinary step first: torch's own Adam makes its step counters on the default device at the first step
     trainer.train_step(batch, "field", 0.03)

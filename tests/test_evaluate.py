@@ -15,7 +15,7 @@ import torch
 
 from hoidata.errors import DataError
 
-TINY = ["model.depth=18", "model.image_size=64", "model.n_hand=32", "model.n_object=16", "model.grid_resolution=16",
+TINY = ["model.depth=18", "model.image_size=64", "model.hand_queries=32", "model.object_queries=16", "model.grid_resolution=16",
         "model.hand_layers=1", "model.decoder_layers=1", "model.object_layers=1"]
 
 

@@ -31,7 +31,7 @@ pytestmark = pytest.mark.slow  # each fault is a training or evaluation run on a
 
 TINY = ["model.depth=18", "model.image_size=64", "model.d_model=64", "model.ff=128", "model.hand_layers=2",
         "model.decoder_layers=2", "model.object_layers=1", "model.sdf_features=32", "model.sdf_hidden=96",
-        "model.token_hidden=[48]", "model.n_hand=32", "model.n_object=16", "model.grid_resolution=16",
+        "model.token_hidden=[48]", "model.hand_queries=32", "model.object_queries=16", "model.grid_resolution=16",
         "model.chunk=2048", "train.batch_size=2", "train.workers=0", "train.lr=1e-3", "train.log_every=1",
         "train.shuffle_buffer=4", "train.val_every=0"]
 

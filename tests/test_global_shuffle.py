@@ -263,7 +263,7 @@ def test_the_trainer_resumes_mid_epoch_exactly(tiny_store_two_shards, mano_dir, 
     mano = load_mano(mano_dir, side="right")
     tiny = ["model.depth=18", "model.image_size=64", "model.d_model=64", "model.ff=128", "model.hand_layers=1",
             "model.decoder_layers=1", "model.object_layers=1", "model.sdf_features=32", "model.sdf_hidden=96",
-            "model.token_hidden=[48]", "model.n_hand=16", "model.n_object=8", "model.grid_resolution=8",
+            "model.token_hidden=[48]", "model.hand_queries=16", "model.object_queries=8", "model.grid_resolution=8",
             "train.batch_size=2", "train.workers=0", "train.lr=1e-3", "train.val_every=0", "train.record_keys=true",
             'train.shuffle="global"']
 

@@ -295,7 +295,7 @@ def test_training_starts_from_imported_weights(tiny_store, mano_dir, tmp_path):
 
     tiny = ["model.depth=18", "model.image_size=64", "model.d_model=64", "model.ff=128", "model.hand_layers=1",
             "model.decoder_layers=1", "model.object_layers=1", "model.sdf_features=32", "model.sdf_hidden=96",
-            "model.token_hidden=[48]", "model.n_hand=32", "model.n_object=16", "model.grid_resolution=16"]
+            "model.token_hidden=[48]", "model.hand_queries=32", "model.object_queries=16", "model.grid_resolution=16"]
     released = ['model.pixel_convention="upstream"', "model.sheared_grid=true", "model.normalize_input=false",
                 'model.density_sign="code"', 'model.object_rotation="axis_angle"']
     cfg = load_train_config(None, tiny + released)

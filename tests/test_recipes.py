@@ -190,8 +190,8 @@ def test_trainer_builds_the_recipe_optimizer(tiny_store, mano_dir, tmp_path):
     from hoisdf.data import StoreSpec
     from hoisdf.training.trainer import Trainer
 
-    tiny = ["model.depth=18", "model.image_size=64", "model.grid_resolution=12", "model.n_hand=16",
-            "model.n_object=8", "model.hand_layers=1", "model.decoder_layers=1", "train.workers=0"]
+    tiny = ["model.depth=18", "model.image_size=64", "model.grid_resolution=12", "model.hand_queries=16",
+            "model.object_queries=8", "model.hand_layers=1", "model.decoder_layers=1", "train.workers=0"]
     mano = load_mano(mano_dir, side="right")
     for recipe, cls, decay in (("project", torch.optim.AdamW, 0.01), ("paper_text", torch.optim.Adam, 0.0)):
         cfg = load_train_config(None, tiny + [f'train.recipe="{recipe}"', "train.batch_size=2"])
@@ -207,7 +207,7 @@ def test_ho3d_render_uses_the_small_decoder_and_inverse_kinematics():
 
 TINY = ["model.depth=18", "model.image_size=64", "model.d_model=64", "model.ff=128", "model.hand_layers=1",
         "model.decoder_layers=1", "model.object_layers=1", "model.sdf_features=32", "model.sdf_hidden=96",
-        "model.token_hidden=[48]", "model.n_hand=32", "model.n_object=16", "model.grid_resolution=12",
+        "model.token_hidden=[48]", "model.hand_queries=32", "model.object_queries=16", "model.grid_resolution=12",
         "model.chunk=1000", 'model.weights=""', "train.batch_size=2", "train.workers=0"]
 
 

@@ -12,6 +12,7 @@ from hoisdf.data.augment import augment_batch
 from hoisdf.model import build_model
 from hoisdf.model.encoding import pixel_aligned_features
 from hoisdf.model.sampling import (
+    STRATEGIES,
     field_guided_points,
     grid_points,
     inside_box,
@@ -22,7 +23,7 @@ from hoisdf.model.sampling import (
 SCALE = 3.1
 TINY = ["model.depth=18", "model.image_size=64", "model.d_model=64", "model.ff=128", "model.hand_layers=2",
         "model.decoder_layers=2", "model.object_layers=1", "model.sdf_features=32", "model.sdf_hidden=96",
-        "model.token_hidden=[48]", "model.n_hand=32", "model.n_object=16", "model.grid_resolution=16",
+        "model.token_hidden=[48]", "model.hand_queries=32", "model.object_queries=16", "model.grid_resolution=16",
         "model.chunk=700"]
 
 
@@ -46,7 +47,7 @@ def test_fixed_shape_selects_the_same_points_as_the_compact_path(strategy):
     runs = {}
     for fixed in (False, True):
         gen = torch.Generator().manual_seed(3)
-        runs[fixed] = field_guided_points(grid, center, SCALE, K, box, sdf_fn, 50, strategy, chunk=997,
+        runs[fixed] = field_guided_points(grid, center, SCALE, K, box, sdf_fn, 50, STRATEGIES[strategy], chunk=997,
                                           generator=gen, fixed_shape=fixed)
     assert torch.equal(runs[False][0], runs[True][0]) and torch.equal(runs[False][1], runs[True][1])
     cam = grid[None] / SCALE + center[:, None]
@@ -91,7 +92,7 @@ def test_model_fixed_shape_and_compact_paths_pick_the_same_query_points(tiny, pr
     """The real network's fields (in float64, so that per-row matmul rounding cannot reorder near-ties)."""
     mano, batch = tiny
     model = _model(mano).double().eval()
-    model.project_grid = project_grid
+    model.features.project_grid = project_grid
     x = {k: v.double() if torch.is_tensor(v) and v.is_floating_point() else v for k, v in batch.items()}
     with torch.no_grad():
         pyramid, maps = model.backbone(x["img"])
@@ -174,8 +175,8 @@ def test_gradient_variant_steps_along_the_full_field_gradient_at_inference_only(
         model.train()  # trains as "absolute": no step
         trained, _ = model._query_points(batch, pyramid, *args)
     assert torch.equal(trained, start) and torch.allclose(moved, moved_fixed, atol=1e-6)
-    fn_full = model._sdf_fn(model.hand_sdf, pyramid, batch["K"], batch["hand_root"], detach=False)
-    fn_code = model._sdf_fn(model.hand_sdf, pyramid, batch["K"], batch["hand_root"])
+    fn_full = model._sdf_fn(model.fields.hand_sdf, pyramid, batch["K"], batch["hand_root"], detach=False)
+    fn_code = model._sdf_fn(model.fields.hand_sdf, pyramid, batch["K"], batch["hand_root"])
     model.eval()
     grads = {}
     for name, fn in (("full", fn_full), ("code", fn_code)):

@@ -13,7 +13,7 @@ pytestmark = pytest.mark.slow  # the main job, end to end
 
 def test_main_job_end_to_end_reduced(tmp_path, capsys):
     out = tmp_path / "toy_run"
-    small = ["model.grid_resolution=16", "model.n_hand=64", "model.n_object=32", "train.batch_size=4",
+    small = ["model.grid_resolution=16", "model.hand_queries=64", "model.object_queries=32", "train.batch_size=4",
              "train.workers=1"]
     assert main(["--out", str(out), "--sequences", "5", "--frames", "2", "--steps", "3", "--vis", "2", *small]) == 0
     report = out / "report"

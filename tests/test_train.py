@@ -16,13 +16,13 @@ from hoisdf.config import load_train_config
 from hoisdf.data import StoreSpec, build_dataset
 from hoisdf.data.augment import augment_batch
 from hoisdf.model import build_model
-from hoisdf.model.sampling import field_guided_points, grid_points, inside_box
+from hoisdf.model.sampling import ABSOLUTE, SIGNED, field_guided_points, grid_points, inside_box
 from hoisdf.training.losses import HOISDFLoss, hand_targets, mirrored_shape_mano
 from hoisdf.training.trainer import Trainer
 
 TINY = ["model.depth=18", "model.image_size=64", "model.d_model=64", "model.ff=128", "model.hand_layers=2",
         "model.decoder_layers=2", "model.object_layers=1", "model.sdf_features=32", "model.sdf_hidden=96",
-        "model.token_hidden=[48]", "model.n_hand=32", "model.n_object=16", "model.grid_resolution=16",
+        "model.token_hidden=[48]", "model.hand_queries=32", "model.object_queries=16", "model.grid_resolution=16",
         "model.chunk=2048", "train.batch_size=2", "train.workers=0", "train.lr=1e-3", "train.log_every=1",
         "train.shuffle_buffer=4", "train.val_every=0"]
 NO_AUGMENT = ["augment.rotation=\"none\"", "augment.center_jitter=0.0", "augment.scale_sigma=0.0",
@@ -38,7 +38,7 @@ def mano(mano_dir):
 
 def _batch(store, n=2, training=True, seed=0):
     cfg = load_train_config(None, TINY)
-    data = build_dataset([StoreSpec(store)], n, seed=seed, n_hand=cfg.model.n_hand, n_object=cfg.model.n_object,
+    data = build_dataset([StoreSpec(store)], n, seed=seed, n_hand=cfg.model.hand_queries, n_object=cfg.model.object_queries,
                          training=training)
     return next(iter(data))
 
@@ -69,18 +69,19 @@ def test_forward_backward_shapes_and_gradients(tiny_store, mano, regressor):
     total, terms = HOISDFLoss(cfg.loss, mano, cls_dist=cfg.model.cls_dist)(out, batch)
     total.backward()
     assert all(torch.isfinite(v) for v in terms.values())
-    groups = ["backbone.decoder", "backbone.backbone.layer1", "sdf_in", "token_in", "hand_sdf", "obj_sdf",
-              "hand_encoder", "obj_encoder", "obj_head"]
-    groups += {"mano": ["hand_decoder", "mano_head", "vote_head"], "mano_only": ["hand_decoder", "mano_head"],
-               "voting": ["vote_head"], "ik": ["hand_decoder", "shape_head", "vote_head"]}[regressor]
+    groups = ["backbone.decoder", "backbone.backbone.layer1", "features.sdf_in", "features.token_in",
+              "fields.hand_sdf", "fields.obj_sdf", "pose.hand_encoder", "pose.obj_encoder", "pose.obj_head"]
+    groups += [f"pose.regressor.{head}" for head in {
+        "mano": ["hand_decoder", "mano_head", "vote_head"], "mano_only": ["hand_decoder", "mano_head"],
+        "voting": ["vote_head"], "ik": ["hand_decoder", "shape_head", "vote_head"]}[regressor]]
     grads = {g: 0.0 for g in groups}
     for name, p in model.named_parameters():
         for g in groups:
             if name.startswith(g) and p.grad is not None:
                 grads[g] += float(p.grad.abs().sum())
     assert all(v > 0 for v in grads.values()), grads
-    assert model.hand_beta.grad is not None and model.hand_beta.grad.abs() > 0  # the density is learned
-    widths = [layer.out_features for layer in model.token_in.layers if isinstance(layer, torch.nn.Linear)]
+    assert model.widths.hand_beta.grad is not None and model.widths.hand_beta.grad.abs() > 0  # the density is learned
+    widths = [layer.out_features for layer in model.features.token_in.layers if isinstance(layer, torch.nn.Linear)]
     assert widths == [48, 64 - 33]  # model.token_hidden, then d_model minus the point code
 
 
@@ -111,7 +112,7 @@ def test_field_guided_sampler_picks_smallest_abs_sdf_inside_box():
         return ((points_cam - torch.tensor([0.0, 0.0, 0.4])).norm(dim=-1) - radius) * scale
 
     grid = grid_points(24)
-    points, sdf = field_guided_points(grid, center, scale, K, box, sdf_fn, 50, "absolute", chunk=1000)
+    points, sdf = field_guided_points(grid, center, scale, K, box, sdf_fn, 50, ABSOLUTE, chunk=1000)
     cam = grid[None] / scale + center[:, None]
     inside = inside_box(cam, K, box)[0]
     all_sdf = sdf_fn(cam)[0]
@@ -119,10 +120,10 @@ def test_field_guided_sampler_picks_smallest_abs_sdf_inside_box():
     assert torch.allclose(torch.sort(sdf[0].abs()).values, expected)
     assert inside_box(points / scale + center[:, None], K, box).all()
     # "signed" takes the deepest inside points; a box with fewer grid points than asked still gives n points
-    _, signed = field_guided_points(grid, center, scale, K, box, sdf_fn, 50, "signed", chunk=1000)
+    _, signed = field_guided_points(grid, center, scale, K, box, sdf_fn, 50, SIGNED, chunk=1000)
     assert torch.allclose(torch.sort(signed[0]).values, torch.sort(all_sdf[inside]).values[:50])
     tiny_box = torch.tensor([[63.0, 63.0, 66.0, 66.0]])
-    few, _ = field_guided_points(grid, center, scale, K, tiny_box, sdf_fn, 50, "absolute", chunk=1000)
+    few, _ = field_guided_points(grid, center, scale, K, tiny_box, sdf_fn, 50, ABSOLUTE, chunk=1000)
     assert few.shape == (1, 50, 3)
     n_inside = int(inside_box(cam, K, tiny_box).sum())
     assert 0 < n_inside < 50 and int(inside_box(few / scale + center[:, None], K, tiny_box).sum()) == n_inside
@@ -277,9 +278,9 @@ def test_projected_grid_features_equal_direct_sampling(tiny_store, mano):
         points = batch["hand_root"][:, None] + torch.randn(2, 500, 3, generator=torch.Generator().manual_seed(1)) * 0.1
         from hoisdf.model.encoding import project_pyramid
 
-        direct = model._sdf_fn(model.hand_sdf, pyramid, batch["K"], batch["hand_root"])(points)
-        projected = project_pyramid(pyramid, model.sdf_in.layers[0])
-        fast = model._grid_sdf_fn(model.hand_sdf, projected, batch["K"], batch["hand_root"])(points)
+        direct = model._sdf_fn(model.fields.hand_sdf, pyramid, batch["K"], batch["hand_root"])(points)
+        projected = project_pyramid(pyramid, model.features.sdf_in.layers[0])
+        fast = model._grid_sdf_fn(model.fields.hand_sdf, projected, batch["K"], batch["hand_root"])(points)
     assert torch.allclose(direct, fast, atol=1e-5) and direct.abs().max() > 0
 
 

@@ -147,7 +147,7 @@ def _tiny_run(path: Path, mano_dir: Path) -> Path:
     from hoisdf.model import build_model
     from hoisdf.training.checkpoint import save_checkpoint
 
-    cfg = load_train_config(None, ["model.depth=18", "model.image_size=256", "model.n_hand=32", "model.n_object=16",
+    cfg = load_train_config(None, ["model.depth=18", "model.image_size=256", "model.hand_queries=32", "model.object_queries=16",
                                    "model.grid_resolution=16", "model.hand_layers=1", "model.decoder_layers=1",
                                    "model.object_layers=1"])
     torch.manual_seed(0)

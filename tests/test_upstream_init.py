@@ -17,7 +17,7 @@ from hoisdf.model import build_model
 
 TINY = ["model.depth=18", "model.image_size=64", "model.d_model=64", "model.ff=128", "model.hand_layers=1",
         "model.decoder_layers=1", "model.object_layers=1", "model.sdf_features=32", "model.sdf_hidden=96",
-        "model.token_hidden=[48]", "model.n_hand=32", "model.n_object=16", "model.grid_resolution=16"]
+        "model.token_hidden=[48]", "model.hand_queries=32", "model.object_queries=16", "model.grid_resolution=16"]
 
 
 def _tiny(*overrides) -> ModelSettings:
@@ -45,7 +45,7 @@ def test_build_model_gives_the_sdf_decoders_upstreams_init():
     kept PyTorch's default init (biases up to +-1/sqrt(fan_in), output weights ~0.04)."""
     torch.manual_seed(0)
     model = build_model(_tiny(), None)
-    for decoder in (model.hand_sdf, model.obj_sdf):
+    for decoder in (model.fields.hand_sdf, model.fields.obj_sdf):
         assert all(float(layer.bias.detach().abs().max()) == 0.0 for layer in decoder.hidden_layers)
         assert float(decoder.out_layer.bias.detach().abs().max()) == 0.0
         assert 0.008 < float(decoder.out_layer.weight.detach().std()) < 0.012
@@ -65,7 +65,7 @@ def test_other_modules_keep_the_weights_their_seed_gave_them(monkeypatch):
     assert wired.keys() == other.keys() == before.keys()
     assert all(torch.equal(wired[k], other[k]) for k in wired)
     changed = {k for k in wired if not torch.equal(wired[k], before[k])}
-    assert changed == {f"{d}_sdf.{p}" for d in ("hand", "obj") for p in
+    assert changed == {f"fields.{d}_sdf.{p}" for d in ("hand", "obj") for p in
                        ("hidden_layers.0.bias", "hidden_layers.1.bias", "hidden_layers.2.bias", "hidden_layers.3.bias",
                         "out_layer.weight", "out_layer.bias")}
 
@@ -82,12 +82,12 @@ def test_raw_6d_is_the_offset_head_with_the_identity_in_its_bias(mano_dir):
         a = offset(_batch())
         b = raw(_batch())
         assert not torch.allclose(a["rotations"], b["rotations"], atol=1e-3)  # the same weights: another code
-        last = raw.mano_head.pose.layers[-1].bias
+        last = raw.pose.regressor.mano_head.pose.layers[-1].bias
         last += torch.tensor([1.0, 0.0, 0.0, 0.0, 1.0, 0.0])
         b = raw(_batch())
     assert torch.allclose(a["rotations"], b["rotations"], atol=1e-6)
     assert torch.allclose(a["mano_verts"], b["mano_verts"], atol=1e-6)
-    assert float(raw.mano_head.identity_6d.abs().max()) == 0.0 and "identity_6d" not in raw.state_dict()
+    assert float(raw.pose.regressor.mano_head.identity_6d.abs().max()) == 0.0 and "identity_6d" not in raw.state_dict()
 
 
 @pytest.mark.slow
@@ -99,13 +99,13 @@ def test_beta_below_its_floor(floor, mano_dir):
     settings = _tiny(f'model.beta_floor="{floor}"', 'model.pose_regressor="voting"', "model.beta_min=0.05")
     model = build_model(settings, load_mano(mano_dir, side="right")).train()
     with torch.no_grad():
-        model.hand_beta.fill_(0.04)  # below the floor, not so small that the density saturates
+        model.widths.hand_beta.fill_(0.04)  # below the floor, not so small that the density saturates
     out = model(_batch())
     out["vote_joints"].square().sum().backward()
     if floor == "project":
-        assert float(model.hand_beta.detach()) == pytest.approx(0.05) and float(model.hand_beta.grad) != 0.0
+        assert float(model.widths.hand_beta.detach()) == pytest.approx(0.05) and float(model.widths.hand_beta.grad) != 0.0
     else:
-        assert float(model.hand_beta.detach()) == pytest.approx(0.04) and float(model.hand_beta.grad) == 0.0
+        assert float(model.widths.hand_beta.detach()) == pytest.approx(0.04) and float(model.widths.hand_beta.grad) == 0.0
 
 
 def test_upstream_heatmap_target_sums_on_the_integer_grid():

@@ -298,7 +298,7 @@ def test_the_dexycb_preset_trains_in_full_on_a_region_store(region_stores, mano_
     root = Path(__file__).resolve().parents[1]
     small = ["model.depth=18", "model.d_model=64", "model.ff=128", "model.hand_layers=1", "model.decoder_layers=1",
              "model.object_layers=1", "model.sdf_features=32", "model.sdf_hidden=96", "model.token_hidden=[48]",
-             "model.n_hand=32", "model.n_object=16", "model.grid_resolution=12", "model.chunk=1000", 'model.weights=""',
+             "model.hand_queries=32", "model.object_queries=16", "model.grid_resolution=12", "model.chunk=1000", 'model.weights=""',
              "train.batch_size=2", "train.workers=0", "train.max_steps=2"]
     argv = [sys.executable, "-m", "hoisdf.train", "--config", "dexycb", "--shards", str(region_stores["dexycb_s0"]),
             "--mano", str(mano_dir), "--out", str(tmp_path / "run"), "--no-progress", *small]

@@ -3,7 +3,7 @@
 Follows the upstream HOISDF backbone (docs/upstream.md, "Backbone and decoder" and "Initialisation"):
 
 - a torchvision ResNet-18/34/50 (fc and avgpool unused) gives skip features at strides 2, 4, 8, 16, 32;
-- a U-Net decoder ("small" = upstream ``Decoder``, "big" = upstream ``Decoder_big``) refines them into a
+- a U-Net decoder (:data:`SMALL` = upstream ``Decoder``, :data:`BIG` = upstream ``Decoder_big``) refines them into a
   pyramid ``[stride2, stride4, stride8, stride16, stride32]`` whose channel counts are ``ResNetUNet.channels``
   (R50: small 32/64/128/256/512, sum 992; big 128/256/512/1024/2048, sum 3968);
 - three 1x1-conv heads on the stride-2 map give ``(B, 3, S/2, S/2)``: channel 0 the single-channel joint
@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import itertools
 import os
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -46,6 +48,11 @@ def imagenet_weights_path(depth: int) -> Path:
     """Where torchvision would cache the IMAGENET1K_V1 weights of ResNet-``depth`` (torch hub checkpoints dir)."""
     url = _RESNETS[depth][1].IMAGENET1K_V1.url
     return Path(torch.hub.get_dir()) / "checkpoints" / url.rsplit("/", 1)[-1]
+
+
+NAMED_WEIGHTS = {"imagenet": imagenet_weights_path}
+"""Backbone weights named in the settings (``model.weights``) -> their file for a ResNet depth; any other value is a
+path."""
 
 
 def conv_bn_relu(in_ch: int, out_ch: int, kernel: int = 3, final: bool = True) -> nn.Sequential:
@@ -152,12 +159,27 @@ def init_decoder_(module: nn.Module, std: float = 1e-3) -> None:
             nn.init.zeros_(m.bias)
 
 
+@dataclass(frozen=True)
+class DecoderKind:
+    """A U-Net decoder variant: its module class and the hidden widths of the 2D heads for a top level of ``c``
+    channels."""
+
+    module: type
+    head_hidden: Callable[[int], list[int]]
+
+
+SMALL = DecoderKind(SmallDecoder, lambda c: [c, c])
+BIG = DecoderKind(BigDecoder, lambda c: [c, c, c // 2])
+DECODERS = {"small": SMALL, "big": BIG}
+"""``model.decoder`` -> the decoder variant: "small" upstream's ``Decoder``, "big" its ``Decoder_big``."""
+
+
 class ResNetUNet(nn.Module):
     """ResNet encoder + U-Net decoder + 2D heads.
 
     Args:
         depth: 18, 34 or 50 (torchvision ResNet, built with ``weights=None``).
-        decoder: "small" (upstream ``Decoder``) or "big" (upstream ``Decoder_big``).
+        decoder: :data:`SMALL` (upstream ``Decoder``) or :data:`BIG` (upstream ``Decoder_big``), see :data:`DECODERS`.
         weights: None (random init); a path to a torchvision-layout ResNet state dict (``fc.*`` ignored,
             everything else loaded strictly); or "imagenet": torchvision's IMAGENET1K_V1 file from the torch
             hub cache (never downloaded; FileNotFoundError naming the expected path if absent).
@@ -173,7 +195,7 @@ class ResNetUNet(nn.Module):
         channels: pyramid channel counts, stride2..stride32 (sum = per-point feature dim C).
     """
 
-    def __init__(self, depth: int = 50, decoder: str = "small", weights: str | os.PathLike | None = None,
+    def __init__(self, depth: int = 50, decoder: DecoderKind = SMALL, weights: str | os.PathLike | None = None,
                  freeze_bn_affine: bool = True, normalize_input: bool = True, channels_last: bool = False):
         super().__init__()
         skip_channels = resnet_channels(depth)
@@ -182,15 +204,9 @@ class ResNetUNet(nn.Module):
         self.backbone = _RESNETS[depth][0](weights=None)
         self.backbone.fc = nn.Identity()
         self.backbone.avgpool = nn.Identity()
-        if decoder == "small":
-            self.decoder: nn.Module = SmallDecoder(skip_channels)
-        elif decoder == "big":
-            self.decoder = BigDecoder(skip_channels)
-        else:
-            raise ValueError(f"decoder must be 'small' or 'big', got {decoder!r}")
+        self.decoder: nn.Module = decoder.module(skip_channels)
         self.channels: list[int] = list(self.decoder.channels)
-        c = self.channels[0]
-        hidden = [c, c] if decoder == "small" else [c, c, c // 2]
+        hidden = decoder.head_hidden(self.channels[0])
         self.heatmap_head = head(hidden + [1])
         self.hand_mask_head = head(hidden + [1])
         self.obj_mask_head = head(hidden + [1])
@@ -213,8 +229,9 @@ class ResNetUNet(nn.Module):
 
     def load_backbone(self, weights: str | os.PathLike) -> None:
         """Load ResNet weights ("imagenet" = torch hub cache file, or a .pth path); ``fc.*`` keys are dropped."""
-        if str(weights) == "imagenet":
-            path = imagenet_weights_path(self.depth)
+        named = NAMED_WEIGHTS.get(str(weights))
+        if named is not None:
+            path = named(self.depth)
             if not path.is_file():
                 url = _RESNETS[self.depth][1].IMAGENET1K_V1.url
                 raise FileNotFoundError(

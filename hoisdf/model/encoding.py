@@ -8,8 +8,8 @@ Conventions
   image spans ``[-0.5, S - 0.5]``. Normalised grid coordinates are for ``grid_sample(align_corners=False)``,
   under which ``-1`` / ``+1`` are the outer edges of the image; a feature map of any stride covering the same
   image therefore uses the same normalised coordinates.
-* ``convention="upstream"`` (``model.pixel_convention``) is the released code's instead: the normalised coordinate
-  is ``(uv - (S-1)/2) / ((S-1)/2)`` with ``grid_sample(align_corners=True)`` (amathislab/HOISDF
+* :data:`UPSTREAM` (``model.pixel_convention = "upstream"``) is the released code's convention instead: the
+  normalised coordinate is ``(uv - (S-1)/2) / ((S-1)/2)`` with ``grid_sample(align_corners=True)`` (amathislab/HOISDF
   ``main/model.py``), i.e. input pixel ``u`` lands at ``u (W-1)/(S-1)`` on a level of width ``W``. Both agree at
   the crop centre and differ by ``0.5 - W/(2S)`` level pixels at the border (up to 15.5 input pixels at
   stride 32); released checkpoints were trained with it.
@@ -18,6 +18,7 @@ Conventions
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
@@ -25,8 +26,43 @@ from torch import nn
 
 from hoisdf.model.precision import full, no_autocast
 
-PIXEL_CONVENTIONS = ("centers", "upstream")
-"""``centers``: the stores' pixel-centre convention (align_corners=False); ``upstream``: the released code's."""
+
+@dataclass(frozen=True)
+class PixelCenters:
+    """The stores' convention: pixel centres at integers, ``grid_sample(align_corners=False)``."""
+
+    align_corners = False
+
+    def to_grid(self, uv: torch.Tensor, image_size: int) -> torch.Tensor:
+        """``g = (uv + 0.5) / S * 2 - 1`` (``-1`` = left/top image edge, ``+1`` = right/bottom)."""
+        return (uv + 0.5) / float(image_size) * 2.0 - 1.0
+
+    def mask_box(self, box: torch.Tensor, image_size: int, width: int) -> torch.Tensor:
+        """Mask-pixel box edges (B, 4) -> input pixels: a mask pixel i covers input pixels around
+        ``(i + 0.5) * S / w - 0.5``."""
+        return box * (image_size / width) - 0.5
+
+
+@dataclass(frozen=True)
+class UpstreamPixels:
+    """The released code's convention: ``g = (uv - c) / c`` with ``c = (S - 1) / 2``, ``align_corners=True``."""
+
+    align_corners = True
+
+    def to_grid(self, uv: torch.Tensor, image_size: int) -> torch.Tensor:
+        """``g = (uv - c) / c``, computed as the released code does."""
+        c = (image_size - 1) / 2.0
+        return (uv - c) / c
+
+    def mask_box(self, box: torch.Tensor, image_size: int, width: int) -> torch.Tensor:
+        """Mask-pixel box edges (B, 4) -> input pixels: mask pixel i sits at input pixel ``i (S - 1) / (w - 1)``."""
+        return (box - 0.5) * ((image_size - 1) / max(width - 1, 1))
+
+
+CENTERS, UPSTREAM = PixelCenters(), UpstreamPixels()
+PIXEL_CONVENTIONS = {"centers": CENTERS, "upstream": UPSTREAM}
+"""``model.pixel_convention`` -> the convention: ``centers`` the stores' pixel centres (align_corners=False);
+``upstream`` the released code's."""
 MIN_DEPTH = 1e-6
 """Depths (z, metres) are clamped to at least this before the perspective division."""
 
@@ -67,38 +103,24 @@ def project_points(points: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
     return homo[..., :2] / depth
 
 
-def pixel_to_grid(uv: torch.Tensor, image_size: int, convention: str = "centers") -> torch.Tensor:
-    """Pixel coordinates -> normalised ``grid_sample`` coordinates.
-
-    Args:
-        uv: ``(B, N, 2)`` pixel coordinates (OpenCV convention, pixel centres at integers).
-        image_size: side length ``S`` of the square input image in pixels.
-        convention: ``"centers"``: ``g = (uv + 0.5) / S * 2 - 1`` for ``align_corners=False`` (``-1`` = left/top
-            image edge, ``+1`` = right/bottom); ``"upstream"``: ``g = (uv - c) / c`` with ``c = (S - 1) / 2``,
-            computed as the released code does, for ``align_corners=True``.
-
-    Returns:
-        ``(B, N, 2)`` normalised coordinates.
-    """
-    if convention == "upstream":
-        c = (image_size - 1) / 2.0
-        return (uv - c) / c
-    if convention != "centers":
-        raise ValueError(f"pixel convention must be one of {PIXEL_CONVENTIONS}, got {convention!r}")
-    return (uv + 0.5) / float(image_size) * 2.0 - 1.0
+def pixel_to_grid(uv: torch.Tensor, image_size: int, convention=CENTERS) -> torch.Tensor:
+    """Pixel coordinates ``(B, N, 2)`` (OpenCV convention, pixel centres at integers) of a square ``image_size``
+    input -> normalised ``grid_sample`` coordinates ``(B, N, 2)`` of ``convention`` (:data:`CENTERS` or
+    :data:`UPSTREAM`)."""
+    return convention.to_grid(uv, image_size)
 
 
-def _sample(fmap: torch.Tensor, grid: torch.Tensor, convention: str = "centers") -> torch.Tensor:
+def _sample(fmap: torch.Tensor, grid: torch.Tensor, convention=CENTERS) -> torch.Tensor:
     """(B, C, H, W) map at (B, 1, N, 2) full-precision coordinates -> (B, N, C) in the grid's dtype (a bf16 map
     is sampled as fp32: bilinear weights from bf16 coordinates would be off by up to a pixel)."""
     with no_autocast(grid):
         sampled = F.grid_sample(fmap.to(grid.dtype), grid, mode="bilinear", padding_mode="border",
-                                align_corners=convention == "upstream")  # (B, C, 1, N)
+                                align_corners=convention.align_corners)  # (B, C, 1, N)
     return sampled.squeeze(2).transpose(1, 2)
 
 
 def sample_pyramid(features: Sequence[torch.Tensor], grid: torch.Tensor, detach: bool = True,
-                   convention: str = "centers") -> torch.Tensor:
+                   convention=CENTERS) -> torch.Tensor:
     """Bilinearly sample every pyramid level at the same normalised locations and concatenate.
 
     Args:
@@ -117,7 +139,7 @@ def sample_pyramid(features: Sequence[torch.Tensor], grid: torch.Tensor, detach:
 
 
 def pixel_aligned_features(features: Sequence[torch.Tensor], points_cam: torch.Tensor, K: torch.Tensor,
-                           image_size: int, detach: bool = True, convention: str = "centers") -> torch.Tensor:
+                           image_size: int, detach: bool = True, convention=CENTERS) -> torch.Tensor:
     """Project camera-frame points into the image and sample the feature pyramid there.
 
     Args:
@@ -126,7 +148,7 @@ def pixel_aligned_features(features: Sequence[torch.Tensor], points_cam: torch.T
         K: ``(B, 3, 3)`` crop intrinsics.
         image_size: input crop side length in pixels.
         detach: no gradient to ``points_cam`` (the default); ``False`` for the full field gradient.
-        convention: pixel convention, ``"centers"`` or ``"upstream"`` (:func:`pixel_to_grid`).
+        convention: pixel convention, :data:`CENTERS` or :data:`UPSTREAM` (:func:`pixel_to_grid`).
 
     Returns:
         ``(B, N, sum_l C_l)`` features.
@@ -156,7 +178,7 @@ def project_pyramid(features: Sequence[torch.Tensor], linear: nn.Linear) -> list
 
 
 def sample_projected(projected: Sequence[torch.Tensor], grid: torch.Tensor, bias: torch.Tensor,
-                     convention: str = "centers") -> torch.Tensor:
+                     convention=CENTERS) -> torch.Tensor:
     """(B, N, out): the sum over levels of the sampled projected maps, plus ``bias`` (see :func:`project_pyramid`);
     ``grid`` made with ``convention`` (:func:`pixel_to_grid`)."""
     grid = full(grid.detach()).unsqueeze(1)

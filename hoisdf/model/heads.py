@@ -9,6 +9,7 @@ import torch
 from torch import nn
 
 from hoidata.geometry.rotation import axis_angle_to_matrix, rot6d_to_matrix
+from hoisdf.model.encoding import CENTERS
 from hoisdf.model.layers import MLP
 from hoisdf.model.precision import full_precision
 
@@ -100,21 +101,21 @@ def with_root(voted: torch.Tensor) -> torch.Tensor:
 
 
 @full_precision
-def mean_rotation(axis_angles: torch.Tensor, mode: str) -> torch.Tensor:
-    """Average per-point rotation predictions (B, N, 3) axis-angle -> (B, 3, 3).
-
-    "chordal": the rotation closest (Frobenius) to the mean of the rotation matrices (SVD projection);
-    "axis_angle": the reference code's mean of axis-angle vectors (only valid for tightly clustered ones).
-    """
-    if mode == "axis_angle":
-        return axis_angle_to_matrix(axis_angles.float().mean(dim=1))
-    if mode != "chordal":
-        raise ValueError(f"object_rotation must be 'chordal' or 'axis_angle', got {mode!r}")
+def chordal_mean(axis_angles: torch.Tensor) -> torch.Tensor:
+    """Per-point rotation predictions (B, N, 3) axis-angle -> (B, 3, 3): the rotation closest (Frobenius) to the mean
+    of the rotation matrices (SVD projection)."""
     mean = axis_angle_to_matrix(axis_angles.float()).mean(dim=1)
     u, _, vh = torch.linalg.svd(mean)
     fix = torch.ones_like(mean[:, 0])
     fix[:, 2] = torch.sign(torch.linalg.det(u @ vh))
     return u @ torch.diag_embed(fix) @ vh
+
+
+@full_precision
+def axis_angle_mean(axis_angles: torch.Tensor) -> torch.Tensor:
+    """Per-point rotation predictions (B, N, 3) axis-angle -> (B, 3, 3): the reference code's mean of the axis-angle
+    vectors (only valid for tightly clustered ones)."""
+    return axis_angle_to_matrix(axis_angles.float().mean(dim=1))
 
 
 class ObjectHead(nn.Module):
@@ -137,17 +138,17 @@ def density(sdf: torch.Tensor, beta: torch.Tensor, sign: float, beta_min: float 
     return torch.sigmoid(sign * sdf / b) / b
 
 
-def masks_to_boxes(prob: torch.Tensor, threshold: float, image_size: int, convention: str = "centers") -> torch.Tensor:
+def masks_to_boxes(prob: torch.Tensor, threshold: float, image_size: int, convention=CENTERS) -> torch.Tensor:
     """Predicted masks (B, h, w) in [0, 1] -> boxes (B, 4) x1, y1, x2, y2 in input-image pixels.
 
     A mask pixel (j, i) at resolution h covers input pixels around (i + 0.5) * s - 0.5 with s = image_size / w
-    (``convention="centers"``), or around i * s' with s' = (image_size - 1) / (w - 1) (``"upstream"``: the
-    released code's align_corners=True pixels, see :func:`hoisdf.model.encoding.pixel_to_grid`); the box spans
-    the covered area (half a mask pixel beyond the outer on-pixels). An empty mask gives the whole image.
+    (:data:`~hoisdf.model.encoding.CENTERS`), or around i * s' with s' = (image_size - 1) / (w - 1)
+    (:data:`~hoisdf.model.encoding.UPSTREAM`: the released code's align_corners=True pixels, see
+    :func:`hoisdf.model.encoding.pixel_to_grid`); the box spans the covered area (half a mask pixel beyond the
+    outer on-pixels). An empty mask gives the whole image.
     """
     B, h, w = prob.shape
     on = prob > threshold
-    s = image_size / w
     cols, rows = on.any(dim=1), on.any(dim=2)  # (B, w), (B, h)
     idx_c = torch.arange(w, device=prob.device).expand(B, w)
     idx_r = torch.arange(h, device=prob.device).expand(B, h)
@@ -157,7 +158,7 @@ def masks_to_boxes(prob: torch.Tensor, threshold: float, image_size: int, conven
     y1 = torch.where(rows, idx_r, big).amin(1)
     y2 = torch.where(rows, idx_r, -1).amax(1)
     box = torch.stack([x1, y1, x2 + 1, y2 + 1], dim=1).float()
-    box = (box - 0.5) * ((image_size - 1) / max(w - 1, 1)) if convention == "upstream" else box * s - 0.5
+    box = convention.mask_box(box, image_size, w)
     whole = torch.tensor([-0.5, -0.5, image_size - 0.5, image_size - 0.5], device=prob.device)
     return torch.where(on.flatten(1).any(1)[:, None], box, whole)
 

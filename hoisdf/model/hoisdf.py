@@ -12,9 +12,12 @@ Data flow of :meth:`HOISDF.forward` (B batch, Nh / No hand / object query points
 5. Tokens [xyz (3), Fourier (30), feature x density] for own and cross fields; a hand transformer
    (encoder + MANO-query decoder) and an object transformer (encoder); heads (MANO, voting, object).
 
-The variants of the paper's ablations (query sampling, feature augmentation, cross field, hand regressor, inference
-boxes) are parts that :func:`hoisdf.model.build_model` picks from the settings (:mod:`hoisdf.model.parts`,
-:mod:`hoisdf.model.regressors`); the model composes them and compares no setting strings.
+The model is eight keyword parts (:func:`hoisdf.model.build_model` builds them): the backbone, the density widths,
+the pixel features, the SDF fields, the query sampler, the inference boxes, the pose stage (:mod:`hoisdf.model.stages`)
+and MANO. The variants of the paper's ablations (query sampling, feature augmentation, cross field, hand regressor,
+inference boxes) and the conventions (pixels, rotation mean, density sign) are objects inside those parts
+(:mod:`hoisdf.model.parts`, :mod:`hoisdf.model.regressors`); nothing in :mod:`hoisdf.model` compares a setting
+string.
 
 Outputs are metres; hand outputs are relative to the (given) hand root, the object translation is
 absolute (camera frame).
@@ -25,68 +28,57 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from hoisdf.model.encoding import fourier_encode, project_pyramid
+from hoisdf.model.encoding import project_pyramid
 from hoisdf.model.precision import full
 from hoisdf.model.sampling import jitter
 
 POINT_DIM = 33  # xyz (3) + Fourier code (30) of every token
 POINT_MODES = {"gt": True, "field": False}  # forward(points=...): ground-truth guided?
+STATE_RENAMES = {
+    "sdf_in.": "features.sdf_in.", "token_in.": "features.token_in.", "hand_sdf.": "fields.hand_sdf.",
+    "obj_sdf.": "fields.obj_sdf.", "hand_beta": "widths.hand_beta", "obj_beta": "widths.obj_beta",
+    "hand_encoder.": "pose.hand_encoder.", "obj_encoder.": "pose.obj_encoder.",
+    "hand_decoder.": "pose.regressor.hand_decoder.", "mano_head.": "pose.regressor.mano_head.",
+    "vote_head.": "pose.regressor.vote_head.", "shape_head.": "pose.regressor.shape_head.",
+    "obj_head.": "pose.obj_head."}
+"""State-dict prefixes of the flat model (run folders before the model was grouped into stages) -> today's."""
+
+
+def renamed_state(state: dict) -> dict:
+    """A state dict with the flat model's keys (:data:`STATE_RENAMES`) renamed to today's; today's keys unchanged.
+    The order of the entries is kept (it is the parameter order both layouts share)."""
+    def rename(key: str) -> str:
+        for old, new in STATE_RENAMES.items():
+            if key == old or (old.endswith(".") and key.startswith(old)):
+                return new + key[len(old):]
+        return key
+    return {rename(key): value for key, value in state.items()}
 
 
 class HOISDF(nn.Module):
     """The full model, composed of parts that :func:`hoisdf.model.build_model` builds from the settings.
 
-    Args:
+    Args (keyword only):
         mano: the project's right-hand MANO layer, used by the MANO head and the IK variant; kept out of the state
             dict (its data is licensed and belongs to the user, not to checkpoints).
         backbone: image (B, 3, S, S) -> (feature pyramid, 2D maps (B, 3, S/2, S/2)); ``channels`` per level.
-        sdf_in: pixel feature (B, N, C) -> SDF-decoder feature (B, N, sdf_features).
-        token_in: pixel feature (B, N, C) -> token feature (B, N, d_model - 33 - token_features.extra).
-        hand_sdf: the hand SDF decoder (:class:`hoisdf.model.sdf_decoder.SDFDecoder`).
-        obj_sdf: the object SDF decoder.
-        hand_encoder: the hand token encoder.
-        obj_encoder: the object token encoder.
-        hand_heads: name -> module of the hand regressor (registered under these names: the state-dict keys).
-        obj_head: the object pose head.
-        regressor: the hand regressor variant (:mod:`hoisdf.model.regressors`).
+        widths: the learned density widths of the hand and object tokens (:class:`hoisdf.model.stages.DensityWidths`).
+        features: pixel-aligned features of points and their maps into the decoders and the tokens
+            (:class:`hoisdf.model.stages.PixelFeatures`).
+        fields: the hand and object SDF decoders (:class:`hoisdf.model.stages.SDFFields`).
         sampler: the query sampler (:class:`hoisdf.model.parts.QuerySampler`).
-        camera: pixel-aligned sampling (:class:`hoisdf.model.parts.Camera`).
-        token_features: the feature-augmentation variant (:mod:`hoisdf.model.parts`).
-        cross: the cross-field variant (None: no cross tokens).
         boxes: (batch, 2D maps) -> (hand box, object box) (B, 4) that filter the inference grid.
-        object_rotation: per-point axis-angles (B, N, 3) -> object rotation (B, 3, 3).
-        scale: metres -> scaled units.
-        clamp: SDF clamp, scaled units.
-        n_freq: Fourier frequencies per axis.
-        beta_init: initial learned density width (scaled units; only if ``token_features.learns_beta``).
-        project_grid: rank the grid through ``project_pyramid`` (exact; fewer channels to sample with a big decoder).
-        beta_floor: None, or project the learned density widths onto [beta_floor, inf) in place at each forward
-            (the reference's ``beta.data.copy_(max(beta.data, 2e-3))``).
-        reuse_ranking_sdf: field-guided points carry into their tokens the SDF of the ranking pass (the reference:
-            its dropout mask in training) instead of a second pass.
+        pose: tokens -> transformers -> hand regressor and object head (:class:`hoisdf.model.stages.PoseStage`).
     """
 
-    def __init__(self, mano, backbone, sdf_in, token_in, hand_sdf, obj_sdf, hand_encoder, obj_encoder,
-                 hand_heads: dict, obj_head, regressor, sampler, camera, token_features, cross, boxes,
-                 object_rotation, scale: float, clamp: float, n_freq: int, beta_init: float, project_grid: bool,
-                 beta_floor: float | None = None, reuse_ranking_sdf: bool = False):
+    def __init__(self, *, mano, backbone: nn.Module, widths, features, fields, sampler, boxes, pose):
         super().__init__()
-        self.beta_floor, self.reuse_ranking_sdf = beta_floor, reuse_ranking_sdf
         self._mano = [mano]  # a list: not a registered submodule, so not in state_dict()
-        self.scale, self.clamp, self.n_freq, self.project_grid = scale, clamp, n_freq, project_grid
-        self.camera, self.token_features, self.cross, self.regressor = camera, token_features, cross, regressor
-        self.boxes, self.object_rotation = boxes, object_rotation
-        self.sampler = sampler
-        # registration order = state-dict and parameter order (checkpoints, optimizer state): keep it
-        self.backbone, self.sdf_in, self.token_in = backbone, sdf_in, token_in
-        self.hand_sdf, self.obj_sdf = hand_sdf, obj_sdf
-        if token_features.learns_beta:
-            self.hand_beta = nn.Parameter(torch.tensor(float(beta_init)))
-            self.obj_beta = nn.Parameter(torch.tensor(float(beta_init)))
-        self.hand_encoder, self.obj_encoder = hand_encoder, obj_encoder
-        for name, module in hand_heads.items():
-            self.add_module(name, module)
-        self.obj_head = obj_head
+        self.boxes = boxes
+        # registration order = parameter order (the optimizer state of checkpoints): the flat model's, whose widths
+        # were its own parameters (first), then backbone, sdf_in, token_in, SDF decoders, encoders, hand heads, obj_head
+        self.sampler, self.widths = sampler, widths
+        self.backbone, self.features, self.fields, self.pose = backbone, features, fields, pose
 
     @property
     def mano(self):
@@ -102,13 +94,17 @@ class HOISDF(nn.Module):
         """Whether field-guided sampling decodes the whole grid (static shapes; set it on ``sampler``)."""
         return self.sampler.fixed_shape
 
-    # --- fields -------------------------------------------------------------------------------------------
-    def field(self, decoder, sdf_in: torch.Tensor, scaled: torch.Tensor, clamp: bool = True) -> torch.Tensor:
-        """Scaled SDF (B, N) of a decoder at scaled points (B, N, 3) with their ``sdf_in`` features, clamped to
-        +-``sdf_clamp`` (``clamp=False``: the raw value, which the grid ranking uses, as the reference)."""
-        out = full(decoder(sdf_in, fourier_encode(scaled, self.n_freq), scaled))
-        return out.clamp(-self.clamp, self.clamp) if clamp else out
+    @property
+    def scale(self) -> float:
+        """metres -> scaled units (``sdf_scale``)."""
+        return self.fields.scale
 
+    @property
+    def clamp(self) -> float:
+        """SDF clamp, scaled units."""
+        return self.fields.clamp
+
+    # --- fields -------------------------------------------------------------------------------------------
     def _sdf_fn(self, decoder, pyramid, K, center, detach=True, clamp=True):
         """camera points (B, M, 3) -> scaled SDF (B, M) of ``decoder`` (clamped unless ``clamp=False``), for a few
         hundred points.
@@ -116,22 +112,19 @@ class HOISDF(nn.Module):
         ``detach=False``: a function of the points through both the point code and the image features (the
         full field gradient)."""
         def fn(points_cam):
-            return self.field(decoder, self.sdf_in(self.camera.features(pyramid, points_cam, K, detach)),
-                              (points_cam - center[:, None]) * self.scale, clamp)
+            feature = self.features.sdf_in(self.features.sample(pyramid, points_cam, K, detach))
+            return self.fields.field(decoder, feature, (points_cam - center[:, None]) * self.scale, clamp)
         return fn
 
     def _grid_sdf_fn(self, decoder, projected, K, center):
         """As :meth:`_sdf_fn` (unclamped) for many points: ``sdf_in``'s first layer was applied to the pyramid
         (exact)."""
-        first, rest = self.sdf_in.layers[0], self.sdf_in.layers[1:]
+        first, rest = self.features.sdf_in.layers[0], self.features.sdf_in.layers[1:]
 
         def fn(points_cam):
-            return self.field(decoder, rest(self.camera.projected(projected, points_cam, K, first.bias)),
-                              (points_cam - center[:, None]) * self.scale, clamp=False)
+            feature = rest(self.features.camera.projected(projected, points_cam, K, first.bias))
+            return self.fields.field(decoder, feature, (points_cam - center[:, None]) * self.scale, clamp=False)
         return fn
-
-    def _token(self, offset: torch.Tensor, feat: torch.Tensor) -> torch.Tensor:
-        return torch.cat([offset, fourier_encode(offset * self.scale, self.n_freq), feat], dim=-1)
 
     # --- query points -------------------------------------------------------------------------------------
     def _training_points(self, batch, K, root, center, boxes, generator):
@@ -141,17 +134,17 @@ class HOISDF(nn.Module):
     def _field_points(self, pyramid, K, root, center, boxes, generator):
         """Scaled field-guided points, ranked by the unclamped SDF (as the reference: clamping would tie every
         point beyond the clamp)."""
+        hand_sdf, obj_sdf = self.fields.hand_sdf, self.fields.obj_sdf
         newton = (None, None)
         if self.sampler.uses_newton():
-            newton = (self._sdf_fn(self.hand_sdf, pyramid, K, root, detach=False),
-                      self._sdf_fn(self.obj_sdf, pyramid, K, center, detach=False))
-        if self.project_grid:
-            projected = project_pyramid(pyramid, self.sdf_in.layers[0])
-            fns = (self._grid_sdf_fn(self.hand_sdf, projected, K, root),
-                   self._grid_sdf_fn(self.obj_sdf, projected, K, center))
+            newton = (self._sdf_fn(hand_sdf, pyramid, K, root, detach=False),
+                      self._sdf_fn(obj_sdf, pyramid, K, center, detach=False))
+        if self.features.project_grid:
+            projected = project_pyramid(pyramid, self.features.sdf_in.layers[0])
+            fns = (self._grid_sdf_fn(hand_sdf, projected, K, root), self._grid_sdf_fn(obj_sdf, projected, K, center))
         else:
-            fns = (self._sdf_fn(self.hand_sdf, pyramid, K, root, clamp=False),
-                   self._sdf_fn(self.obj_sdf, pyramid, K, center, clamp=False))
+            fns = (self._sdf_fn(hand_sdf, pyramid, K, root, clamp=False),
+                   self._sdf_fn(obj_sdf, pyramid, K, center, clamp=False))
         return self.sampler.field_points(K, root, center, boxes, fns, newton, generator)
 
     def _query_points(self, batch, pyramid, K, root, center, boxes, mode, noise, generator):
@@ -161,14 +154,14 @@ class HOISDF(nn.Module):
 
     def _queries(self, batch, pyramid, K, root, center, boxes, mode, noise, generator):
         """As :meth:`_query_points`, and the points' SDFs (B, Nh), (B, No) from the ranking pass (None: "gt"
-        points, or not ``reuse_ranking_sdf``)."""
+        points, or not the sampler's ``reuse_ranking_sdf``)."""
         if mode not in POINT_MODES:
             raise ValueError(f"points must be one of {tuple(POINT_MODES)}, got {mode!r}")
         if POINT_MODES[mode]:
             hand, obj = self._training_points(batch, K, root, center, boxes, generator)
             return jitter(hand, noise, generator), jitter(obj, noise, generator), None
         (hand, obj), ranked = self._field_points(pyramid, K, root, center, boxes, generator)
-        return hand, obj, (ranked if self.reuse_ranking_sdf else None)
+        return hand, obj, (ranked if self.sampler.reuse_ranking_sdf else None)
 
     # --- forward ------------------------------------------------------------------------------------------
     def forward(self, batch: dict, points: str = "field", noise: float = 0.0,
@@ -187,50 +180,33 @@ class HOISDF(nn.Module):
         pyramid, maps = self.backbone(batch["img"])
         out = {"heatmap": maps[:, 0:1], "hand_mask_logits": maps[:, 1:2], "obj_mask_logits": maps[:, 2:3]}
         if "hand_points" in batch:
-            out["hand_sdf"] = self._sdf_fn(self.hand_sdf, pyramid, K, root)(batch["hand_points"] + root[:, None])
+            out["hand_sdf"] = self._sdf_fn(self.fields.hand_sdf, pyramid, K, root)(batch["hand_points"] + root[:, None])
         if "obj_points" in batch:
-            out["obj_sdf"] = self._sdf_fn(self.obj_sdf, pyramid, K, center)(batch["obj_points"] + root[:, None])
+            out["obj_sdf"] = self._sdf_fn(self.fields.obj_sdf, pyramid, K, center)(batch["obj_points"] + root[:, None])
         hp, op, ranked = self._queries(batch, pyramid, K, root, center, self.boxes(batch, maps), points, noise,
                                        generator)
         out.update(self._pose(pyramid, K, root, center, hp, op, ranked))
         return out
 
     def _pose(self, pyramid, K, root, center, hp, op, ranked=None) -> dict[str, torch.Tensor]:
+        fields, features = self.fields, self.features
         hand_cam, obj_cam = hp / self.scale + root[:, None], op / self.scale + center[:, None]
-        f_hand, f_obj = self.camera.features(pyramid, hand_cam, K), self.camera.features(pyramid, obj_cam, K)
-        sdf_in_h, sdf_in_o = self.sdf_in(f_hand), self.sdf_in(f_obj)
-        tok_h, tok_o = self.token_in(f_hand), self.token_in(f_obj)
+        f_hand, f_obj = features.sample(pyramid, hand_cam, K), features.sample(pyramid, obj_cam, K)
+        sdf_in_h, sdf_in_o = features.sdf_in(f_hand), features.sdf_in(f_obj)
+        tok_h, tok_o = features.token_in(f_hand), features.token_in(f_obj)
         hand_in_obj, obj_in_hand = (hand_cam - center[:, None]), (obj_cam - root[:, None])
         with torch.no_grad():
             if ranked is None:
-                d_h = self.field(self.hand_sdf, sdf_in_h, hp)
-                d_o = self.field(self.obj_sdf, sdf_in_o, op)
+                d_h = fields.field(fields.hand_sdf, sdf_in_h, hp)
+                d_o = fields.field(fields.obj_sdf, sdf_in_o, op)
             else:  # the ranking pass's values, clamped as the field's
                 d_h, d_o = (full(d).clamp(-self.clamp, self.clamp) for d in ranked)
-            d_ho = self.field(self.obj_sdf, sdf_in_h, hand_in_obj * self.scale)  # hand points, object field
-            d_oh = self.field(self.hand_sdf, sdf_in_o, obj_in_hand * self.scale)  # object points, hand field
-        betas = getattr(self, "hand_beta", None), getattr(self, "obj_beta", None)
-        if self.beta_floor is not None and betas[0] is not None:
-            with torch.no_grad():
-                for beta in betas:
-                    beta.clamp_(min=self.beta_floor)
-        hand_tokens = self._token(hp / self.scale, self.token_features(tok_h, d_h, betas[0]))
-        obj_tokens = self._token(op / self.scale, self.token_features(tok_o, d_o, betas[1]))
-        if self.cross is not None:
-            (sdf_oh, beta_oh), (sdf_ho, beta_ho) = self.cross(d_h, d_o, d_ho, d_oh, *betas)
-            obj_h = self._token(obj_in_hand, self.token_features(tok_o, sdf_oh, beta_oh)).detach()
-            hand_o = self._token(hand_in_obj, self.token_features(tok_h, sdf_ho, beta_ho)).detach()
-            hand_tokens, obj_tokens = torch.cat([hand_tokens, obj_h], 1), torch.cat([obj_tokens, hand_o], 1)
-        inter_h, memory = self.hand_encoder(hand_tokens)
-        inter_o, _ = self.obj_encoder(obj_tokens)
-        nh, no = hp.shape[1], op.shape[1]
+            d_ho = fields.field(fields.obj_sdf, sdf_in_h, hand_in_obj * self.scale)  # hand points, object field
+            d_oh = fields.field(fields.hand_sdf, sdf_in_o, obj_in_hand * self.scale)  # object points, hand field
         out = {"hand_query": hp / self.scale, "hand_query_sdf": d_h / self.scale,
                "obj_query": op / self.scale, "obj_query_sdf": d_o / self.scale}
-        out.update(self.regressor(self, inter_h, memory, hp / self.scale, nh))
-        obj = self.obj_head(inter_o[:, :, :no])
-        out.update({"obj_rot_points": obj["rot"], "obj_trans_points": obj["trans"],
-                    "obj_rotation": self.object_rotation(obj["rot"][-1]),
-                    "obj_translation": center + obj["trans"][-1].float().mean(dim=1)})
+        out.update(self.pose((tok_h, tok_o), (d_h, d_o, d_ho, d_oh), self.widths(),
+                             (hp / self.scale, op / self.scale, hand_in_obj, obj_in_hand), center, self.mano))
         return out
 
 

@@ -17,21 +17,29 @@ import torch
 from torch import nn
 
 from hoisdf.model import heads as H
-from hoisdf.model.encoding import pixel_aligned_features, pixel_to_grid, project_points, sample_projected
+from hoisdf.model.encoding import (
+    PixelCenters,
+    UpstreamPixels,
+    pixel_aligned_features,
+    pixel_to_grid,
+    project_points,
+    sample_projected,
+)
 from hoisdf.model.precision import full
-from hoisdf.model.sampling import field_guided_points, inside_rows, random_grid_points
+from hoisdf.model.sampling import Ranking, field_guided_points, inside_rows, random_grid_points
 
 
 @dataclass(frozen=True)
 class Camera:
     """Pixel-aligned sampling of image maps at camera-frame points, under one pixel convention.
 
-    ``image_size``: px, side of the network input; ``convention``: ``"centers"`` (align_corners=False) or
-    ``"upstream"`` (the released code's align_corners=True), see :mod:`hoisdf.model.encoding`.
+    ``image_size``: px, side of the network input; ``convention``: :data:`~hoisdf.model.encoding.CENTERS`
+    (align_corners=False) or :data:`~hoisdf.model.encoding.UPSTREAM` (the released code's align_corners=True), see
+    :mod:`hoisdf.model.encoding`.
     """
 
     image_size: int
-    convention: str
+    convention: PixelCenters | UpstreamPixels
 
     def features(self, pyramid: list[torch.Tensor], points_cam: torch.Tensor, K: torch.Tensor,
                  detach: bool = True) -> torch.Tensor:
@@ -72,7 +80,8 @@ class PredictedBoxes:
 # --- query sampler --------------------------------------------------------------------------------------------
 def near_surface_rows(sampler, batch, K, root, center, boxes, generator):
     """Training rows of "absolute" / "gradient": the first near-surface rows (|SDF| < ``train.near``)."""
-    hand, obj = batch["hand_near_points"][:, :sampler.n_hand], batch["obj_near_points"][:, :sampler.n_object]
+    hand = batch["hand_near_points"][:, :sampler.hand_queries]
+    obj = batch["obj_near_points"][:, :sampler.object_queries]
     return hand * sampler.scale, (obj + (root - center)[:, None]) * sampler.scale
 
 
@@ -80,16 +89,16 @@ def inside_mesh_rows(sampler, batch, K, root, center, boxes, generator):
     """Training rows of "signed": rows inside the meshes (:func:`hoisdf.model.sampling.inside_rows`)."""
     rows = {w: (torch.cat([batch[f"{w}_points"], batch[f"{w}_near_points"]], 1),
                 torch.cat([batch[f"{w}_sdf"], batch[f"{w}_near_sdf"]], 1)) for w in ("hand", "obj")}
-    hand = inside_rows(*rows["hand"], sampler.n_hand, generator)
-    obj = inside_rows(*rows["obj"], sampler.n_object, generator)
+    hand = inside_rows(*rows["hand"], sampler.hand_queries, generator)
+    obj = inside_rows(*rows["obj"], sampler.object_queries, generator)
     return hand * sampler.scale, (obj + (root - center)[:, None]) * sampler.scale
 
 
 def random_box_rows(sampler, batch, K, root, center, boxes, generator):
     """Training points of "random": random grid points whose projection lies inside the 2D boxes."""
     grid, s, c = sampler.grid, sampler.scale, sampler.chunk
-    return (random_grid_points(grid, root, s, K, boxes[0], sampler.n_hand, generator, c),
-            random_grid_points(grid, center, s, K, boxes[1], sampler.n_object, generator, c))
+    return (random_grid_points(grid, root, s, K, boxes[0], sampler.hand_queries, generator, c),
+            random_grid_points(grid, center, s, K, boxes[1], sampler.object_queries, generator, c))
 
 
 class QuerySampler(nn.Module):
@@ -98,24 +107,27 @@ class QuerySampler(nn.Module):
 
     Args:
         grid: (G, 3) scaled inference lattice (a non-persistent buffer: not in the state dict).
-        n_hand: hand query points per sample.
-        n_object: object query points per sample.
+        hand_queries: hand query points per sample (``model.hand_queries``).
+        object_queries: object query points per sample.
         scale: metres -> scaled units (``sdf_scale``).
         chunk: grid points per SDF-decoder call.
         fixed_shape: decode the whole grid with the boxes as masks (static shapes).
         rows: the training-row variant (:func:`near_surface_rows`, :func:`inside_mesh_rows`,
             :func:`random_box_rows`): (sampler, batch, K, root, center, boxes, generator) -> scaled (hand, obj).
-        train_strategy: the field-guided ranking in training mode (a :data:`hoisdf.model.sampling.STRATEGIES` name).
-        eval_strategy: the field-guided ranking in evaluation mode.
-        newton: evaluation steps onto the surface along the full field gradient ("gradient").
+        train_strategy: the field-guided ranking in training mode (:class:`hoisdf.model.sampling.Ranking`).
+        eval_strategy: the field-guided ranking in evaluation mode ("gradient": the one that steps onto the surface
+            along the full field gradient).
+        reuse_ranking_sdf: field-guided points carry into their tokens the SDF of the ranking pass (the reference:
+            its dropout mask in training) instead of a second pass.
     """
 
-    def __init__(self, grid: torch.Tensor, n_hand: int, n_object: int, scale: float, chunk: int, fixed_shape: bool,
-                 rows: Callable, train_strategy: str, eval_strategy: str, newton: bool):
+    def __init__(self, grid: torch.Tensor, hand_queries: int, object_queries: int, scale: float, chunk: int,
+                 fixed_shape: bool, rows: Callable, train_strategy: Ranking, eval_strategy: Ranking,
+                 reuse_ranking_sdf: bool = False):
         super().__init__()
         self.register_buffer("grid", grid, persistent=False)
-        self.n_hand, self.n_object, self.scale, self.chunk = n_hand, n_object, scale, chunk
-        self.fixed_shape, self.rows, self.newton = bool(fixed_shape), rows, newton
+        self.hand_queries, self.object_queries, self.scale, self.chunk = hand_queries, object_queries, scale, chunk
+        self.fixed_shape, self.rows, self.reuse_ranking_sdf = bool(fixed_shape), rows, reuse_ranking_sdf
         self.strategies = {True: train_strategy, False: eval_strategy}
 
     def training_points(self, batch, K, root, center, boxes, generator):
@@ -127,16 +139,16 @@ class QuerySampler(nn.Module):
         ranking pass, unclamped)); ``fns``: (hand, object) SDF functions of camera points that rank the grid;
         ``newton_fns``: (hand, object) full-gradient fields (or None)."""
         strategy = self.strategies[self.training]
-        newton_fns = newton_fns if self.newton and not self.training else (None, None)
-        hand, hand_sdf = field_guided_points(self.grid, root, self.scale, K, boxes[0], fns[0], self.n_hand, strategy,
-                                             self.chunk, generator, self.fixed_shape, newton_fns[0])
-        obj, obj_sdf = field_guided_points(self.grid, center, self.scale, K, boxes[1], fns[1], self.n_object,
+        newton_fns = newton_fns if strategy.newton else (None, None)
+        hand, hand_sdf = field_guided_points(self.grid, root, self.scale, K, boxes[0], fns[0], self.hand_queries,
+                                             strategy, self.chunk, generator, self.fixed_shape, newton_fns[0])
+        obj, obj_sdf = field_guided_points(self.grid, center, self.scale, K, boxes[1], fns[1], self.object_queries,
                                            strategy, self.chunk, generator, self.fixed_shape, newton_fns[1])
         return (hand, obj), (hand_sdf, obj_sdf)
 
     def uses_newton(self) -> bool:
         """Whether :meth:`field_points` would use the full-gradient fields now (build them only then)."""
-        return self.newton and not self.training
+        return self.strategies[self.training].newton
 
 
 # --- token features -------------------------------------------------------------------------------------------

@@ -29,11 +29,16 @@ from contextlib import contextmanager
 
 import torch
 
-PRECISIONS = ("fp32", "bf16")
+PRECISIONS = {"fp32": None, "bf16": torch.bfloat16}
+"""A precision setting -> the autocast dtype (None: no autocast)."""
 
-STAGES = ("backbone", "sdf_in", "token_in", "hand_sdf", "obj_sdf", "hand_encoder", "obj_encoder", "hand_decoder",
-          "mano_head", "shape_head", "vote_head", "obj_head")
-"""Sub-modules of :class:`hoisdf.model.HOISDF` whose output dtype :func:`trace_dtypes` records."""
+STAGES = {"backbone": "backbone", "sdf_in": "features.sdf_in", "token_in": "features.token_in",
+          "hand_sdf": "fields.hand_sdf", "obj_sdf": "fields.obj_sdf", "hand_encoder": "pose.hand_encoder",
+          "obj_encoder": "pose.obj_encoder", "hand_decoder": "pose.regressor.hand_decoder",
+          "mano_head": "pose.regressor.mano_head", "shape_head": "pose.regressor.shape_head",
+          "vote_head": "pose.regressor.vote_head", "obj_head": "pose.obj_head"}
+"""Sub-modules of :class:`hoisdf.model.HOISDF` whose output dtype :func:`trace_dtypes` records: the name it records
+-> the module's path in the model (a variant without it is skipped)."""
 
 OUTPUT_KEYS = ("hand_query", "hand_query_sdf", "obj_query", "obj_translation", "obj_rotation", "joints", "verts",
                "vote_offsets", "rotations", "obj_trans_points")
@@ -72,9 +77,9 @@ def full_precision(fn):
 def autocast(device: torch.device | str, precision: str):
     """The autocast context of a precision setting: bf16 autocast on ``device``'s type, or none for fp32."""
     if precision not in PRECISIONS:
-        raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
-    device_type = torch.device(device).type
-    return torch.autocast(device_type, dtype=torch.bfloat16, enabled=precision == "bf16")
+        raise ValueError(f"precision must be one of {tuple(PRECISIONS)}, got {precision!r}")
+    dtype = PRECISIONS[precision]
+    return torch.autocast(torch.device(device).type, dtype=dtype or torch.bfloat16, enabled=dtype is not None)
 
 
 def _first_dtype(value) -> str | None:
@@ -104,10 +109,12 @@ def trace_dtypes(model: torch.nn.Module):
                 seen.setdefault(key, dtype)
         return hook
 
-    for name in STAGES:
-        module = getattr(model, name, None)
-        if isinstance(module, torch.nn.Module):
-            handles.append(module.register_forward_hook(record(f"stage:{name}")))
+    for name, path in STAGES.items():
+        try:
+            module = model.get_submodule(path)
+        except AttributeError:
+            continue
+        handles.append(module.register_forward_hook(record(f"stage:{name}")))
 
     def outputs(module, args, kwargs, output):
         for key in OUTPUT_KEYS:

@@ -14,7 +14,8 @@ crashes there). Two ways to compute it, selecting the same points (tested):
   every shape is static, so the model compiles with ``torch.compile(fullgraph=True)`` and can be captured in
   a CUDA graph, at the price of decoding the points outside the boxes too.
 
-The ablation variants of the supplementary (``STRATEGIES``) also choose the training points:
+The ablation variants of the supplementary (:data:`STRATEGIES`, a :class:`Ranking` each) also choose the training
+points:
 "absolute" (HOISDF) and "gradient" train on near-surface rows, "signed" on rows inside the meshes
 (:func:`inside_rows`), "random" on random grid points inside the box (:func:`random_grid_points`).
 """
@@ -22,13 +23,35 @@ The ablation variants of the supplementary (``STRATEGIES``) also choose the trai
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import torch
 
 from hoisdf.model.encoding import project_points
 
 SdfFn = Callable[[torch.Tensor], torch.Tensor]  # camera points (B, M, 3) -> scaled SDF (B, M)
-STRATEGIES = ("absolute", "signed", "random", "gradient")
+
+
+def _signed(sdf: torch.Tensor) -> torch.Tensor:
+    return sdf
+
+
+@dataclass(frozen=True)
+class Ranking:
+    """How field-guided sampling orders the grid points inside a box.
+
+    ``score``: scaled SDF (B, M) -> score (B, M), lowest first (None: uniformly random among the inside points,
+    without decoding the grid); ``newton``: then one step onto the surface along the field's gradient.
+    """
+
+    score: Callable[[torch.Tensor], torch.Tensor] | None
+    newton: bool = False
+
+
+ABSOLUTE, SIGNED, RANDOM, GRADIENT = Ranking(torch.abs), Ranking(_signed), Ranking(None), Ranking(torch.abs, True)
+STRATEGIES = {"absolute": ABSOLUTE, "signed": SIGNED, "random": RANDOM, "gradient": GRADIENT}
+"""``model.sampling`` name -> its ranking: "absolute" smallest |SDF| (HOISDF), "signed" smallest SDF (deepest
+inside), "random" uniformly among the inside points, "gradient" as "absolute" and then one step onto the surface."""
 
 
 def noise_scale(progress: float, ratios: tuple[float, ...] = (0.3, 0.7),
@@ -76,10 +99,6 @@ def inside_box(points_cam: torch.Tensor, K: torch.Tensor, box: torch.Tensor) -> 
     return (x > b[..., 0]) & (x < b[..., 2]) & (y > b[..., 1]) & (y < b[..., 3]) & (points_cam[..., 2] > 0)
 
 
-def _score(sdf: torch.Tensor, strategy: str) -> torch.Tensor:
-    return sdf if strategy == "signed" else sdf.abs()  # "absolute" and "gradient" rank by |SDF|
-
-
 def _rank(score: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     """(B, M) column order: valid columns by ascending score, then the invalid ones; ties keep column order."""
     masked = torch.where(valid, score, torch.full_like(score, float("inf")))
@@ -125,26 +144,25 @@ def _grid_sdf(points: torch.Tensor, center: torch.Tensor, scale: float, sdf_fn: 
 
 
 def field_guided_points(grid: torch.Tensor, center: torch.Tensor, scale: float, K: torch.Tensor, box: torch.Tensor,
-                        sdf_fn: SdfFn, n: int, strategy: str = "absolute", chunk: int = 32768,
+                        sdf_fn: SdfFn, n: int, strategy: Ranking = ABSOLUTE, chunk: int = 32768,
                         generator: torch.Generator | None = None, fixed_shape: bool = False,
                         newton_fn: SdfFn | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """The ``n`` grid points per sample that the strategy ranks first among those inside the box.
 
     grid: (G, 3) scaled lattice (see :func:`grid_points`); center: (B, 3) camera-frame centre, metres;
     K: (B, 3, 3); box: (B, 4) in the same pixels as K; sdf_fn: camera points (B, M, 3) -> scaled SDF
-    (B, M) of the field being sampled. ``strategy``: "absolute" smallest |SDF| (HOISDF), "signed" smallest
-    SDF (deepest inside), "random" uniformly among the inside points, "gradient" as "absolute" and then
-    one step onto the surface along the field's gradient (``newton_fn``, default ``sdf_fn``: give one whose
-    gradient flows through the image features too). ``fixed_shape``: decode the whole grid with the box as a
-    mask (static shapes; the same points as the default compact path, see the module docstring).
+    (B, M) of the field being sampled. ``strategy``: a :class:`Ranking` (:data:`STRATEGIES`): :data:`ABSOLUTE`
+    smallest |SDF| (HOISDF), :data:`SIGNED` smallest SDF (deepest inside), :data:`RANDOM` uniformly among the
+    inside points, :data:`GRADIENT` as absolute and then one step onto the surface along the field's gradient
+    (``newton_fn``, default ``sdf_fn``: give one whose gradient flows through the image features too).
+    ``fixed_shape``: decode the whole grid with the box as a mask (static shapes; the same points as the default
+    compact path, see the module docstring).
     Returns (points (B, n, 3) scaled, relative to ``center``; sdf (B, n) scaled, from ``sdf_fn``).
     Runs without gradient, except the "gradient" step (which needs it for the points, not the weights).
     """
-    if strategy not in STRATEGIES:
-        raise ValueError(f"sampling strategy must be one of {STRATEGIES}, got {strategy!r}")
     B = center.shape[0]
     grid = grid.to(center.dtype)
-    if strategy == "random":
+    if strategy.score is None:
         points = random_grid_points(grid, center, scale, K, box, n, generator, chunk)
         with torch.no_grad():
             return points, sdf_fn(points / scale + center[:, None])
@@ -157,10 +175,10 @@ def field_guided_points(grid: torch.Tensor, center: torch.Tensor, scale: float, 
             order = torch.argsort((~inside).to(torch.uint8), dim=1, stable=True)[:, :m]  # inside points first
             cand, valid = grid[order], torch.gather(inside, 1, order)  # (B, m, 3), (B, m)
         sdf = _grid_sdf(cand, center, scale, sdf_fn, chunk)
-        pick = _rank(_score(sdf, strategy), valid)[:, :n]
+        pick = _rank(strategy.score(sdf), valid)[:, :n]
         points = torch.gather(cand.expand(B, -1, -1), 1, pick[..., None].expand(B, n, 3))
         sdf = torch.gather(sdf, 1, pick)
-    if strategy == "gradient":
+    if strategy.newton:
         points, sdf = _newton_step(points, center, scale, newton_fn or sdf_fn)
     return points, sdf
 

@@ -171,9 +171,15 @@ def load_model(run_or_file: str | os.PathLike, mano, device="cpu"):
 
 
 def load_weights(model, state_dict, path, hint: str = "") -> None:
-    """``model.load_state_dict`` with a mismatch (other architecture, damaged file) as one DataError line."""
+    """``model.load_state_dict`` with a mismatch (other architecture, damaged file) as one DataError line.
+
+    Every checkpoint is read through here: the keys of run folders written before the model was grouped into stages
+    (``hand_sdf.*``, ``mano_head.*``, ...) are renamed to today's (:func:`hoisdf.model.hoisdf.renamed_state`); the
+    parameter order is the same, so their optimizer state resumes as it is."""
+    from hoisdf.model.hoisdf import renamed_state
+
     try:
-        model.load_state_dict(state_dict)
+        model.load_state_dict(renamed_state(state_dict))
     except (RuntimeError, KeyError, TypeError, ValueError) as exc:
         lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
         detail = lines[1] if len(lines) > 1 else (lines[0] if lines else type(exc).__name__)

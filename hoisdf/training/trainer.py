@@ -24,7 +24,7 @@ from torch import nn
 from hoidata.atomic import append_whole, write_atomic
 from hoidata.errors import DataError, naming_os_errors
 from hoidata.store import read_index
-from hoisdf.config import TrainConfig
+from hoisdf.config import TrainConfig, sdf_rows
 from hoisdf.data import StoreSpec, build_dataset, make_loader
 from hoisdf.data.augment import augment_batch
 from hoisdf.data.kinds import check_trainable
@@ -147,13 +147,14 @@ class Trainer:
         self.model = model
         self.loss = HOISDFLoss(config.loss, mano, m.sdf_scale, m.sdf_clamp, m.cls_dist)
         self.optimizer = make_optimizer(model, t.optimizer, t.lr, t.weight_decay)
-        self.dataset = build_dataset(list(stores), t.batch_size, t.epoch_samples or None, t.seed, m.n_hand, m.n_object,
+        rows_hand, rows_object = sdf_rows(config)  # SDF rows drawn per sample (default: the model's query counts)
+        self.dataset = build_dataset(list(stores), t.batch_size, t.epoch_samples or None, t.seed, rows_hand, rows_object,
                                      t.near, t.shuffle_buffer, training=True, shuffle=t.shuffle, progress=rank == 0,
                                      upstream=config.augment.upstream)
         self.loader = make_loader(self.dataset, t.workers, pin_memory=device.type == "cuda")
         self.val_stores = list(val_stores)
         # opened and checked now (index, every shard file), not at the end of the first epoch
-        self.val_data = build_dataset(self.val_stores, t.batch_size, seed=t.seed, n_hand=m.n_hand, n_object=m.n_object,
+        self.val_data = build_dataset(self.val_stores, t.batch_size, seed=t.seed, n_hand=rows_hand, n_object=rows_object,
                                       training=False) if self.val_stores else None
         for spec in self.val_stores:  # validation losses need every label, as training does
             check_trainable(spec.path, read_index(spec.path))

@@ -34,16 +34,18 @@ RELEASED_MODEL = {
     # what upstream's forward computes (docs/model.md explains each switch)
     "depth": 50, "weights": "", "normalize_input": False, "pixel_convention": "upstream", "sheared_grid": True,
     "density_sign": "code", "object_rotation": "axis_angle", "sampling": "absolute", "feature_augmentation": "density",
-    "cross_field": "sdf", "test_boxes": "gt", "fixed_shape": False, "image_size": 256, "n_hand": 600, "n_object": 200,
-    "grid_resolution": 64,
+    "cross_field": "sdf", "test_boxes": "gt", "fixed_shape": False, "image_size": 256, "hand_queries": 600,
+    "object_queries": 200, "grid_resolution": 64,
 }
 MANO_BUFFERS = ("th_betas", "th_shapedirs", "th_posedirs", "th_v_template", "th_J_regressor", "th_weights",
                 "th_faces", "th_hands_mean", "th_selected_comps")
 DROPPED = ("norm1.", "linear_objvote.", "linear_objcls.", "mano_head.coord_change_mat", "mano_head.mano_layer.")
 IDENTITY_6D = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0)
-_MLPS = {"linear_transformerin": "token_in", "linear_sdfin": "sdf_in", "linear_pose": "mano_head.pose",
-         "linear_handvote": "vote_head.vote", "linear_handcls": "vote_head.cls", "linear_obj_rot": "obj_head.rot",
-         "linear_obj_rel_trans": "obj_head.trans"}
+_HAND = "pose.regressor"  # the hand regressor's heads
+_MLPS = {"linear_transformerin": "features.token_in", "linear_sdfin": "features.sdf_in",
+         "linear_pose": f"{_HAND}.mano_head.pose", "linear_handvote": f"{_HAND}.vote_head.vote",
+         "linear_handcls": f"{_HAND}.vote_head.cls", "linear_obj_rot": "pose.obj_head.rot",
+         "linear_obj_rel_trans": "pose.obj_head.trans"}
 _UP = {"1": "up16", "2": "up8", "3": "up4", "4": "up2"}
 _HEADS = {"hm": "heatmap_head", "hand_seg": "hand_mask_head", "obj_seg": "obj_mask_head"}
 _LAYER = r"(self_attn|norm\d|inter_norm)"
@@ -56,19 +58,24 @@ RULES: list[tuple[str, object]] = [
     (r"^decoder_net\.resnet_decoder\.conv(\d)\.(.+)$", lambda m: f"backbone.decoder.{_UP[m[1]]}.fuse.{m[2]}"),
     (r"^decoder_net\.resnet_decoder\.convOut_(hm|hand_seg|obj_seg)\.(\d+)\.(.+)$",
      lambda m: f"backbone.{_HEADS[m[1]]}.{int(m[2]) // 3}.{int(m[2]) % 3}.{m[3]}"),
-    (r"^(hand|obj)_sdf_decoder\.linh([0-3])\.weight_g$", r"\1_sdf.hidden_layers.\2.parametrizations.weight.original0"),
-    (r"^(hand|obj)_sdf_decoder\.linh([0-3])\.weight_v$", r"\1_sdf.hidden_layers.\2.parametrizations.weight.original1"),
-    (r"^(hand|obj)_sdf_decoder\.linh([0-3])\.bias$", r"\1_sdf.hidden_layers.\2.bias"),
-    (r"^(hand|obj)_sdf_decoder\.linh4\.(weight|bias)$", r"\1_sdf.out_layer.\2"),
-    (r"^(hand|obj)_transformer\.encoder\.layers\.(\d+)\.linear([12])\.(.+)$", r"\1_encoder.layers.\2.ffn.linear\3.\4"),
-    (rf"^(hand|obj)_transformer\.encoder\.layers\.(\d+)\.{_LAYER}\.(.+)$", r"\1_encoder.layers.\2.\3.\4"),
-    (r"^(hand|obj)_transformer\.encoder\.inter_norm\.(.+)$", r"\1_encoder.inter_norm.\2"),
-    (r"^hand_transformer\.decoder\.layers\.(\d+)\.multihead_attn\.(.+)$", r"hand_decoder.layers.\1.cross_attn.\2"),
-    (r"^hand_transformer\.decoder\.layers\.(\d+)\.linear([12])\.(.+)$", r"hand_decoder.layers.\1.ffn.linear\2.\3"),
-    (rf"^hand_transformer\.decoder\.layers\.(\d+)\.{_LAYER}\.(.+)$", r"hand_decoder.layers.\1.\2.\3"),
-    (r"^hand_transformer\.decoder\.norm\.(.+)$", r"hand_decoder.norm.\1"),
-    (r"^mano_query_embed\.weight$", "hand_decoder.query_embed.weight"),
-    (r"^(hand|obj)_sigmoid_beta$", r"\1_beta"),
+    (r"^(hand|obj)_sdf_decoder\.linh([0-3])\.weight_g$",
+     r"fields.\1_sdf.hidden_layers.\2.parametrizations.weight.original0"),
+    (r"^(hand|obj)_sdf_decoder\.linh([0-3])\.weight_v$",
+     r"fields.\1_sdf.hidden_layers.\2.parametrizations.weight.original1"),
+    (r"^(hand|obj)_sdf_decoder\.linh([0-3])\.bias$", r"fields.\1_sdf.hidden_layers.\2.bias"),
+    (r"^(hand|obj)_sdf_decoder\.linh4\.(weight|bias)$", r"fields.\1_sdf.out_layer.\2"),
+    (r"^(hand|obj)_transformer\.encoder\.layers\.(\d+)\.linear([12])\.(.+)$",
+     r"pose.\1_encoder.layers.\2.ffn.linear\3.\4"),
+    (rf"^(hand|obj)_transformer\.encoder\.layers\.(\d+)\.{_LAYER}\.(.+)$", r"pose.\1_encoder.layers.\2.\3.\4"),
+    (r"^(hand|obj)_transformer\.encoder\.inter_norm\.(.+)$", r"pose.\1_encoder.inter_norm.\2"),
+    (r"^hand_transformer\.decoder\.layers\.(\d+)\.multihead_attn\.(.+)$",
+     rf"{_HAND}.hand_decoder.layers.\1.cross_attn.\2"),
+    (r"^hand_transformer\.decoder\.layers\.(\d+)\.linear([12])\.(.+)$",
+     rf"{_HAND}.hand_decoder.layers.\1.ffn.linear\2.\3"),
+    (rf"^hand_transformer\.decoder\.layers\.(\d+)\.{_LAYER}\.(.+)$", rf"{_HAND}.hand_decoder.layers.\1.\2.\3"),
+    (r"^hand_transformer\.decoder\.norm\.(.+)$", rf"{_HAND}.hand_decoder.norm.\1"),
+    (r"^mano_query_embed\.weight$", f"{_HAND}.hand_decoder.query_embed.weight"),
+    (r"^(hand|obj)_sigmoid_beta$", r"widths.\1_beta"),
     # the project's MLPs interleave ReLU modules: upstream layer i is the project's 2i
     (r"^(linear_\w+)\.layers\.(\d+)\.(weight|bias)$", None),
 ]
@@ -84,7 +91,7 @@ def project_key(key: str, ik: bool = False) -> str | None:
         if m is None:
             continue
         if target is None:
-            mlps = {**_MLPS, "linear_shape": "shape_head.shape" if ik else "mano_head.shape"}
+            mlps = {**_MLPS, "linear_shape": f"{_HAND}.shape_head.shape" if ik else f"{_HAND}.mano_head.shape"}
             return f"{mlps[m[1]]}.layers.{2 * int(m[2])}.{m[3]}" if m[1] in mlps else None
         return target(m) if callable(target) else m.expand(target)
     return None

@@ -1,0 +1,51 @@
+"""Names that say what they count (issue 34): ``model.hand_queries`` / ``object_queries`` (the pose stage's query
+points, once ``model.n_hand`` / ``n_object``) and ``train.sdf_rows_hand`` / ``sdf_rows_object`` (the SDF rows the
+loader draws, once the model's value passed on by the trainer)."""
+
+from __future__ import annotations
+
+import pytest
+
+from hoidata.errors import DataError
+from hoisdf.config import TrainConfig, config_from_dict, load_train_config, overridden_config, sdf_rows
+
+
+@pytest.mark.parametrize("old, new", [("n_hand", "hand_queries"), ("n_object", "object_queries")])
+def test_an_old_key_in_an_override_is_one_line_naming_the_new_one(old, new):
+    with pytest.raises(DataError, match=rf"model\.{old}.*renamed: set model\.{new}") as info:
+        load_train_config(None, [f"model.{old}=32"])
+    assert "\n" not in str(info.value) and "command line" in str(info.value)
+
+
+def test_an_old_key_in_a_file_names_the_file_and_the_new_key(tmp_path):
+    path = tmp_path / "mine.toml"
+    path.write_text("[model]\ndepth = 18\nn_hand = 256\n")
+    with pytest.raises(DataError, match=r"mine\.toml.*model\.n_hand.*model\.hand_queries"):
+        load_train_config(str(path))
+
+
+def test_a_checkpoint_config_with_the_old_keys_loads_as_the_new_ones():
+    stored = TrainConfig().as_dict()
+    stored["model"] = {k: v for k, v in stored["model"].items() if k not in ("hand_queries", "object_queries")}
+    stored["model"].update(n_hand=48, n_object=24)
+    before = {k: dict(v) for k, v in stored.items()}
+    config = config_from_dict(stored, "old/last.pt")
+    assert (config.model.hand_queries, config.model.object_queries) == (48, 24)
+    assert stored == before  # the stored dict is left as it is
+    assert config_from_dict(TrainConfig().as_dict()) == TrainConfig()
+    with pytest.raises(DataError, match=r"model\.n_hand.*model\.hand_queries"):  # an override is refused, though
+        overridden_config(stored, ["model.n_hand=8"], "old/config.json")
+    assert overridden_config(stored, ["model.hand_queries=64"], "old/config.json").model.hand_queries == 64
+
+
+def test_sdf_rows_default_to_the_query_counts_and_may_be_more():
+    config = load_train_config(None, ["model.hand_queries=32", "model.object_queries=16"])
+    assert (config.train.sdf_rows_hand, config.train.sdf_rows_object) == (0, 0)
+    assert sdf_rows(config) == (32, 16)  # as upstream: as many rows as query points
+    more = load_train_config(None, ["model.hand_queries=32", "model.object_queries=16", "train.sdf_rows_hand=100",
+                                    "train.sdf_rows_object=20"])
+    assert sdf_rows(more) == (100, 20)
+    with pytest.raises(DataError, match=r"train\.sdf_rows_hand.*at least model\.hand_queries \(32\)"):
+        load_train_config(None, ["model.hand_queries=32", "train.sdf_rows_hand=31"])
+    with pytest.raises(DataError, match=r"train\.sdf_rows_object"):
+        load_train_config(None, ["train.sdf_rows_object=-1"])
