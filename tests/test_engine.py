@@ -189,3 +189,19 @@ def test_a_task_with_the_base_defaults_runs_every_unit_and_is_complete_only_when
 def test_a_task_must_define_its_jobs():
     with pytest.raises(NotImplementedError, match="defines no job"):
         ShardTask().job(0)
+
+
+@pytest.mark.parametrize("order", [(0, 1), (1, 0)])
+def test_merged_parts_report_the_part_that_wrote_the_last_step(order):
+    """Two array parts that finish together both end ``finished``; the one that waited for the index lock found the
+    index written (``finish_kept``). Whatever the parts' order, the merged summary is the writer's (the build then
+    prints "index.zarr written", not "nothing written": a race a loaded machine showed), with the counts summed."""
+    from hoidata.engine import RunSummary
+    from hoidata.engine.launch import merge
+
+    parts = [RunSummary(written=7, units_written=2, finished=True, finish_kept=False),
+             RunSummary(written=9, units_written=2, finished=True, finish_kept=True)]
+    merged = merge([parts[i] for i in order])
+    assert merged.finished and not merged.finish_kept
+    assert (merged.written, merged.units_written) == (16, 4)
+    assert merge([RunSummary(written=3), RunSummary(written=4)]).finished is False

@@ -112,8 +112,10 @@ def require_sbatch(executor: str) -> None:
 
 def merge(summaries: list[RunSummary]) -> RunSummary:
     """One summary of an array's parts: the finisher's (whole-output skips, the last step's state) with this run's
-    counts summed over the parts."""
-    base = next((s for s in summaries if s.finished), summaries[-1])
+    counts summed over the parts. Parts that finish together all end finished, but only one writes the last step
+    (the others find it written: ``finish_kept``); that one is the finisher, whatever the parts' order."""
+    finishers = [s for s in summaries if s.finished]
+    base = next((s for s in finishers if not s.finish_kept), finishers[0] if finishers else summaries[-1])
     return dataclasses.replace(base, **{name: sum(getattr(s, name) for s in summaries) for name in _SUMMED})
 
 
