@@ -46,7 +46,12 @@ VARIANTS = {
     "fixed_shape": ["model.fixed_shape=true"],
     "big_decoder": ['model.decoder="big"'],
 }
-RTOL, ATOL = 1e-7, 1e-9  # float64 throughout but MANO (float32 skinning): far below any real change
+# float64 throughout but MANO (float32 skinning), whose rounding differs between torch's CPU kernels and moves the
+# field-guided query points' values: under ATEN_CPU_CAPABILITY=default (AVX2 and AVX-512 agree bit for bit) 275 of
+# the 768 numbers move by more than 1e-7 of their size (the sum of |x|), the most 3.4e-5 (mano_only's object query
+# SDF). A number must stay within SIZE_TOL of its size: 6x that spread, far below what a moved part or a lost
+# convention changes (the two closest variants differ by 2.8e-3 of a size; test_the_variants_differ)
+SIZE_TOL = 2e-4
 
 
 def batch() -> dict:
@@ -97,7 +102,7 @@ def test_every_variant_computes_its_golden_numbers(name, golden, mano_dir):
     got, want = outputs(name, load_mano(mano_dir, side="right")), golden["variants"][name]
     assert sorted(got) == sorted(want)
     for key, (total, size) in want.items():
-        assert got[key] == pytest.approx([total, size], rel=RTOL, abs=ATOL), (name, key)
+        assert got[key] == pytest.approx([total, size], rel=0, abs=SIZE_TOL * size + 1e-12), (name, key)
 
 
 def test_the_variants_differ():
