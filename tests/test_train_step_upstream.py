@@ -85,14 +85,14 @@ def settings(setting: str, dropout: bool = False):
 # (SDF decoders: upstream's (B*N, C) rows; attention weights: upstream's (B*heads, L, S)), "seq" upstream's
 # sequence-first (T, B, C) transposed to the project's batch-first (B, T, C)
 DROPOUT_SITES = (
-    (r"(hand|obj)_sdf", r"\1_sdf_decoder", "flat"),
-    (r"(hand|obj)_encoder\.layers\.(\d+)\.self_attn", r"\1_transformer.encoder.layers.\2.self_attn", "flat"),
-    (r"(hand|obj)_encoder\.layers\.(\d+)\.ffn\.dropout", r"\1_transformer.encoder.layers.\2.dropout", "seq"),
-    (r"(hand|obj)_encoder\.layers\.(\d+)\.(dropout[12])", r"\1_transformer.encoder.layers.\2.\3", "seq"),
-    (r"hand_decoder\.layers\.(\d+)\.self_attn", r"hand_transformer.decoder.layers.\1.self_attn", "flat"),
-    (r"hand_decoder\.layers\.(\d+)\.cross_attn", r"hand_transformer.decoder.layers.\1.multihead_attn", "flat"),
-    (r"hand_decoder\.layers\.(\d+)\.ffn\.dropout", r"hand_transformer.decoder.layers.\1.dropout", "seq"),
-    (r"hand_decoder\.layers\.(\d+)\.(dropout[123])", r"hand_transformer.decoder.layers.\1.\2", "seq"),
+    (r"fields\.(hand|obj)_sdf", r"\1_sdf_decoder", "flat"),
+    (r"pose\.(hand|obj)_encoder\.layers\.(\d+)\.self_attn", r"\1_transformer.encoder.layers.\2.self_attn", "flat"),
+    (r"pose\.(hand|obj)_encoder\.layers\.(\d+)\.ffn\.dropout", r"\1_transformer.encoder.layers.\2.dropout", "seq"),
+    (r"pose\.(hand|obj)_encoder\.layers\.(\d+)\.(dropout[12])", r"\1_transformer.encoder.layers.\2.\3", "seq"),
+    (r"pose\.regressor\.hand_decoder\.layers\.(\d+)\.self_attn", r"hand_transformer.decoder.layers.\1.self_attn", "flat"),
+    (r"pose\.regressor\.hand_decoder\.layers\.(\d+)\.cross_attn", r"hand_transformer.decoder.layers.\1.multihead_attn", "flat"),
+    (r"pose\.regressor\.hand_decoder\.layers\.(\d+)\.ffn\.dropout", r"hand_transformer.decoder.layers.\1.dropout", "seq"),
+    (r"pose\.regressor\.hand_decoder\.layers\.(\d+)\.(dropout[123])", r"hand_transformer.decoder.layers.\1.\2", "seq"),
 )
 
 
