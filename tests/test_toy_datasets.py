@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from hoidata.datasets.dexycb import SETTINGS, DexYCBReader
+from hoidata.datasets.dexycb_frames import FRAME_KEYS
 from hoidata.datasets.dexycb_layout import read_labels
 from hoidata.datasets.ho3d import HO3DReader
 from hoidata.errors import DataError
@@ -329,3 +330,14 @@ def test_read_labels_of_some_keys_still_checks_the_file(tmp_path):
     np.savez_compressed(path, **dict(good, seg=np.zeros((48, 64), np.uint8)))
     with pytest.raises(DataError, match=r"'seg': expected shape \(480, 640\)"):
         read_labels(path, 2, keys=("seg",))
+    # the members left undecoded (what the frame readers leave: seg) are checked from their .npy headers
+    with pytest.raises(DataError, match=r"labels_000000\.npz: 'seg': expected shape \(480, 640\), got \(48, 64\)"):
+        read_labels(path, 2, keys=FRAME_KEYS)
+    np.savez_compressed(path, **dict(good, seg=np.zeros((480, 640), "U1")))
+    with pytest.raises(DataError, match=r"'seg': expected numbers, got dtype <U1"):
+        read_labels(path, 2, keys=FRAME_KEYS)
+    np.savez(path, **dict(good, pose_y=np.zeros((3, 3, 4))))  # uncompressed members too
+    with pytest.raises(DataError, match=r"'pose_y': expected shape \(2, 3, 4\), got \(3, 3, 4\)"):
+        read_labels(path, 2, keys=("seg",))
+    assert set(read_labels(path, 3, keys=FRAME_KEYS)) == set(FRAME_KEYS)
+    assert set(read_labels(path, 2, keys=("seg",), check_rest=False)) == {"seg"}  # the build's second read

@@ -24,6 +24,10 @@ from hoidata.errors import DataError
 from hoidata.hand.pose import pca_to_axis_angle
 
 
+# what a frame is made from: the readers do not decode the 300 kB seg image (read_labels checks its header; the
+# build's mask check decodes it)
+FRAME_KEYS = ("pose_y", "pose_m", "joint_3d", "joint_2d")
+
 # The one marker the toolkit's own evaluators skip a sample for (hpe_eval: joint_3d all -1): a result file
 # that leaves out only such samples is complete.
 TOOLKIT_INVALID = "hand annotation missing (joint_3d is -1)"
@@ -76,7 +80,7 @@ def sequence_frames(reader, s: int, seq_index: int, seq_dir: Path, meta: dict) -
         for f in _frames_to_read(reader, subject, seq_dir.name, serial, int(meta["num_frames"])):
             fid = f"{subject}_{seq_dir.name}_{serial}_{f:06d}"
             try:
-                labels = read_labels(label_path(seq_dir, serial, f), len(meta["ycb_ids"]))
+                labels = read_labels(label_path(seq_dir, serial, f), len(meta["ycb_ids"]), keys=FRAME_KEYS)
             except DataError as e:
                 reader._fail(e, fid)
                 continue

@@ -164,10 +164,12 @@ def read_betas(root: Path, calib: str) -> np.ndarray:
 LABEL_SHAPES = {"seg": (480, 640), "pose_m": (1, 51), "joint_3d": (1, 21, 3), "joint_2d": (1, 21, 2)}
 
 
-def read_labels(path: Path, num_objects: int, keys=None) -> dict[str, np.ndarray]:
+def read_labels(path: Path, num_objects: int, keys=None, check_rest: bool = True) -> dict[str, np.ndarray]:
     """A ``labels_%06d.npz`` with its keys and shapes checked (DataError naming file and key).
 
-    ``keys``: decode only these members (every expected key must still be present); None: all of them."""
+    ``keys``: decode only these members; every expected key must still be present, and (``check_rest``) the shape
+    and dtype of the others are checked from their ``.npy`` headers (a few bytes, not the 300 kB ``seg`` image the
+    frame readers need not decode). None: decode all of them."""
     if not path.is_file():
         raise DataError(path, None, "labels file not found")
     expected = dict(LABEL_SHAPES, pose_y=(num_objects, 3, 4))
@@ -175,17 +177,32 @@ def read_labels(path: Path, num_objects: int, keys=None) -> dict[str, np.ndarray
         with np.load(path, allow_pickle=False) as npz:
             names = set(npz.files)
             labels = {k: npz[k] for k in (npz.files if keys is None else [k for k in keys if k in names])}
-    missing = [k for k in expected if k not in names]
-    if missing:
-        raise DataError(path, missing[0], "missing key")
+            missing = [k for k in expected if k not in names]
+            if missing:
+                raise DataError(path, missing[0], "missing key")
+            found = {k: (v.shape, v.dtype) for k, v in labels.items()}
+            if check_rest:
+                found.update({k: _member_header(npz, k) for k in expected if k not in labels})
     for key, shape in expected.items():
-        if key not in labels:
+        if key not in found:
             continue
-        if labels[key].shape != shape:
-            raise DataError(path, key, f"expected shape {shape}, got {labels[key].shape}")
-        if labels[key].dtype.kind not in "biuf":
-            raise DataError(path, key, f"expected numbers, got dtype {labels[key].dtype}")
+        if found[key][0] != shape:
+            raise DataError(path, key, f"expected shape {shape}, got {found[key][0]}")
+        if found[key][1].kind not in "biuf":
+            raise DataError(path, key, f"expected numbers, got dtype {found[key][1]}")
     return labels
+
+
+def _member_header(npz, key: str) -> tuple[tuple, np.dtype]:
+    """(shape, dtype) of one member of an open npz from its ``.npy`` header only (the member is not decoded)."""
+    read = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+    with npz.zip.open(f"{key}.npy") as f:
+        version = np.lib.format.read_magic(f)
+        if version not in read:  # format 3.0 (utf-8 field names): decode the member instead
+            value = npz[key]
+            return value.shape, value.dtype
+        shape, _, dtype = read[version](f)
+    return tuple(shape), np.dtype(dtype)
 
 
 def list_sequences(root: Path, subject: str) -> list[Path]:

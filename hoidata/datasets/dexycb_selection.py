@@ -72,7 +72,7 @@ def selection_reasons(reader, mano, full: np.ndarray, transl: np.ndarray, kept: 
                 reasons[k] = f"hand-object distance {d * 1000:.1f} mm > {setting.proximity_mm} mm (to the {target})"
     if setting.motion_deg is not None or setting.motion_m is not None:
         path = label_path(ctx["seq_dir"], ctx["serial"], 0)
-        first = read_labels(path, int(ctx["num_objects"]))["pose_y"][ctx["grasp"]].astype(np.float64)
+        first = read_labels(path, int(ctx["num_objects"]), keys=("pose_y",))["pose_y"][ctx["grasp"]].astype(np.float64)
         for k, (_, _, lab) in enumerate(kept):
             deg, metres = object_motion(lab["pose_y"][ctx["grasp"]].astype(np.float64), first)
             moved = (setting.motion_deg is not None and deg > setting.motion_deg) or \

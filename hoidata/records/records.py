@@ -242,7 +242,7 @@ def dataset_masks(frame: Frame) -> np.ndarray | None:
         from hoidata.datasets.dexycb_layout import read_labels
 
         # the reader checked every key of this file when it listed the frame; only the label map is decoded here
-        seg = read_labels(path, int(frame.source["num_objects"]), keys=("seg",))["seg"]
+        seg = read_labels(path, int(frame.source["num_objects"]), keys=("seg",), check_rest=False)["seg"]
         return _bits(seg == 255, seg == frame.object_id)
     if frame.dataset == "ho3d":  # rendered at 1/4 resolution: hand in red, object in blue
         import cv2
