@@ -9,7 +9,6 @@ process to open it there.
 
 from __future__ import annotations
 
-import gc
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -56,20 +55,6 @@ class ShardJob:
     extra: dict | None = None
 
 
-_FROZEN = False
-
-
-def _freeze_imports() -> None:
-    """Move the objects alive now (torch's, numpy's, the renderer's modules: about half a million) out of the
-    garbage collector's full passes, once per process. Records are acyclic and freed by reference counting, but
-    the allocations of a long build still trigger a full pass every few hundred frames, and each walked them all
-    (0.2 s). Frozen objects are still freed when their last reference goes; only a cycle among them would stay."""
-    global _FROZEN
-    if not _FROZEN:
-        gc.freeze()
-        _FROZEN = True
-
-
 class RecordWorker:
     """One process's MANO layers, object assets and mask renderers, each loaded on first use and kept.
 
@@ -84,7 +69,6 @@ class RecordWorker:
         import torch
 
         torch.set_num_threads(1)  # one process per core: torch's own threads would oversubscribe it
-        _freeze_imports()
         self.mano_dir, self.models_dir = Path(mano_dir), Path(models_dir)
         self._manos: dict = {}
         self._objects: dict = {}
