@@ -90,7 +90,7 @@ def run(inputs: Path, json_out: Path | None, frames: int, warmup: int, steps: in
     )
     from hoidata.hand import load_mano
     from hoisdf.model.build import build_model
-    from hoisdf.training.losses import LossWeights
+    from hoisdf.config import LossWeights
 
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     data = torch.load(inputs / "inputs.pt", weights_only=True)

@@ -91,8 +91,9 @@ class Steps:
     augmentation: forward, loss, zero_grad, backward, optimizer step)."""
 
     def __init__(self, data: dict, mano, device: torch.device, dropout: bool):
+        from hoisdf.config import LossWeights
         from hoisdf.model.build import build_model
-        from hoisdf.training.losses import HOISDFLoss, LossWeights
+        from hoisdf.training.losses import HOISDFLoss
 
         settings = dict(data["model"], weights="", token_hidden=tuple(data["model"]["token_hidden"]))
         if not dropout:

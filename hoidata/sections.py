@@ -94,12 +94,9 @@ def section(cls, values: dict, path: Path, name: str, overrides=()):
         raise DataError(path, name, f"must be a table of settings, got {values!r}")
     known = {f.name: f for f in fields(cls)}
     limits = getattr(cls, "LIMITS", {})
-    renamed = getattr(cls, "RENAMED", {})
+    refuse_renamed(cls, values, path, name, overrides)
     kwargs = {}
     for key, value in values.items():
-        if key in renamed:
-            raise DataError(origin(path, overrides, f"{name}.{key}"), f"{name}.{key}",
-                            f"an old name: this setting is now {name}.{renamed[key]} (same meaning; rename the key)")
         if key not in known:
             raise DataError(path, f"{name}.{key}", f"unknown setting; expected one of {sorted(known)}")
         problem = value_problem(known[key].type, value) or (key in limits and limit_problem(limits[key], value))
@@ -112,6 +109,39 @@ def section(cls, values: dict, path: Path, name: str, overrides=()):
         text = str(err).removeprefix(f"{name}.")
         field = next((f"{name}.{k}" for k in sorted(known, key=len, reverse=True) if text.startswith(k)), name)
         raise DataError(path, field, str(err)) from None
+
+
+def refuse_renamed(cls, values: dict, path: Path, name: str, overrides=()) -> None:
+    """A key of ``values`` that ``cls`` renamed (``RENAMED``: old name -> new name) is a DataError naming the new
+    key, and the command line where an override set it (see :func:`origin`)."""
+    renamed = getattr(cls, "RENAMED", {})
+    for key in values:
+        if key in renamed:
+            raise DataError(origin(path, overrides, f"{name}.{key}"), f"{name}.{key}",
+                            f"an old name: this setting is now {name}.{renamed[key]} (same meaning; rename the key)")
+
+
+def current_names(values: dict, renamed: dict[str, str]) -> dict:
+    """A section's stored ``values`` (a store's build.json, a checkpoint's config) with the keys renamed since
+    (``renamed``: old name -> new name) under their new names, so that what was written before a rename reads as
+    today's settings; a new name already present wins. ``values`` is left as it is."""
+    out = dict(values)
+    for old, new in renamed.items():
+        if old in out:
+            value = out.pop(old)
+            out.setdefault(new, value)
+    return out
+
+
+def toml_value(value) -> str:
+    """A setting's value as it is written in a TOML file (``true``, ``"text"``, ``[1, 2]``, ``0.5``)."""
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, str):
+        return f'"{value}"'
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(toml_value(v) for v in value) + "]"
+    return repr(value)
 
 
 def section_names(config_cls) -> tuple[str, ...]:

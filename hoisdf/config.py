@@ -15,17 +15,19 @@ from hoidata.errors import DataError
 from hoidata.sections import (
     apply_overrides,
     check_sections,
+    current_names,
     origin,
     read_pipeline,
+    refuse_renamed,
     refuse_unused,
     resolve_pipeline,
     section,
     section_names,
+    toml_value,
 )
 from hoisdf.data.augment import AugmentSettings
 from hoisdf.data.loader import SHUFFLES
 from hoisdf.model.encoding import PIXEL_CONVENTIONS
-from hoisdf.training.losses import LossWeights
 
 
 @dataclass(frozen=True)
@@ -93,6 +95,8 @@ class ModelSettings:
         "rot6d": ("offset", "raw"),
         "beta_floor": ("clamp", "project"),
         "field_density": ("fresh", "ranking")}
+    # old name -> new name: refused in a file or an override, read silently from a checkpoint's stored config
+    RENAMED: ClassVar[dict] = {"n_hand": "hand_queries", "n_object": "object_queries"}
     POINT_DIM: ClassVar[int] = 33  # xyz (3) + Fourier code (30) of every transformer token
 
 
@@ -115,9 +119,10 @@ def model_problem(s: ModelSettings) -> tuple[str, str] | None:
     return None
 
 
-def _model_section(values: dict, path: Path) -> ModelSettings:
-    """``[model]`` values -> ModelSettings; a bad value is a DataError naming the file and ``model.<key>``."""
-    model = section(ModelSettings, values, path, "model")
+def _model_section(values: dict, path: Path, overrides=()) -> ModelSettings:
+    """``[model]`` values -> ModelSettings; a bad value is a DataError naming the file (or the override) and
+    ``model.<key>``."""
+    model = section(ModelSettings, values, path, "model", overrides)
     problem = model_problem(model)
     if problem:
         raise DataError(path, f"model.{problem[0]}", problem[1])
@@ -172,8 +177,6 @@ RECIPES: dict[str, dict[str, dict]] = {
 """``train.recipe`` presets, per section: their values fill every key the TOML and the overrides leave unset
 (explicit TOML or override > recipe > the dataclass defaults)."""
 RENAMED_RECIPES = {"released": "project"}  # old name -> new name (checkpoints and run folders store the old one)
-RENAMED_KEYS = {("model", "n_hand"): "hand_queries", ("model", "n_object"): "object_queries"}
-"""(section, old key) -> new name: refused in a file or an override, read silently from a checkpoint's config."""
 OPTIMIZERS = ("adamw", "adam")
 VAL_SCHEDULES = ("every", "upstream")  # train.val_schedule (hoisdf.training.trainer.validates_after)
 
@@ -225,6 +228,34 @@ class TrainSettings:
 
 
 @dataclass(frozen=True)
+class LossWeights:
+    """``[loss]``: the weight of each term of :class:`hoisdf.training.losses.HOISDFLoss`, and two target choices."""
+
+    sdf_hand: float = 50.0  # L1 of clamped hand SDF values (scaled units)
+    sdf_obj: float = 25.0  # L1 of clamped object SDF values (scaled units)
+    heatmap: float = 1e-3  # on a 0..255 heatmap, as the reference
+    hand_seg: float = 1.0  # BCE of the hand mask logits
+    obj_seg: float = 1.0  # BCE of the object mask logits
+    joint_vote: float = 0.1  # per-point votes (mm, SmoothL1) of the points within cls_dist of a joint
+    joint_cls: float = 1.0  # BCE of which joint's neighbourhood (cls_dist) a hand query point lies in
+    joint_all: float = 0.1  # softmax-aggregated joints (mm, SmoothL1)
+    mano_verts: float = 1e4  # MSE, metres
+    mano_joints: float = 1e4  # MSE of the MANO joints, metres
+    mano_pose: float = 10.0  # MSE of the 16 rotation matrices
+    mano_shape: float = 0.1  # MSE of the MANO betas
+    shape_reg: float = 1e-6  # IK variant: betas towards 0
+    obj_rot: float = 0.7  # SmoothL1 of per-point axis-angles
+    obj_trans: float = 100.0  # SmoothL1 of per-point translations, metres
+    left_hands: str = "mirrored"  # MANO targets of mirrored (left) hands: mirrored layer | right_layer (upstream)
+    synthetic_betas: str = "record"  # MANO shape target of synthetic records: record | zeros (upstream's renders)
+    TERMS: ClassVar[tuple] = ("sdf_hand", "sdf_obj", "heatmap", "hand_seg", "obj_seg", "joint_vote", "joint_cls",
+                              "joint_all", "mano_verts", "mano_joints", "mano_pose", "mano_shape", "shape_reg",
+                              "obj_rot", "obj_trans")  # the weighted terms (the fields above the two choices)
+    LIMITS: ClassVar[dict] = {name: (">= 0",) for name in TERMS}
+    CHOICES: ClassVar[dict] = {"left_hands": ("mirrored", "right_layer"), "synthetic_betas": ("record", "zeros")}
+
+
+@dataclass(frozen=True)
 class TrainConfig:
     model: ModelSettings = field(default_factory=ModelSettings)
     train: TrainSettings = field(default_factory=TrainSettings)
@@ -268,18 +299,17 @@ def resolve_train_config(name_or_path: str | None, overrides: list[str] = ()) ->
         path, file_data = where, {}
         data = apply_overrides({}, overrides, path)
     check_sections(data, path, TRAIN_SECTIONS, BUILD_SECTIONS)  # training knows every reader of the file
-    refuse_renamed_keys(data, path, overrides)
     name = data.get("train", {}).get("recipe", TrainSettings.recipe)
     recipe = recipe_sections(name, origin(path, overrides, "train.recipe"))
     merged = {s: {**recipe.get(s, {}), **data.get(s, {})} for s in TRAIN_SECTIONS}
-    model = _model_section(merged["model"], path)
-    train = section(TrainSettings, merged["train"], path, "train")
+    model = _model_section(merged["model"], path, overrides)
+    train = section(TrainSettings, merged["train"], path, "train", overrides)
     check_choices(train, path, "train")
     merged["augment"].setdefault("input_size", model.image_size)
-    augment = section(AugmentSettings, merged["augment"], path, "augment")
+    augment = section(AugmentSettings, merged["augment"], path, "augment", overrides)
     if augment.input_size != model.image_size:
         raise DataError(path, "augment.input_size", f"must equal model.image_size ({model.image_size})")
-    loss = section(LossWeights, merged["loss"], path, "loss")
+    loss = section(LossWeights, merged["loss"], path, "loss", overrides)
     check_choices(loss, path, "loss")
     given = {item.partition("=")[0].strip() for item in overrides}
     label = str(path) if Path(str(name_or_path)).suffix == ".toml" else f"pipelines/{path.name}"
@@ -293,24 +323,6 @@ def resolve_train_config(name_or_path: str | None, overrides: list[str] = ()) ->
                                         noise_dists=tuple(train.noise_dists)), augment, loss)
     check_sdf_rows(config, path, overrides)
     return config, sources
-
-
-def refuse_renamed_keys(data: dict, path: Path, overrides=()) -> None:
-    """A key of :data:`RENAMED_KEYS` in a file's sections or an override is a DataError naming the new key."""
-    for (name, old), new in RENAMED_KEYS.items():
-        if old in data.get(name, {}):
-            raise DataError(origin(path, overrides, f"{name}.{old}"), f"{name}.{old}",
-                            f"renamed: set {name}.{new} (the query points of the pose stage; the SDF rows the loader "
-                            f"draws are train.sdf_rows_{new.split('_')[0]}, docs/settings.md)")
-
-
-def renamed_keys(data: dict) -> dict:
-    """A stored config (:meth:`TrainConfig.as_dict`, left as it is) with :data:`RENAMED_KEYS`' old names as the new."""
-    out = {name: dict(values) if isinstance(values, dict) else values for name, values in data.items()}
-    for (name, old), new in RENAMED_KEYS.items():
-        if isinstance(out.get(name), dict) and old in out[name]:
-            out[name].setdefault(new, out[name].pop(old))
-    return out
 
 
 def sdf_rows(config: TrainConfig) -> tuple[int, int]:
@@ -357,8 +369,7 @@ def config_from_dict(data: dict, path: Path | str = "<checkpoint>") -> TrainConf
     path = Path(path)
     if not isinstance(data, dict) or not all(isinstance(data.get(k, {}), dict) for k in ("model", "train", "augment", "loss")):
         raise DataError(path, "config", "expected a dict of settings sections")
-    data = renamed_keys(data)
-    model = _model_section(data.get("model", {}), path)
+    model = _model_section(current_names(data.get("model", {}), ModelSettings.RENAMED), path)
     train_values = dict(data.get("train", {}))
     if train_values.get("recipe") in RENAMED_RECIPES:
         train_values["recipe"] = RENAMED_RECIPES[train_values["recipe"]]
@@ -378,7 +389,8 @@ def overridden_config(data: dict, overrides: list[str], path: Path | str) -> Tra
     import copy
 
     refuse_build_overrides(list(overrides), Path(path))
-    refuse_renamed_keys(apply_overrides({}, list(overrides), Path(path)), Path(path), list(overrides))
+    given = apply_overrides({}, list(overrides), Path(path))
+    refuse_renamed(ModelSettings, given.get("model", {}), Path(path), "model", list(overrides))
     if any(item.partition("=")[0].strip() == "train.recipe" for item in overrides):
         raise DataError(path, "train.recipe", "a recipe fills a run's settings when it starts; a saved run holds "
                                               "them resolved: override the keys themselves")
@@ -398,17 +410,6 @@ def describe_config(config: TrainConfig, sources: dict[str, str]) -> list[str]:
         value = values[section_name][name]
         note = ""
         if name in recipe.get(section_name, {}) and not source.startswith("recipe"):
-            note = f"  (recipe {config.train.recipe}: {_toml(recipe[section_name][name])})"
-        lines.append(f"  {source:<{width}}  {key} = {_toml(value)}{note}")
+            note = f"  (recipe {config.train.recipe}: {toml_value(recipe[section_name][name])})"
+        lines.append(f"  {source:<{width}}  {key} = {toml_value(value)}{note}")
     return lines
-
-
-def _toml(value) -> str:
-    """A setting's value as it is written in a TOML file."""
-    if isinstance(value, bool):
-        return str(value).lower()
-    if isinstance(value, str):
-        return f'"{value}"'
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_toml(v) for v in value) + "]"
-    return repr(value)

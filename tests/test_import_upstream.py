@@ -351,7 +351,8 @@ def loss_parity(run: Path, mano_dir, clip_heatmap: bool = False) -> dict[str, tu
     instead of upstream's unclipped sum."""
     from hoidata.hand import load_mano
     from hoisdf.data.augment import render_heatmap
-    from hoisdf.training.losses import HOISDFLoss, LossWeights
+    from hoisdf.config import LossWeights
+    from hoisdf.training.losses import HOISDFLoss
 
     gold = np.load(GOLDEN / "golden_dexycb.npz")
     t = lambda k: torch.from_numpy(gold[k]).float()  # noqa: E731

@@ -209,14 +209,14 @@ def test_the_floor_check_finds_each_kind_of_import():
 
 
 # hoisdf's layers, bottom first, the same rule: the scoring of result files (any method's; its own command
-# ``hoisdf score`` included), which stands on nothing of the model; the network's parts; the data they eat; the loss
-# math; the settings (which gather the parts' settings dataclasses); the trainer and checkpoints, which read the
-# settings; evaluation, which loads checkpoints; the command lines on top.
+# ``hoisdf score`` included), which stands on nothing of the model; the network's parts; the data they eat; the
+# settings (which gather the parts' settings dataclasses: the data's augmentation settings, the model's, the loss
+# weights); training (the loss math, the trainer and checkpoints), which reads the settings; evaluation, which loads
+# checkpoints; the command lines on top.
 HOISDF_LAYERS = (
     ("hoisdf.scoring",),
     ("hoisdf", "hoisdf.model"),
     ("hoisdf.data",),
-    ("hoisdf.training.losses",),
     ("hoisdf.config",),
     ("hoisdf.training",),
     ("hoisdf.evaluation",),

@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 import torch
 
-from hoisdf.training.losses import HOISDFLoss, LossWeights
+from hoisdf.config import LossWeights
+from hoisdf.training.losses import HOISDFLoss
 
 
 @pytest.fixture(scope="module")

@@ -12,7 +12,7 @@ from hoisdf.config import TrainConfig, config_from_dict, load_train_config, over
 
 @pytest.mark.parametrize("old, new", [("n_hand", "hand_queries"), ("n_object", "object_queries")])
 def test_an_old_key_in_an_override_is_one_line_naming_the_new_one(old, new):
-    with pytest.raises(DataError, match=rf"model\.{old}.*renamed: set model\.{new}") as info:
+    with pytest.raises(DataError, match=rf"model\.{old}.*an old name: this setting is now model\.{new}") as info:
         load_train_config(None, [f"model.{old}=32"])
     assert "\n" not in str(info.value) and "command line" in str(info.value)
 
@@ -49,3 +49,27 @@ def test_sdf_rows_default_to_the_query_counts_and_may_be_more():
         load_train_config(None, ["model.hand_queries=32", "train.sdf_rows_hand=31"])
     with pytest.raises(DataError, match=r"train\.sdf_rows_object"):
         load_train_config(None, ["train.sdf_rows_object=-1"])
+
+
+def test_both_commands_rename_through_one_table_per_settings_class():
+    """The build's ``[record]`` and training's ``[model]`` renames are each the class's ``RENAMED``, refused by
+    ``hoidata.sections`` in the same words, and read from what was written before by ``current_names``."""
+    from hoidata.records.records import RecordSettings
+    from hoidata.sections import current_names
+    from hoisdf.config import ModelSettings
+
+    assert ModelSettings.RENAMED == {"n_hand": "hand_queries", "n_object": "object_queries"}
+    assert RecordSettings.RENAMED == {"n_hand": "sdf_samples_hand", "n_object": "sdf_samples_object"}
+    stored = {"n_hand": 48, "depth": 18}
+    assert current_names(stored, ModelSettings.RENAMED) == {"depth": 18, "hand_queries": 48}
+    assert stored == {"n_hand": 48, "depth": 18}  # left as it is
+    # where the new name is present too (written by both a new and an old writer), the new name's value wins
+    assert current_names({"n_hand": 1, "hand_queries": 2}, ModelSettings.RENAMED) == {"hand_queries": 2}
+    assert current_names({"depth": 18}, ModelSettings.RENAMED) == {"depth": 18}
+
+
+def test_a_setting_prints_as_toml_writes_it():
+    from hoidata.sections import toml_value
+
+    assert [toml_value(v) for v in (True, "upstream", (1, 2.5), ["a", False], 0.1, 600)] == [
+        "true", '"upstream"', "[1, 2.5]", '["a", false]', "0.1", "600"]

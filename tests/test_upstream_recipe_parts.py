@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from hoisdf.scoring.metrics import pa_mje as reference_pa_mje
-from hoisdf.training.losses import HOISDFLoss, LossWeights, hand_targets, mirrored_shape_mano
+from hoisdf.config import LossWeights
+from hoisdf.training.losses import HOISDFLoss, hand_targets, mirrored_shape_mano
 from hoisdf.training.trainer import validates_after
 
 

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hoidata import sections
 from hoidata.errors import DataError
 
 MANO_FILES = ("MANO_RIGHT.pkl", "MANO_LEFT.pkl")
@@ -188,8 +189,7 @@ def current_names(spec, renamed: dict[str, str], section: str = "record"):
     table = config.get(section) if isinstance(config, dict) else None
     if not isinstance(table, dict) or not set(renamed) & set(table):
         return spec
-    table = {renamed.get(key, key): value for key, value in table.items()}
-    return {**spec, "config": {**config, section: table}}
+    return {**spec, "config": {**config, section: sections.current_names(table, renamed)}}
 
 
 def describe_difference(where: str, what: str = "store") -> str:

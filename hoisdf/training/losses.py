@@ -8,8 +8,6 @@ object-encoder layers (the layer axis L of the model outputs).
 from __future__ import annotations
 
 import copy
-from dataclasses import dataclass
-from typing import ClassVar
 
 import torch
 import torch.nn.functional as F
@@ -17,33 +15,8 @@ from torch import nn
 
 from hoidata.geometry.rotation import axis_angle_to_matrix, matrix_to_axis_angle
 from hoidata.hand.model import TIP_VERTICES
+from hoisdf.config import LossWeights
 from hoisdf.model.heads import wrist_centred_mano
-
-
-@dataclass(frozen=True)
-class LossWeights:
-    sdf_hand: float = 50.0  # L1 of clamped hand SDF values (scaled units)
-    sdf_obj: float = 25.0  # L1 of clamped object SDF values (scaled units)
-    heatmap: float = 1e-3  # on a 0..255 heatmap, as the reference
-    hand_seg: float = 1.0  # BCE of the hand mask logits
-    obj_seg: float = 1.0  # BCE of the object mask logits
-    joint_vote: float = 0.1  # per-point votes (mm, SmoothL1) of the points within cls_dist of a joint
-    joint_cls: float = 1.0  # BCE of which joint's neighbourhood (cls_dist) a hand query point lies in
-    joint_all: float = 0.1  # softmax-aggregated joints (mm, SmoothL1)
-    mano_verts: float = 1e4  # MSE, metres
-    mano_joints: float = 1e4  # MSE of the MANO joints, metres
-    mano_pose: float = 10.0  # MSE of the 16 rotation matrices
-    mano_shape: float = 0.1  # MSE of the MANO betas
-    shape_reg: float = 1e-6  # IK variant: betas towards 0
-    obj_rot: float = 0.7  # SmoothL1 of per-point axis-angles
-    obj_trans: float = 100.0  # SmoothL1 of per-point translations, metres
-    left_hands: str = "mirrored"  # MANO targets of mirrored (left) hands: mirrored layer | right_layer (upstream)
-    synthetic_betas: str = "record"  # MANO shape target of synthetic records: record | zeros (upstream's renders)
-    TERMS: ClassVar[tuple] = ("sdf_hand", "sdf_obj", "heatmap", "hand_seg", "obj_seg", "joint_vote", "joint_cls",
-                              "joint_all", "mano_verts", "mano_joints", "mano_pose", "mano_shape", "shape_reg",
-                              "obj_rot", "obj_trans")  # the weighted terms (the fields above the two choices)
-    LIMITS: ClassVar[dict] = {name: (">= 0",) for name in TERMS}
-    CHOICES: ClassVar[dict] = {"left_hands": ("mirrored", "right_layer"), "synthetic_betas": ("record", "zeros")}
 
 
 def mirrored_shape_mano(mano) -> nn.Module:
