@@ -73,3 +73,12 @@ def test_a_setting_prints_as_toml_writes_it():
 
     assert [toml_value(v) for v in (True, "upstream", (1, 2.5), ["a", False], 0.1, 600)] == [
         "true", '"upstream"', "[1, 2.5]", '["a", false]', "0.1", "600"]
+
+
+@pytest.mark.parametrize("override, key", [("train.lr=-1", "train.lr"), ("model.heads=0", "model.heads"),
+                                           ("loss.heatmap=-2", "loss.heatmap"), ("augment.scale_sigma=-1", "augment.scale_sigma")])
+def test_a_bad_value_from_the_command_line_names_the_override_beside_the_file(override, key):
+    with pytest.raises(DataError) as info:
+        load_train_config("toy", [override])
+    text = str(info.value)
+    assert f"toy.toml with the command line's {override}" in text and repr(key) in text and "\n" not in text
