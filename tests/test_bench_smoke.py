@@ -4,7 +4,8 @@ breaks fails here, not in front of a user. No timing is asserted, only the exit 
 SCRIPTS names each runnable module under bench/ (one with a ``__main__`` block) with its smallest arguments and a
 line of its table; ``test_every_bench_script_is_covered`` fails when a script is added without an entry. The toy
 DexYCB and the toy store are written once for the module and handed to the scripts that take ``--root`` /
-``--store`` (placeholders {root}, {store}, {mano}, {tmp}).
+``--store`` (placeholders {root}, {store}, {mano}, {tmp}). The model's benches (``MODEL_SCRIPTS``) run from
+tests/test_bench_smoke_model.py, so that the two halves run side by side under ``pytest -n 2``.
 """
 
 from __future__ import annotations
@@ -75,6 +76,10 @@ SCRIPTS: dict[str, list[tuple[list[str], str]]] = {
 }
 # scripts that cannot run here, with the reason; the test checks the reason still holds
 NEEDS = {"bench_cluster": ("ray", "submitit")}  # the cluster extra
+# the benches of the model, training, loading and evaluation run from tests/test_bench_smoke_model.py: a file of
+# their own, so that pytest -n 2 (--dist loadfile) runs the two halves of the set side by side
+MODEL_SCRIPTS = frozenset({"bench_gpu", "bench_recipe_gpu", "bench_train_step", "bench_train", "bench_evaluate",
+                           "bench_grid_features", "bench_upstream_aug", "bench_loader", "bench_shuffle"})
 
 
 def runnable_scripts() -> set[str]:
@@ -86,11 +91,12 @@ def test_every_bench_script_is_covered():
     """A new bench script without an entry here fails, so none can break unnoticed."""
     assert runnable_scripts() == set(SCRIPTS), sorted(runnable_scripts() ^ set(SCRIPTS))
     assert {"bench_loader", "bench_sdf", "bench_gpu"} <= runnable_scripts()  # the scan itself finds scripts
+    assert MODEL_SCRIPTS < set(SCRIPTS)  # each script runs in one of the two files
 
 
-@pytest.fixture(scope="module")
-def toy_data(tmp_path_factory):
-    """A toy DexYCB (its MANO and models folders inside) and a 512 px train store built from it."""
+def write_toy_data(tmp_path_factory) -> dict[str, str]:
+    """A toy DexYCB (its MANO and models folders inside) and a 512 px train store built from it: the placeholders
+    of the scripts' arguments."""
     from bench.common import toy_root
     from hoidata.build_sdf import build_store
     from hoidata.records.settings import load_build_config
@@ -102,6 +108,11 @@ def toy_data(tmp_path_factory):
     return {"root": str(root), "store": str(work / "store"), "mano": str(root / "mano"), "tmp": str(work)}
 
 
+@pytest.fixture(scope="module")
+def toy_data(tmp_path_factory):
+    return write_toy_data(tmp_path_factory)
+
+
 def run_bench(module: str, args: list[str], python_prelude: str = "") -> subprocess.CompletedProcess:
     env = dict(os.environ, PYTHONPATH=str(ROOT), PYOPENGL_PLATFORM="egl", PYTHONUNBUFFERED="1")
     code = f"{python_prelude}import runpy, sys; sys.argv[0] = {module!r}; runpy.run_module({module!r}, run_name='__main__')"
@@ -109,9 +120,8 @@ def run_bench(module: str, args: list[str], python_prelude: str = "") -> subproc
                           timeout=1800)
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("script", sorted(SCRIPTS))
-def test_bench_script_runs_and_prints_its_table(script, toy_data):
+def check_script(script: str, toy_data: dict[str, str]) -> None:
+    """Every run of ``script`` in :data:`SCRIPTS` exits 0 and prints its table (skipped where :data:`NEEDS` says)."""
     missing = [m for m in NEEDS.get(script, ()) if importlib.util.find_spec(m) is None]
     if missing:
         pytest.skip(f"{script} needs {', '.join(missing)} (pip install -e '.[cluster]')")
@@ -120,6 +130,12 @@ def test_bench_script_runs_and_prints_its_table(script, toy_data):
         done = run_bench(f"bench.{script}", args)
         assert done.returncode == 0, f"{script} {' '.join(args)} exited {done.returncode}:\n{done.stderr[-3000:]}"
         assert table in done.stdout, f"{script}: no '{table}' in:\n{done.stdout[-3000:]}"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("script", sorted(set(SCRIPTS) - MODEL_SCRIPTS))
+def test_bench_script_runs_and_prints_its_table(script, toy_data):
+    check_script(script, toy_data)
 
 
 @pytest.mark.slow
