@@ -242,6 +242,27 @@ def test_frames_on_worker_processes_equal_frames_here(bench):
         np.testing.assert_equal(a, b)
 
 
+def test_a_volume_does_not_depend_on_which_pose_of_its_faces_came_first(bench):
+    """A cube's column integral sums over the faces met in tree order, and a face array's tree shape is kept across
+    poses (the build refits it), so a volume once depended in its last bits on the pose of the same faces a process
+    had seen first: 15 of 20 earlier poses moved this one on bb9a884, and a pytest worker disagreed with a fresh
+    process. The scorer's solids build each pose's own tree (MeshBVH pose_shape)."""
+    from hoidata.geometry import bvh
+    from hoisdf.scoring.plausibility import frame_metrics
+
+    box_v, box_f = bench.cases()["box and sphere (cap)"]["object"]
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=0.01)
+    bv, bf = np.asarray(ball.vertices) + [0, 0, 0.027], np.asarray(ball.faces)
+    bvh._TOPOLOGIES.clear()
+    fresh = frame_metrics(bv, bf, box_v, box_f, tolerance=TOL)
+    for seed in range(4):
+        rng = np.random.default_rng(seed)
+        bvh._TOPOLOGIES.clear()
+        bvh.topology(bv * rng.uniform(0.5, 2, 3) + rng.normal(0, 0.01, bv.shape), bf)  # another pose came first
+        bvh.topology(box_v + rng.normal(0, 0.01, box_v.shape), box_f)
+        assert frame_metrics(bv, bf, box_v, box_f, tolerance=TOL) == fresh  # bit for bit: same inputs, same process
+
+
 def test_the_evaluator_report_and_the_scorer_share_one_budget(mano_right, monkeypatch):
     """The evaluator's report (scoring.plausibility_of) spends at most the scorer's cell budget per volume, with the
     same tolerances (docs/plausibility.md, "How exact"): one constant, not two that drift apart."""

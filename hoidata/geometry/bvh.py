@@ -56,12 +56,17 @@ class MeshBVH:
     The tree's shape (which faces share a leaf, how leaves nest) is built once per face array, by the
     surface-area heuristic, and kept (:func:`topology`): a new pose of the same mesh (the next
     frame's hand, the object in another pose) only refits the boxes around its vertices. The shape
-    only decides what is visited first and what is skipped, never the result.
+    decides what is visited first and what is skipped: distances, crossing counts and anything else chosen or
+    counted never depend on it, but a float sum over the faces met, in visiting order (a cube's column integral,
+    :mod:`hoisdf.scoring.cell_volume`), can differ in its last bits with the pose that built the shape, and so
+    with what a process happened to see first. ``pose_shape=True`` builds the shape from these vertices (kept by
+    their content too), so that such sums are a function of this mesh alone, in any process.
     """
 
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray):
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, pose_shape: bool = False):
         self.key = mesh_key(vertices, faces)  # what the per-face-array caches (tree shape, adjacency) are keyed by
-        self.order, self.left, self.start, self.count = topology(vertices, faces, self.key)
+        shape_key = self.key + (vertex_digest(vertices),) if pose_shape else self.key
+        self.order, self.left, self.start, self.count = topology(vertices, faces, shape_key)
         self.boxes = np.empty((len(self.left), 6))  # (lo xyz, hi xyz) per node
         self.tri = np.empty((len(faces), 9))  # corners a, b, c of each face, in leaf order
         pad = PAD * float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
@@ -106,6 +111,12 @@ KEEP_TOPOLOGIES = 32  # face arrays whose tree shape is kept (least recently use
 def mesh_key(vertices: np.ndarray, faces: np.ndarray) -> tuple[int, bytes]:
     """What a cache of per-face-array data is keyed by: the vertex count and a digest of the faces."""
     return len(vertices), hashlib.blake2b(np.ascontiguousarray(faces).tobytes(), digest_size=16).digest()
+
+
+def vertex_digest(vertices: np.ndarray) -> bytes:
+    """A digest of the vertices' float64 values: with :func:`mesh_key`, what a tree shape built from this pose is
+    kept by."""
+    return hashlib.blake2b(np.ascontiguousarray(vertices, np.float64).tobytes(), digest_size=16).digest()
 
 
 def topology(vertices: np.ndarray, faces: np.ndarray, key: tuple | None = None

@@ -39,7 +39,7 @@ class Target:
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray):
         self.vertices, self.faces = vertices, faces
-        self.bvh = MeshBVH(vertices, faces)
+        self.bvh = MeshBVH(vertices, faces, pose_shape=True)  # its tree a function of this mesh alone
         self.queries = 0
 
     def query(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

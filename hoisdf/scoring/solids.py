@@ -48,7 +48,7 @@ class MeshSolid:
 
     def __init__(self, vertices, faces):
         self.vertices, self.faces = validate_mesh(vertices, faces)
-        self.bvh = MeshBVH(self.vertices, self.faces)
+        self.bvh = MeshBVH(self.vertices, self.faces, pose_shape=True)  # volumes sum in tree order: one tree a pose
         self.closed = is_closed(self.faces)
         self.lo, self.hi = self.vertices.min(0), self.vertices.max(0)
 
