@@ -267,6 +267,7 @@ class TrainConfig:
 
 
 TRAIN_SECTIONS = section_names(TrainConfig)  # ("model", "train", "augment", "loss"): what training reads of a file
+SECTION_SETTINGS = {"model": ModelSettings, "train": TrainSettings, "augment": AugmentSettings, "loss": LossWeights}
 # The build's sections of the same files (hoidata.records.settings.BUILD_SECTIONS, which training does not import:
 # it stands beside the build, not on it; tests/test_settings_floor.py holds the two equal)
 BUILD_SECTIONS = ("dataset", "record", "store")
@@ -367,17 +368,19 @@ def config_from_dict(data: dict, path: Path | str = "<checkpoint>") -> TrainConf
     ``path`` (the checkpoint file). The values are resolved, so no recipe is applied; a renamed recipe's old name
     (``released``, in checkpoints written before ``upstream`` existed) reads as its new one."""
     path = Path(path)
-    if not isinstance(data, dict) or not all(isinstance(data.get(k, {}), dict) for k in ("model", "train", "augment", "loss")):
+    if not isinstance(data, dict) or not all(isinstance(data.get(k, {}), dict) for k in SECTION_SETTINGS):
         raise DataError(path, "config", "expected a dict of settings sections")
-    model = _model_section(current_names(data.get("model", {}), ModelSettings.RENAMED), path)
-    train_values = dict(data.get("train", {}))
+    data = {name: current_names(data.get(name, {}), getattr(cls, "RENAMED", {}))  # copies: the stored dict is kept
+            for name, cls in SECTION_SETTINGS.items()}
+    model = _model_section(data["model"], path)
+    train_values = data["train"]
     if train_values.get("recipe") in RENAMED_RECIPES:
         train_values["recipe"] = RENAMED_RECIPES[train_values["recipe"]]
     train = section(TrainSettings, train_values, path, "train")
     check_choices(train, path, "train")
-    loss = section(LossWeights, data.get("loss", {}), path, "loss")
+    loss = section(LossWeights, data["loss"], path, "loss")
     check_choices(loss, path, "loss")
-    config = TrainConfig(model, train, section(AugmentSettings, data.get("augment", {}), path, "augment"), loss)
+    config = TrainConfig(model, train, section(AugmentSettings, data["augment"], path, "augment"), loss)
     check_sdf_rows(config, path)
     return config
 
@@ -390,7 +393,8 @@ def overridden_config(data: dict, overrides: list[str], path: Path | str) -> Tra
 
     refuse_build_overrides(list(overrides), Path(path))
     given = apply_overrides({}, list(overrides), Path(path))
-    refuse_renamed(ModelSettings, given.get("model", {}), Path(path), "model", list(overrides))
+    for name, cls in SECTION_SETTINGS.items():
+        refuse_renamed(cls, given.get(name, {}), Path(path), name, list(overrides))
     if any(item.partition("=")[0].strip() == "train.recipe" for item in overrides):
         raise DataError(path, "train.recipe", "a recipe fills a run's settings when it starts; a saved run holds "
                                               "them resolved: override the keys themselves")

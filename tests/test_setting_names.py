@@ -82,3 +82,19 @@ def test_a_bad_value_from_the_command_line_names_the_override_beside_the_file(ov
         load_train_config("toy", [override])
     text = str(info.value)
     assert f"toy.toml with the command line's {override}" in text and repr(key) in text and "\n" not in text
+
+
+def test_a_rename_in_any_training_section_is_read_from_checkpoints_and_refused_in_overrides(monkeypatch):
+    """The renames are the settings classes' own tables, not a list of model keys: a key renamed in [train] (made up
+    here) reads from a stored config and is one line in a file's override or a run's override alike."""
+    from hoisdf.config import TrainSettings
+
+    monkeypatch.setattr(TrainSettings, "RENAMED", {"learning_rate": "lr"}, raising=False)
+    stored = TrainConfig().as_dict()
+    stored["train"] = {k: v for k, v in stored["train"].items() if k != "lr"} | {"learning_rate": 3e-4}
+    assert config_from_dict(stored, "old/last.pt").train.lr == 3e-4
+    assert "learning_rate" in stored["train"]  # the stored dict is left as it is
+    with pytest.raises(DataError, match=r"train\.learning_rate.*this setting is now train\.lr"):
+        overridden_config(stored, ["train.learning_rate=1e-3"], "old/config.json")
+    with pytest.raises(DataError, match=r"command line's train\.learning_rate=1e-3.*this setting is now train\.lr"):
+        load_train_config("toy", ["train.learning_rate=1e-3"])
