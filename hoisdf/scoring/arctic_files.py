@@ -151,7 +151,7 @@ def check_submission(path: Path, task: str, setup: str, reference: dict[str, int
             try:
                 value = source.read(rel)
             except DataError as e:
-                bad.append(str(e))
+                bad.append(str(DataError(source.where(rel), key, e.problem)))
                 continue
             floats = FLOATS if task == "pose" else FLOATS + ("float64",)
             arr, issues = _frames(value, source.where(rel), key, per_frame, floats, obj_vertices)
