@@ -129,6 +129,7 @@ def test_each_broken_file_gets_one_line_naming_file_and_key(submission, key, bre
 def test_a_missing_sequence_folder_and_a_zip_without_eval_are_named(submission, tmp_path):
     shutil.rmtree(submission / "eval" / FOLDER)
     (submission / "eval" / "s03_other_01_0" / "preds").mkdir(parents=True)
+    (submission / "eval" / "s03_other_01_0" / "preds" / "pred.object.rot.pt").write_bytes(b"")
     problems, notes, _ = check_submission(submission, "pose", "p2", read_reference(GOLDEN / "pose" / "gt"))
     assert len(problems) == 1 and FOLDER in problems[0] and "missing" in problems[0]
     assert any("not in the ground truth" in n for n in notes)
