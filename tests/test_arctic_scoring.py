@@ -111,7 +111,7 @@ def test_the_stored_toy_submission_passes_with_notes_for_what_the_server_tolerat
     ("pred.mano.pose.r", lambda t: t.reshape(len(t), 144), "shape"),
     ("pred.mano.beta.l", lambda t: torch.where(torch.arange(len(t))[:, None] == 4, torch.nan, t), "NaN"),
     ("pred.mano.cam_t.r", lambda t: t[:40], "40 frames, the ground truth has 44"),
-    ("pred.object.cam_t", lambda t: t.double(), "float64"),
+    ("pred.mano.pose.l", lambda t: t.double(), "float64"),
     ("pred.object.radian", lambda t: t.numpy(), "torch tensors is expected"),
     ("pred.mano.beta.r", lambda t: t.long(), "int64"),
 ])
