@@ -138,25 +138,15 @@ def load_arctic_object(meta_dir: str | Path, name: str, diameters: dict[str, flo
                         np.concatenate([got["keypoints_top"], got["keypoints_bottom"]]) / 1000.0, diameters[short])
 
 
-def rotvec_matrix(rotvec: np.ndarray) -> np.ndarray:
-    """(..., 3) axis-angle -> (..., 3, 3) rotation matrices (Rodrigues, float64; the zero vector -> identity)."""
-    rotvec = np.asarray(rotvec, np.float64)
-    theta = np.linalg.norm(rotvec, axis=-1, keepdims=True)
-    axis = np.divide(rotvec, theta, out=np.zeros_like(rotvec), where=theta > 0)
-    x, y, z = axis[..., 0], axis[..., 1], axis[..., 2]
-    zero = np.zeros_like(x)
-    k = np.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(axis.shape[:-1] + (3, 3))
-    s, c = np.sin(theta)[..., None], np.cos(theta)[..., None]
-    return np.eye(3) + s * k + (1 - c) * (k @ k)
-
-
 def pose_points(points: np.ndarray, part_ids: np.ndarray, radian, rotvec, transl=None) -> np.ndarray:
     """Template points (P, 3) with part ids (P,) posed for N frames -> (N, P, 3): the top part turned by
     ``radian`` (N,) about :data:`ARTICULATION_AXIS`, then every point rotated by ``rotvec`` (N, 3) and moved by
     ``transl`` (N, 3), all metres (None: no translation, as ARCTIC's evaluation poses objects)."""
+    from scipy.spatial.transform import Rotation
+
     radian = np.asarray(radian, np.float64).reshape(-1)
-    arti = rotvec_matrix(radian[:, None] * ARTICULATION_AXIS)
-    glob = rotvec_matrix(np.asarray(rotvec, np.float64).reshape(-1, 3))
+    arti = Rotation.from_rotvec(radian[:, None] * ARTICULATION_AXIS).as_matrix()
+    glob = Rotation.from_rotvec(np.asarray(rotvec, np.float64).reshape(-1, 3)).as_matrix()
     pts = np.broadcast_to(np.asarray(points, np.float64), (len(radian),) + np.shape(points))
     top = (np.asarray(part_ids) == TOP)[None, :, None]
     local = np.where(top, pts @ arti.transpose(0, 2, 1), pts)

@@ -212,9 +212,8 @@ def _imgnames(source: Source, rel: str, found, notes: list) -> list | None:
     return names
 
 
-def read_ground_truth(gt: Path, name: str, task: str) -> dict:
+def read_ground_truth(source: Source, name: str) -> dict:
     """One ground-truth folder's targets (float64; the flags 0/1) and its object name and frame count."""
-    source = Source(gt)
     out = {}
     for key, per_frame in TARGET_KEYS.items():
         rel = f"{name}/targets/targets.{key}.pt"

@@ -27,28 +27,6 @@ def nanmean(a: np.ndarray, axis=None) -> np.ndarray:
         return np.where(ok, a, 0.0).sum(axis=axis) / ok.sum(axis=axis)
 
 
-def matrix_to_axis_angle(m: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) -> (..., 3) by way of a quaternion, as PyTorch3D 0.7.3 converts it (ARCTIC's server runs it
-    on submitted matrices): of the four candidate quaternions the one with the largest denominator, whose
-    norm need not be 1 for a matrix that is not a rotation (float16 files), so the same angle comes out."""
-    m = np.asarray(m, np.float64)
-    m00, m01, m02, m10, m11, m12, m20, m21, m22 = np.moveaxis(m.reshape(m.shape[:-2] + (9,)), -1, 0)
-    q_abs = np.sqrt(np.maximum(np.stack([1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22,
-                                         1 - m00 - m11 + m22], -1), 0))
-    cand = np.stack([np.stack([q_abs[..., 0] ** 2, m21 - m12, m02 - m20, m10 - m01], -1),
-                     np.stack([m21 - m12, q_abs[..., 1] ** 2, m10 + m01, m02 + m20], -1),
-                     np.stack([m02 - m20, m10 + m01, q_abs[..., 2] ** 2, m12 + m21], -1),
-                     np.stack([m10 - m01, m20 + m02, m21 + m12, q_abs[..., 3] ** 2], -1)], -2)
-    cand = cand / (2.0 * np.maximum(q_abs, 0.1)[..., None])
-    q = np.take_along_axis(cand, np.argmax(q_abs, -1)[..., None, None], -2)[..., 0, :]
-    norms = np.linalg.norm(q[..., 1:], axis=-1, keepdims=True)
-    angles = 2 * np.arctan2(norms, q[..., :1])
-    small = np.abs(angles) < 1e-6
-    with np.errstate(invalid="ignore", divide="ignore"):
-        ratio = np.where(small, 0.5 - angles * angles / 48, np.sin(angles / 2) / angles)
-    return q[..., 1:] / ratio
-
-
 def interaction_field(vh_r, vh_l, vo) -> dict[str, np.ndarray]:
     """ARCTIC's field targets per frame: ``dist.ro`` (N, 778) each right-hand vertex's distance to the nearest
     object vertex and ``idx.ro`` that vertex, ``dist.lo`` / ``idx.lo``, ``dist.or`` / ``dist.ol`` (N, V) each

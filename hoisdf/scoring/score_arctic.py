@@ -2,7 +2,8 @@
 ground-truth folder, as ARCTIC's ``scripts_method/evaluate_metrics.py`` scores it on its server; and the check
 behind ``hoisdf check arctic`` (docs/scoring.md, "ARCTIC").
 
-Posing, as the server does: predicted MANO rotations (matrices) to axis-angle (:func:`matrix_to_axis_angle`),
+Posing, as the server does: predicted MANO rotations (matrices) to axis-angle as PyTorch3D 0.7.3 converts them
+(:func:`hoidata.geometry.rotation.matrix_to_axis_angle_as_pytorch3d`),
 MANO with ``flat_hand_mean=False`` and no left-hand shape fix, no translation, then ``cam_t`` added; 21 joints
 (16 MANO joints, fingertip vertices 744, 320, 443, 554, 671); the object template posed by its articulation and
 axis-angle, then ``cam_t`` added. The ground truth the same way from its axis-angle poses. Predictions longer
@@ -83,6 +84,13 @@ class Models:
             self.objects[name] = load_arctic_object(self.meta, name, self.diameters)
         return self.objects[name]
 
+    def axis_angle(self, matrices: np.ndarray) -> np.ndarray:
+        """(N, 16 x 9) submitted rotation matrices -> (N, 48) axis-angle, as the server converts them."""
+        from hoidata.geometry.rotation import matrix_to_axis_angle_as_pytorch3d
+
+        m = self.torch.as_tensor(np.asarray(matrices, np.float64).reshape(-1, 16, 3, 3))
+        return matrix_to_axis_angle_as_pytorch3d(m).numpy().reshape(-1, 48)
+
     def hand(self, side: str, pose_aa: np.ndarray, betas: np.ndarray, cam_t: np.ndarray):
         mano = self.mano[side]
         flat = np.array(pose_aa, np.float64).reshape(-1, 48)
@@ -102,7 +110,7 @@ def posed(models: Models, values: dict, obj, prefix: str, matrices: bool) -> dic
     out = {}
     for s in ("r", "l"):
         pose = values[f"{prefix}mano.pose.{s}"]
-        pose = am.matrix_to_axis_angle(pose.reshape(-1, 16, 3, 3)).reshape(-1, 48) if matrices else pose
+        pose = models.axis_angle(pose) if matrices else pose
         out[f"v.{s}"], out[f"j.{s}"] = models.hand(s, pose, values[f"{prefix}mano.beta.{s}"], values[f"{prefix}mano.cam_t.{s}"])
     radian = values[f"{prefix}object.radian"]
     out["v.o"] = pose_object(obj, radian, values[f"{prefix}object.rot"]) + values[f"{prefix}object.cam_t"][:, None]
@@ -133,8 +141,9 @@ def score(args) -> dict:
     mano_dir = args.mano or Path(args.meta).resolve().parent.parent.parent / "body_models" / "mano"
     models = Models(mano_dir, args.meta)
     parts, windows, no_window, first_frame, frames = [], 0, 0, 0, 0
+    gt_files = Source(args.gt)
     for name in sorted(reference):
-        gt = read_ground_truth(args.gt, name, task)
+        gt = read_ground_truth(gt_files, name)
         targets, obj = gt["targets"], models.object(gt["object"])
         flags = {k: targets[k] for k in ("is_valid", "left_valid", "right_valid")}
         g = posed(models, {f"t.{k}": v for k, v in targets.items()}, obj, "t.", matrices=False)
