@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import sys
 
-COMMANDS = {"score": "hoisdf.scoring.cli", "check": "hoisdf.scoring.check_cli"}  # command -> module with main(argv) -> exit code
+# command -> module with main(argv) -> exit code
+COMMANDS = {"score": "hoisdf.scoring.cli", "check": "hoisdf.scoring.check_cli"}
 
 
 def main(argv: list[str] | None = None) -> int:

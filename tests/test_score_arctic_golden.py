@@ -51,7 +51,8 @@ def test_scores_equal_arctic_evaluation_code(task, golden, mano, tmp_path):
 def test_a_zip_of_the_submission_scores_the_same(mano, tmp_path):
     import json
 
-    zipped = shutil.make_archive(str(tmp_path / "pose_p2_test"), "zip", root_dir=GOLDEN / "pose", base_dir="pose_p2_test")
+    zipped = shutil.make_archive(str(tmp_path / "pose_p2_test"), "zip", root_dir=GOLDEN / "pose",
+                                 base_dir="pose_p2_test")
     out = tmp_path / "scores.json"
     assert score_main(["arctic", "--pred", zipped, "--gt", str(GOLDEN / "pose" / "gt"), "--meta", str(GOLDEN / "meta"),
                        "--mano", str(mano), "--out", str(out)]) == 0

@@ -213,7 +213,8 @@ def validity(crops: np.ndarray, right_2d: np.ndarray, left_2d: np.ndarray, objec
     half = crops[:, 1:, 2] * 200.0 / 2
     size = np.asarray(image_size, np.float64)[1:]
     boxes = np.stack([np.maximum(crops[:, 1:, 0] - half, 1), np.maximum(crops[:, 1:, 1] - half, 1),
-                      np.minimum(crops[:, 1:, 0] + half, size[:, 0]), np.minimum(crops[:, 1:, 1] + half, size[:, 1])], -1)
+                      np.minimum(crops[:, 1:, 0] + half, size[:, 0]),
+                      np.minimum(crops[:, 1:, 1] + half, size[:, 1])], -1)
     boxes = np.concatenate([np.broadcast_to(np.array(EGO_BOX), (len(crops), 1, 4)), boxes], 1)
 
     def inside(points):

@@ -132,7 +132,8 @@ def matrix_to_axis_angle_as_pytorch3d(R: torch.Tensor) -> torch.Tensor:
     half = torch.atan2(torch.linalg.vector_norm(v, dim=-1, keepdim=True), q[..., :1])
     angle = 2 * half
     small = angle.abs() < 1e-6
-    ratio = torch.where(small, 0.5 - angle * angle / 48, torch.sin(half) / torch.where(small, torch.ones_like(angle), angle))
+    safe = torch.where(small, torch.ones_like(angle), angle)
+    ratio = torch.where(small, 0.5 - angle * angle / 48, torch.sin(half) / safe)
     return v / ratio
 
 

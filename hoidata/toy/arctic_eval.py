@@ -66,8 +66,9 @@ def view_targets(seq, view: int, misc: dict, manos: dict, obj) -> dict:
         pose = np.concatenate([h["rot"], h["pose"]], 1)[idx]
         betas = np.tile(h["shape"], (len(idx), 1))
         rest = manos[side].rest_wrist(h["shape"])
-        cam_pose, cam_t = zip(*[change_frame(p, t, rest, w[:3, :3], w[:3, 3]) for p, t, w in zip(pose, h["trans"][idx], w2c)])
-        out[f"mano.pose.{s}"], out[f"mano.beta.{s}"], out[f"mano.cam_t.{s}"] = np.array(cam_pose), betas, np.array(cam_t)
+        moved = [change_frame(p, t, rest, w[:3, :3], w[:3, 3]) for p, t, w in zip(pose, h["trans"][idx], w2c)]
+        out[f"mano.pose.{s}"] = np.array([m[0] for m in moved])
+        out[f"mano.cam_t.{s}"], out[f"mano.beta.{s}"] = np.array([m[1] for m in moved]), betas
         cam[side] = hand_forward(manos[side], out[f"mano.pose.{s}"], betas, out[f"mano.cam_t.{s}"])[1]
     rot = Rotation.from_matrix(w2c[:, :3, :3]) * Rotation.from_rotvec(seq.rotvec[idx])
     out["object.rot"], out["object.radian"] = rot.as_rotvec(), seq.radian[idx]

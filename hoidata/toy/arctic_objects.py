@@ -91,9 +91,10 @@ def write_toy_template(folder: Path, obj: dict) -> float:
     write_atomic(folder / "top.obj", _obj_text(tv, tf))
     write_atomic(folder / "bottom.obj", _obj_text(bv, bf))
     write_atomic(folder / "parts.json", _json_bytes(labels))
-    for part in ("top", "bottom"):  # sampled from a finer grid of the part's surface, as a small part has < 300 vertices
+    for part in ("top", "bottom"):  # from a finer grid of the part's surface: a small part has < 300 vertices
         dense = box_mesh(*obj[f"{part}_box"], max_edge=2.0)[0]
-        write_atomic(folder / f"{part}_keypoints_300.json", _json_bytes({"keypoints": farthest_points(dense, 300).tolist()}))
+        keypoints = {"keypoints": farthest_points(dense, 300).tolist()}
+        write_atomic(folder / f"{part}_keypoints_300.json", _json_bytes(keypoints))
     params = {}
     for part, verts in (("top", tv), ("bottom", bv)):
         lo, hi = obj[f"{part}_box"]

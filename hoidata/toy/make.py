@@ -53,7 +53,8 @@ def make_toy(out: str | Path, layout: str, sequences: int | None = None, frames:
 
     `sequences` (per subject for DexYCB, training sequences for HO-3D, clips for HOT3D: the default's 1..3, then
     more, :func:`hoidata.toy.hot3d.toy_clips`; per subject for ARCTIC) and `frames` (per sequence and camera; per
-    clip; ARCTIC: per sequence, more than 50) scale it; None keeps the default size. Returns what was written and how long it took.
+    clip; ARCTIC: per sequence, more than 50) scale it; None keeps the default size. Returns what was written and
+    how long it took.
     """
     from hoidata.toy.dexycb import ToyDexYCBSize, write_toy_dexycb
     from hoidata.toy.ho3d import ToyHO3DSize, write_toy_ho3d

@@ -70,7 +70,8 @@ def eval_root(source: Source) -> str:
 
 
 def folders(source: Source, prefix: str = "") -> list[str]:
-    return sorted({n[len(prefix):].split("/")[0] for n in source.names if n.startswith(prefix) and "/" in n[len(prefix):]})
+    rest = [n[len(prefix):] for n in source.names if n.startswith(prefix)]
+    return sorted({r.split("/")[0] for r in rest if "/" in r})
 
 
 def _frames(value, where: str, key: str, per_frame, floats: tuple, vertices: int | None) -> tuple[np.ndarray, list]:
@@ -131,7 +132,8 @@ def check_submission(path: Path, task: str, setup: str, reference: dict[str, int
     present = folders(source, prefix)
     if reference is not None:
         problems += [str(DataError(source.where(prefix + f), None, "missing: the ground truth has this sequence and "
-                                   "view and the server stops on a missing file")) for f in sorted(set(reference) - set(present))]
+                                   "view and the server stops on a missing file"))
+                     for f in sorted(set(reference) - set(present))]
     for name in present:
         found = FOLDER.match(name)
         here = source.where(prefix + name)
@@ -182,12 +184,15 @@ def check_submission(path: Path, task: str, setup: str, reference: dict[str, int
             notes.append(f"{here}: longer than the ground truth's {want} frames ({', '.join(longer)}); the server "
                          "trims them")
         if want is None and len(set(counts.values())) > 1:
-            bad.append(str(DataError(source.where(prefix + name), None, f"files of different lengths {sorted(set(counts.values()))}")))
+            lengths = sorted(set(counts.values()))
+            bad.append(str(DataError(source.where(prefix + name), None, f"files of different lengths {lengths}")))
         if task == "pose":
             for key in ("pred.mano.pose.r", "pred.mano.pose.l"):
-                if key in arrays and np.abs(np.einsum("...ji,...jk->...ik", arrays[key], arrays[key]) - np.eye(3)).max() > 0.1:
-                    notes.append(f"{source.where(f'{prefix}{name}/preds/{key}.pt')}: not rotation matrices (|R^T R - I| > "
-                                 "0.1); the server converts them to axis-angle as they are")
+                gram = np.einsum("...ji,...jk->...ik", arrays[key], arrays[key]) if key in arrays else np.eye(3)
+                if np.abs(gram - np.eye(3)).max() > 0.1:
+                    where = source.where(f"{prefix}{name}/preds/{key}.pt")
+                    notes.append(f"{where}: not rotation matrices (|R^T R - I| > 0.1); the server converts them to "
+                                 "axis-angle as they are")
         problems += bad
         if not bad:
             n = want if want is not None else min(counts.values())
@@ -202,7 +207,8 @@ def _imgnames(source: Source, rel: str, found, notes: list) -> list | None:
         notes.append(f"{e} (the server never reads it)")
         return None
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
-        notes.append(f"{source.where(rel)}: holds {describe(names)}, not a list of image paths (the server never reads it)")
+        notes.append(f"{source.where(rel)}: holds {describe(names)}, not a list of image paths (the server never "
+                     "reads it)")
         return None
     sid, seq, view = found.groups()
     odd = [n for n in names if n.replace("\\", "/").split("/")[-4:-1] != [sid, seq, view]]

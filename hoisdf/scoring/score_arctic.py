@@ -36,7 +36,8 @@ def add_arguments(p) -> None:
                    help="ground truth: <sXX>_<sequence>_<view>/{targets,meta_info}/*.pt (ARCTIC's eval extraction)")
     p.add_argument("--meta", required=True, type=Path, metavar="DIR",
                    help="ARCTIC's meta folder (object_vtemplates/, object_meta.json)")
-    p.add_argument("--mano", type=Path, default=None, metavar="DIR", help="MANO folder (default: META/../../body_models/mano)")
+    p.add_argument("--mano", type=Path, default=None, metavar="DIR",
+                   help="MANO folder (default: META/../../body_models/mano)")
     add_task_arguments(p)
 
 
@@ -111,7 +112,8 @@ def posed(models: Models, values: dict, obj, prefix: str, matrices: bool) -> dic
     for s in ("r", "l"):
         pose = values[f"{prefix}mano.pose.{s}"]
         pose = models.axis_angle(pose) if matrices else pose
-        out[f"v.{s}"], out[f"j.{s}"] = models.hand(s, pose, values[f"{prefix}mano.beta.{s}"], values[f"{prefix}mano.cam_t.{s}"])
+        betas, cam_t = values[f"{prefix}mano.beta.{s}"], values[f"{prefix}mano.cam_t.{s}"]
+        out[f"v.{s}"], out[f"j.{s}"] = models.hand(s, pose, betas, cam_t)
     radian = values[f"{prefix}object.radian"]
     out["v.o"] = pose_object(obj, radian, values[f"{prefix}object.rot"]) + values[f"{prefix}object.cam_t"][:, None]
     out["radian"] = radian

@@ -103,7 +103,8 @@ def read_pt(path, data: bytes | None = None):
             if not pkl:
                 raise DataError(where, None, "no data.pkl inside: not a torch.save file")
             prefix = pkl[0][: -len("data.pkl")]
-            order = archive.read(f"{prefix}byteorder").decode() if f"{prefix}byteorder" in archive.namelist() else "little"
+            names = archive.namelist()
+            order = archive.read(f"{prefix}byteorder").decode() if f"{prefix}byteorder" in names else "little"
             if order != "little":
                 raise DataError(where, None, f"{order}-endian tensors cannot be read here")
             return _Unpickler(io.BytesIO(archive.read(pkl[0])), archive, prefix, where).load()
