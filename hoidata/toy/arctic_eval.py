@@ -8,6 +8,7 @@ for the task (poses in each view's camera frame, ``flat_hand_mean=False``; valid
 matrices, the object's axis-angle, translations, articulation; field task: the four distance fields), float16
 as ARCTIC's extraction saves them, and its ``.zip``. The first sequence's predictions are :data:`EXTRA` frames
 longer than its ground truth and its object fields wider than the object (both trimmed by the server).
+``python -m hoidata.toy.arctic_eval --root TOY --out DIR`` writes them (:func:`main`).
 """
 
 from __future__ import annotations
@@ -185,3 +186,27 @@ def write_toy_evaluation(root: str | Path, out: str | Path, task: str = "pose", 
     archive = shutil.make_archive(str(out / task_name), "zip", root_dir=out, base_dir=task_name)
     return {"task": task_name, "folders": len(folders), "gt": str(out / "gt"), "submission": str(out / task_name),
             "zip": archive}
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m hoidata.toy.arctic_eval --root TOY --out DIR [--task pose|field] [--setup p1|p2]``."""
+    import argparse
+
+    from hoidata.errors import run_cli
+
+    p = argparse.ArgumentParser(prog="python -m hoidata.toy.arctic_eval",
+                                description="a toy ARCTIC's leaderboard ground truth and a noisy submission")
+    p.add_argument("--root", required=True, type=Path, help="a toy ARCTIC (hoidata make-toy --layout arctic)")
+    p.add_argument("--out", required=True, type=Path, help="output folder (gt/, <task>_<setup>_<split>/ and .zip)")
+    p.add_argument("--task", choices=("pose", "field"), default="pose")
+    p.add_argument("--setup", choices=("p1", "p2"), default="p1")
+    p.add_argument("--split", choices=("val", "test"), default="test")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--debug", action="store_true", help="on an error, show the traceback instead of one line")
+    args = p.parse_args(argv)
+    return run_cli("hoidata.toy.arctic_eval", lambda: print(write_toy_evaluation(
+        args.root, args.out, args.task, args.setup, args.split, seed=args.seed)) or 0, args.debug)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
