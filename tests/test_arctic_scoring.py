@@ -109,6 +109,8 @@ def test_the_stored_toy_submission_passes_with_notes_for_what_the_server_tolerat
     problems, notes, preds = check_submission(submission, "pose", "p2", read_reference(GOLDEN / "pose" / "gt"))
     assert problems == [] and len(preds[FOLDER]["pred.object.radian"]) == 44
     assert len(notes) == 1 and "trims" in notes[0]  # 47 frames predicted, 44 in the ground truth
+    problems, notes, _ = check_submission(submission, "pose", "p2")  # no ground truth: its own image names count
+    assert problems == [] and "meta_info.imgname.pt" in notes[0]
 
 
 @pytest.mark.parametrize("key,breakage,words", [

@@ -190,14 +190,13 @@ def write_toy_evaluation(root: str | Path, out: str | Path, task: str = "pose", 
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m hoidata.toy.arctic_eval --root TOY --out DIR [--task pose|field] [--setup p1|p2]``."""
-    import argparse
-
+    from hoidata.cli_types import ArgumentParser, local_path
     from hoidata.errors import run_cli
 
-    p = argparse.ArgumentParser(prog="python -m hoidata.toy.arctic_eval",
-                                description="a toy ARCTIC's leaderboard ground truth and a noisy submission")
-    p.add_argument("--root", required=True, type=Path, help="a toy ARCTIC (hoidata make-toy --layout arctic)")
-    p.add_argument("--out", required=True, type=Path, help="output folder (gt/, <task>_<setup>_<split>/ and .zip)")
+    p = ArgumentParser(prog="python -m hoidata.toy.arctic_eval",
+                       description="a toy ARCTIC's leaderboard ground truth and a noisy submission")
+    p.add_argument("--root", required=True, type=local_path, help="a toy ARCTIC (hoidata make-toy --layout arctic)")
+    p.add_argument("--out", required=True, type=local_path, help="output folder (gt/, <task>_<setup>_<split>/, .zip)")
     p.add_argument("--task", choices=("pose", "field"), default="pose")
     p.add_argument("--setup", choices=("p1", "p2"), default="p1")
     p.add_argument("--split", choices=("val", "test"), default="test")

@@ -167,22 +167,24 @@ def check_submission(path: Path, task: str, setup: str, reference: dict[str, int
                 arrays[key] = arr
         counts = {k: len(v) for k, v in arrays.items()}
         want = reference.get(name) if reference is not None else None
+        against = "the ground truth"
         imgname = f"{prefix}{name}/meta_info/meta_info.imgname.pt"
         if imgname not in source.names:
             notes.append(f"{source.where(imgname)}: missing; the server takes image names from its ground truth")
         else:
             names = _imgnames(source, imgname, found, notes)
-            want = want if want is not None or names is None else len(names)
+            if want is None and names is not None:
+                want, against = len(names), "its meta_info.imgname.pt"
         longer = []
         for key, n in counts.items():
             where = source.where(f"{prefix}{name}/preds/{key}.pt")
             if want is not None and n < want:
-                bad.append(str(DataError(where, key, f"{n} frames, the ground truth has {want}")))
+                bad.append(str(DataError(where, key, f"{n} frames, {against} has {want}")))
             elif want is not None and n > want:
                 longer.append(f"{key} {n}")
         if longer:
-            notes.append(f"{here}: longer than the ground truth's {want} frames ({', '.join(longer)}); the server "
-                         "trims them")
+            notes.append(f"{here}: longer than the {want} frames of {against} ({', '.join(longer)}); the server "
+                         "trims them to its ground truth")
         if want is None and len(set(counts.values())) > 1:
             lengths = sorted(set(counts.values()))
             bad.append(str(DataError(source.where(prefix + name), None, f"files of different lengths {lengths}")))
