@@ -80,6 +80,8 @@ def view_targets(seq, view: int, misc: dict, manos: dict, obj) -> dict:
     K = seq.ego_k if view == 0 else m["intris_mat"][view - 1]
     flags = _flags(K, seq.dist8 if view == 0 else None, cam["right"], cam["left"], verts,
                    m["image_size"][view], view)
+    for side in ("right", "left"):  # ARCTIC's dataset stores a hand's flag times the frame's
+        flags[f"{side}_valid"] = flags[f"{side}_valid"] * flags["is_valid"]
     out.update(flags)
     out["joints_valid_r"] = np.repeat(flags["right_valid"][:, None], 21, 1)
     out["joints_valid_l"] = np.repeat(flags["left_valid"][:, None], 21, 1)
