@@ -114,7 +114,7 @@ def log_record(rec, index, record: dict, mano=None) -> None:
     meta, image = record[META], record[IMG]
     side = image.shape[0]
     rec.log("world/camera", rr.Pinhole(image_from_camera=np.asarray(meta["K"]), resolution=[side, side],
-                                       camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=0.3))
+                                       camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=0.15))
     rec.log("world/camera/image", rr.Image(image))
     rec.log("world/record", rr.TextDocument(f"{record[KEY]}\nobject: {meta['object_name']}\n"
                                             f"mirrored: {meta['mirrored']}"))
@@ -139,6 +139,20 @@ def log_record(rec, index, record: dict, mano=None) -> None:
                                                class_ids=np.where(part < 0, NO_PART, part).astype(np.uint16)))
 
 
+def blueprint(hand_root: np.ndarray):
+    """The viewer's layout: the 3D scene seen from beside the first record's hand (the SDF samples by their distance
+    to the hand; the object-distance and hand-part colourings one click away), the crop, the record's key."""
+    import rerun.blueprint as rrb
+
+    root = np.asarray(hand_root, np.float64)  # seen from behind the camera, a little above and to the side
+    eye = rrb.EyeControls3D(position=[0.25, -0.2, -0.25], look_target=root, eye_up=[0.0, -1.0, 0.0])
+    scene = rrb.Spatial3DView(origin="world", name="scene", eye_controls=eye,
+                              contents=["+ world/**", "- world/sdf/object_distance", "- world/sdf/hand_part"])
+    side = rrb.Vertical(rrb.Spatial2DView(origin="world/camera/image", name="crop"),
+                        rrb.TextDocumentView(origin="world/record", name="record"), row_shares=[3, 1])
+    return rrb.Blueprint(rrb.Horizontal(scene, side, column_shares=[3, 2]), collapse_panels=True)
+
+
 def write_recording(store, out, key: str | None = None, row: int | None = None, sequence: str | None = None,
                     mano_dir=None) -> tuple[Path, int]:
     """Write the selected records of ``store`` (see :func:`select_rows`) into the rerun file ``out``; returns
@@ -161,7 +175,7 @@ def write_recording(store, out, key: str | None = None, row: int | None = None, 
     records = read_rows(store, index, rows)
     with atomic_path(out) as tmp:
         rec = rr.RecordingStream(APPLICATION, recording_id=f"{store.name}-{rows[0]}-{len(rows)}")
-        rec.save(str(tmp))
+        rec.save(str(tmp), default_blueprint=blueprint(records[0][META]["hand_root"]))
         rec.log("world", rr.ViewCoordinates.RDF, static=True)
         rec.log("world/sdf/hand_part", rr.AnnotationContext(
             [(i, name) for i, name in enumerate(PART_NAMES)] + [(NO_PART, "no part")]), static=True)
