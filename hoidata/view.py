@@ -129,8 +129,9 @@ def log_record(rec, index, record: dict, mano=None) -> None:
     rec.log("world/hand/joints", rr.Points3D(joints, radii=0.003, colors=[40, 220, 40]))
     rec.log("world/hand/bones", rr.LineStrips3D([joints[b] for b in BONES], colors=[40, 220, 40]))
     if mano is not None:
-        rec.log("world/hand/mesh", rr.Mesh3D(vertex_positions=posed_hand(mano, meta),
-                                             triangle_indices=np.asarray(mano.faces), albedo_factor=[240, 200, 180, 255]))
+        hand = rr.Mesh3D(vertex_positions=posed_hand(mano, meta), triangle_indices=np.asarray(mano.faces),
+                         albedo_factor=[240, 200, 180, 255])
+        rec.log("world/hand/mesh", hand)
     xyz, sdf_hand, sdf_object, part = dequantize_sdf(record[SDF])
     points = xyz + np.asarray(meta["hand_root"], np.float32)
     rec.log("world/sdf/hand_distance", rr.Points3D(points, radii=0.001, colors=distance_colours(sdf_hand)))

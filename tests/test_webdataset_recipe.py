@@ -58,7 +58,7 @@ def test_the_documented_recipe_reads_every_member(kind, request, tmp_path):
         key = rec[store.KEY]
         img = arrays[f"{key}/img"]
         assert img.dtype == np.uint8 and img.shape == rec[schema.IMG].shape  # RGB, (S, S, 3)
-        # Pillow's and OpenCV's libjpeg-turbo decode these JPEGs alike (0 of 468 toy crops differ); the frame is Pillow's
+        # Pillow's and OpenCV's libjpeg-turbo decode these JPEGs alike (0 of 468 toy crops differ); frames: Pillow's
         np.testing.assert_array_equal(img, rec[schema.IMG])
         for name, member in (("seg", schema.SEG), ("hm", schema.HEATMAP), ("sdf", schema.SDF)):
             np.testing.assert_array_equal(arrays[f"{key}/{name}"], rec[member])
