@@ -47,7 +47,8 @@ SOURCES = {
     "dexycb": Source(
         "DexYCB", "https://dex-ycb.github.io", "cc-by-nc-4.0", "CC BY-NC 4.0",
         "https://creativecommons.org/licenses/by-nc/4.0/",
-        "Creative Commons Attribution-NonCommercial 4.0: share and adapt with attribution, no commercial use.", True,
+        "Creative Commons Attribution-NonCommercial 4.0: share and adapt with attribution, no commercial use. The "
+        "index's object meshes are simplified YCB models (CC BY 4.0).", True,
         """@inproceedings{chao2021dexycb,
   title = {{DexYCB}: A Benchmark for Capturing Hand Grasping of Objects},
   author = {Chao, Yu-Wei and Yang, Wei and Xiang, Yu and Molchanov, Pavlo and Handa, Ankur and Tremblay, Jonathan and
@@ -59,7 +60,7 @@ SOURCES = {
         "HO-3D", "https://github.com/shreyashampali/ho3d", "other", "HO-3D terms of use",
         "https://github.com/shreyashampali/ho3d",
         "Academic, non-commercial research use only; the dataset may not be redistributed or modified without the "
-        "authors' permission.", False,
+        "authors' permission. The index's object meshes are simplified YCB models (CC BY 4.0).", False,
         """@inproceedings{hampali2020honnotate,
   title = {{HOnnotate}: A Method for {3D} Annotation of Hand and Object Poses},
   author = {Hampali, Shreyas and Rad, Mahdi and Oberweger, Markus and Lepetit, Vincent},
