@@ -94,7 +94,7 @@ def build_store(cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path, 
     summary = run_task(task, workers, part, progress, executor)
     summary.reader_skipped = [skip_dict(s) for s in reader_skips]
     summary.empty_splits = empty_splits(cfg.dataset.splits, frames)
-    writer.finish(summary, reader_skips, toolkit_provenance(cfg, root))
+    writer.finish(summary, reader_skips, store_provenance(cfg, root))
     summary.seconds = time.perf_counter() - start
     return summary
 
@@ -105,11 +105,16 @@ def empty_splits(splits, frames) -> tuple[str, ...]:
     return tuple(s for s in splits if s not in found)
 
 
-def toolkit_provenance(cfg: BuildConfig, root: Path) -> dict:
-    """DexYCB: ``{"toolkit_splits": {split: {"name": "s0_test", "size": N}}}``, the toolkit's enumeration the
-    records' ``sample_index`` refers to (result files must hold every valid id of it); else {}."""
+def store_provenance(cfg: BuildConfig, root: Path) -> dict:
+    """``source_dataset``: the dataset the records come from (its licence and citation go in the store's card):
+    "toy" for a folder make-toy wrote, else ``dataset.name``. DexYCB also: ``{"toolkit_splits": {split: {"name":
+    "s0_test", "size": N}}}``, the toolkit's enumeration the records' ``sample_index`` refers to (result files must
+    hold every valid id of it)."""
+    from hoidata.store.sources import TOY_MARKER
+
+    source = {"source_dataset": "toy" if (Path(root) / TOY_MARKER).is_file() else cfg.dataset.name}
     if cfg.dataset.name != "dexycb":
-        return {}
+        return source
     from hoidata.datasets.dexycb_layout import toolkit_split
 
     splits, listed = {}, cfg.dataset.frame_list
@@ -119,8 +124,8 @@ def toolkit_provenance(cfg: BuildConfig, root: Path) -> dict:
             splits[split] = {"name": enum.name, "size": enum.size}
         except DataError:  # the reader recorded the unreadable meta.yml; the ids are unknown
             splits[split] = {"name": f"{cfg.dataset.setup}_{split}", "size": None}
-    return {"toolkit_splits": splits, **({"frame_list": frame_list_provenance(listed, read_frame_list(listed))}
-                                         if listed else {})}
+    return {**source, "toolkit_splits": splits,
+            **({"frame_list": frame_list_provenance(listed, read_frame_list(listed))} if listed else {})}
 
 
 def estimate_build(cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path, workers: int = 1,

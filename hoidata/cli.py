@@ -15,6 +15,7 @@ from hoidata import __version__
 from hoidata.cli_types import ArgumentParser, count_type, non_negative_int, positive_int
 from hoidata.engine import add_launcher_flags, launch
 from hoidata.errors import run_cli
+from hoidata.store.sources import SOURCES
 
 
 def folder(args: argparse.Namespace, name: str, default: Path | None = None) -> Path | None:
@@ -105,6 +106,8 @@ def cmd_build_sdf(args: argparse.Namespace) -> int:
         print(f"note: no frames in split(s) {', '.join(s.empty_splits)} of {root}: the store holds none of them")
     print("index.zarr already lists every shard: nothing written" if s.finish_kept else "index.zarr written"
           if s.finished else "index not written yet: other parts still have shards to build")
+    for line in s.notes:
+        print(f"note: {line}")
     if s.finished or s.finish_kept:
         from hoidata.build_sdf import mask_iou_line, supervision_line
 
@@ -192,6 +195,30 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 
     store = local_store(args.store, "hoidata inspect")
     print(f"wrote {inspect_store(store, n=args.n, out=folder(args, 'out'))}")
+    return 0
+
+
+def cmd_card(args: argparse.Namespace) -> int:
+    """(Re)write a finished store's dataset card and the other loaders' index files (docs/other-loaders.md)."""
+    from hoidata.store.card import CARD_NAME, write_store_files
+    from hoidata.store.paths import local_store
+
+    store = local_store(args.store, "hoidata card")
+    for line in write_store_files(store, args.source):
+        print(f"note: {line}")
+    print(f"wrote {store / CARD_NAME} and the loader index files beside the shards")
+    return 0
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    """Write records of a store as a rerun recording (hoidata/view.py says what it holds)."""
+    from hoidata.store.paths import local_store
+    from hoidata.view import write_recording
+
+    store = local_store(args.store, "hoidata view")
+    out, n = write_recording(store, folder(args, "out"), key=args.key, row=args.index, sequence=args.sequence,
+                             mano_dir=folder(args, "mano"))
+    print(f"wrote {out} ({n} record{'s' if n != 1 else ''}); open it with: rerun {out}")
     return 0
 
 
@@ -303,6 +330,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--n", type=positive_int, default=16, help="records to show")
     p.add_argument("--out", default="grid.png", help="output PNG")
     p.set_defaults(func=cmd_inspect)
+
+    p = add("card", "(re)write a store's dataset card README.md and its wids / DALI index files")
+    p.add_argument("store")
+    p.add_argument("--source", default=None, choices=sorted(SOURCES),
+                   help="the dataset the records come from (default: what the store records, else its dataset.name)")
+    p.set_defaults(func=cmd_card)
+
+    p = add("view", "write records of a store as a rerun recording (.rrd): crop, camera, meshes, joints, SDF samples")
+    p.add_argument("store")
+    which = p.add_mutually_exclusive_group()
+    which.add_argument("--key", default=None, help="the record with this key")
+    which.add_argument("--index", type=non_negative_int, default=None, help="the record at this index (default 0)")
+    which.add_argument("--sequence", default=None, help="every record of a sequence (a key without its frame number)")
+    p.add_argument("--mano", default=None, help="MANO folder: draws the posed hand mesh (default: joints only)")
+    p.add_argument("--out", default="record.rrd", help="output .rrd file")
+    p.set_defaults(func=cmd_view)
 
     p = add("toy-pipeline", "toy data -> verified train/test stores (the data half of python -m hoisdf.toy)")
     p.add_argument("--out", default="toy_run", help="output folder (data/, store/train, store/test, store_grid.png)")

@@ -280,12 +280,26 @@ def render_synthetic(source: Path, out: Path, count: int, mano_dir: Path, models
         stats = [_shard_stats(out, n) for n in summary.units]
         attempts = sum(st["attempts"] for st in stats)
         accepted = sum(st["accepted"] for st in stats)
-        provenance = {"synthetic": {"source_grasps": len(grasps), "attempts": attempts, "accepted": accepted,
+        provenance = {**_source_dataset(source),
+                      "synthetic": {"source_grasps": len(grasps), "attempts": attempts, "accepted": accepted,
                                     "rejection_rate": round(1.0 - accepted / attempts, 4) if attempts else 0.0}}
         rejected = [Skip(r["frame_id"], r["reason"], r["path"]) for st in stats for r in st["rejected_samples"]]
     writer.finish(summary, rejected, provenance)
     summary.seconds = time.perf_counter() - start
     return summary
+
+
+def _source_dataset(source: Path) -> dict:
+    """``{"source_dataset": id}`` of the grasps' source for the store's card (:mod:`hoidata.store.sources`): a store's
+    own, "toy" for a folder make-toy wrote, nothing for another dataset folder (the card then says it is not
+    recorded)."""
+    from hoidata.store import INDEX_NAME, read_index
+    from hoidata.store.sources import TOY_MARKER, source_of
+
+    if (source / INDEX_NAME).is_dir():
+        index = read_index(source)
+        return {"source_dataset": source_of(index.config, index.provenance)}
+    return {"source_dataset": "toy"} if (source / TOY_MARKER).is_file() else {}
 
 
 def _shard_stats(out: Path, number: int) -> dict:

@@ -21,5 +21,7 @@ PYTHON=${PYTHON:-python3}
 .venv/bin/python -m pip install -q --upgrade pip
 # torch first, pinned: pip finds these on local disk here; a looser spec would pull a newer CUDA build.
 .venv/bin/python -m pip install -q "torch==2.14.1" "torchvision==0.29.1"
-.venv/bin/python -m pip install -q -e ".[test,docs,cluster]"  # cluster: submitit, ray, fsspec, aiohttp (their tests run in CI)
+# cluster: submitit, ray, fsspec, aiohttp; interop, dali: the other loaders of docs/other-loaders.md (about 1.8 GB
+# installed, pyproject.toml says what each adds); their tests run in CI
+.venv/bin/python -m pip install -q -e ".[test,docs,cluster,interop,dali]"
 echo "setup: done ($(.venv/bin/python -c 'import hoidata, torch; print("hoidata", hoidata.__version__, "torch", torch.__version__)'))"

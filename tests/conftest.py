@@ -101,7 +101,7 @@ def pytest_configure(config):
 # that uses one belongs to the slow tier (docs/development.md, "Test tiers"), so that `pytest -m "not slow"` stays a
 # one-minute loop. A test left unmarked is refused at collection, or when it asks for one by name at run time.
 STORE_FIXTURES = frozenset({
-    "tiny_dexycb", "tiny_store", "tiny_store_two_shards", "dexycb_8cam", "dexycb_s0", "ho3d_small",
+    "tiny_dexycb", "tiny_store", "tiny_store_two_shards", "tiny_region_store", "dexycb_8cam", "dexycb_s0", "ho3d_small",
     "ho3d_small_eval_store",
     "dex_root", "ho3d_root", "v3_root", "synth_store", "ho3d_source", "hot3d_root",  # the same kind, one file each
 })
@@ -185,13 +185,22 @@ def tiny_store(tiny_dexycb, tmp_path_factory):
     return _build_tiny_store(tiny_dexycb, tmp_path_factory.mktemp("tiny_store") / "store", records_per_shard=64)
 
 
-def _build_tiny_store(tiny_dexycb, out, records_per_shard: int):
-    """The tiny toy DexYCB's train split built into ``out``: 128 px crops, 256 + 128 SDF rows."""
+@pytest.fixture(scope="session")
+def tiny_region_store(tiny_dexycb, tmp_path_factory):
+    """The tiny toy DexYCB train split as upstream-region records (``frame.jpg`` in place of ``img.jpg``), 5 records
+    per shard (4 shards, the last one short); read-only."""
+    return _build_tiny_store(tiny_dexycb, tmp_path_factory.mktemp("tiny_region_store") / "store", records_per_shard=5,
+                             more=['record.upstream_region=["train"]'])
+
+
+def _build_tiny_store(tiny_dexycb, out, records_per_shard: int, more=()):
+    """The tiny toy DexYCB's train split built into ``out``: 128 px crops, 256 + 128 SDF rows (``more``: further
+    overrides)."""
     from hoidata.build_sdf import build_store
     from hoidata.records.settings import load_build_config
 
     overrides = ['dataset.splits=["train"]', "record.crop_size=128", "record.sdf_samples_hand=256", "record.sdf_samples_object=128",
-                 f"store.records_per_shard={records_per_shard}"]
+                 f"store.records_per_shard={records_per_shard}", *more]
     build_store(load_build_config("toy", overrides), tiny_dexycb, tiny_dexycb / "mano", tiny_dexycb / "models",
                 out, workers=1, part=(0, 1), progress=False)
     return out

@@ -73,6 +73,7 @@ SCRIPTS: dict[str, list[tuple[list[str], str]]] = {
     "bench_upstream_aug": [(["--root", "{root}", "--batch", "2", "--batches", "1", "--rounds", "1", "--workers", "0"],
                             "upstream __getitem__")],
     "bench_suite_disk": [(["--every", "0.5", "tests/test_safe_pickle.py"], "| the suite's settings |")],
+    "bench_loaders": [(["--store", "{store}", "--loaders", "iter_records", "webdataset"], "| webdataset |")],
 }
 # scripts that cannot run here, with the reason; the test checks the reason still holds
 NEEDS = {"bench_cluster": ("ray", "submitit")}  # the cluster extra

@@ -118,7 +118,7 @@ RECIPES = ("hoidata.build_sdf", "hoidata.render_synthetic", "hoidata.export", "h
 HOIDATA_LAYERS = (
     ("hoidata.errors", "hoidata.atomic", "hoidata.schema", "hoidata.sections", "hoidata.provenance"),
     ("hoidata.safe_pickle", "hoidata.geometry", "hoidata.store", "hoidata.render", "hoidata.cli_types"),
-    ("hoidata.hand", "hoidata.objects"),
+    ("hoidata.hand", "hoidata.objects", "hoidata.view"),  # view: a store's records with the MANO hand posed
     ("hoidata.datasets",),
     ("hoidata.engine",),
     ("hoidata.records",),

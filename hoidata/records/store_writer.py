@@ -6,7 +6,8 @@ store, from its first file to its last.
 - which shards are done (:func:`shards_done`: intact on disk, with a skips file that agrees), for the engine's
   resume, and whether the files a kept shard was built from changed since (:mod:`hoidata.records.fingerprint`);
 - the per-shard skips files and their summaries; the index, written once every shard is done, by whichever
-  process finishes last (:func:`finish_store`: safe to call from many processes at once, see its docstring);
+  process finishes last (:func:`finish_store`: safe to call from many processes at once, see its docstring), and
+  right after it the dataset card and the other loaders' index files (:func:`hoidata.store.card.write_store_files`);
 - the run's :class:`~hoidata.engine.RunSummary`, completed with the store's state.
 
 :class:`StoreWriter` holds the four for one store; :class:`StoreTask` is the engine task base of a recipe that
@@ -27,6 +28,7 @@ from hoidata.errors import DataError
 from hoidata.provenance import git_commit
 from hoidata.records import fingerprint
 from hoidata.records.records import RecordSettings
+from hoidata.store.card import write_store_files
 
 BUILD_FILE = "build.json"
 
@@ -100,6 +102,7 @@ def finish_store(out: Path, config: dict, models_dir: Path, numbers: list[int], 
         with store.index_lock(out):
             if not _index_lists(out, infos):  # nobody wrote it while this process waited for the lock
                 write_store_index(out, config, models_dir, numbers, reader_skips, provenance)
+                summary.notes += write_store_files(out)
                 summary.finish_kept = False
     summary.finished = True
     summary.empty_units = sum(info.count == 0 for info in infos)

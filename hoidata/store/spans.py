@@ -28,8 +28,9 @@ def _padded(size: int) -> int:
     return -(-size // tarfile.BLOCKSIZE) * tarfile.BLOCKSIZE
 
 
-def _walk(tar: tarfile.TarFile, keys: Sequence[str], path) -> np.ndarray:
-    """(n, 2) int64 [offset, length] of the records of an opened shard, compared with the index's ``keys``."""
+def _walk(tar: tarfile.TarFile, keys: Sequence[str], path, members: list | None = None) -> np.ndarray:
+    """(n, 2) int64 [offset, length] of the records of an opened shard, compared with the index's ``keys``; with
+    ``members`` (a list), each record's [(member name, data offset, size), ...] is appended to it, in order."""
     spans = np.zeros((len(keys), 2), np.int64)
     row, current, end = -1, None, 0
     for info in tar:
@@ -45,6 +46,10 @@ def _walk(tar: tarfile.TarFile, keys: Sequence[str], path) -> np.ndarray:
                 raise DataError(path, key, f"record {row} of the shard, the index has {there} there (the key appears "
                                            "twice, or the shard was replaced: hoidata verify checks the whole store)")
             current, spans[row, 0] = key, info.offset
+            if members is not None:
+                members.append([])
+        if members is not None:
+            members[-1].append((member, info.offset_data, info.size))
         end = info.offset_data + _padded(info.size)
     if row >= 0:
         spans[row, 1] = end - spans[row, 0]
@@ -54,19 +59,21 @@ def _walk(tar: tarfile.TarFile, keys: Sequence[str], path) -> np.ndarray:
     return spans
 
 
-def record_spans(path, keys: Sequence[str], size: int | None = None) -> np.ndarray:
+def record_spans(path, keys: Sequence[str], size: int | None = None, members: list | None = None) -> np.ndarray:
     """(n, 2) int64 array: each record's byte offset in the shard and its length (whole tar blocks), in order.
 
     ``path``: a local shard or a RemoteFile; ``keys``: the index's keys of the shard, in order (a record missing,
     foreign or out of order is a DataError naming the shard and the key); ``size``: the bytes the index gives
-    (remote reads stop there).
+    (remote reads stop there); ``members``: a list to which each record's members are appended, as
+    [(member name, data offset, size), ...] (what the index files of other loaders list: the wids descriptor's
+    names, DALI's per-member offsets).
     """
     try:
         if isinstance(path, RemoteFile):
             with open_stream(path, size) as stream:
-                return _walk(tarfile.open(fileobj=stream, mode="r|"), keys, path)
+                return _walk(tarfile.open(fileobj=stream, mode="r|"), keys, path, members)
         with open(Path(path), "rb") as file:
-            return _walk(tarfile.open(fileobj=file, mode="r:"), keys, path)
+            return _walk(tarfile.open(fileobj=file, mode="r:"), keys, path, members)
     except (tarfile.TarError, EOFError) as exc:
         raise DataError(path, None, f"truncated or corrupt tar ({exc})") from None
     except OSError as exc:

@@ -6,6 +6,8 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+from hoidata.store.sources import TOY_MARKER
+
 LAYOUTS = ("dexycb", "ho3d", "ho3d_v3", "hot3d", "arctic")  # ho3d_v3: HO-3D v3's layout (hoidata/toy/ho3d.py); hot3d:
 # clips; arctic: arctic_data/data (hoidata/toy/arctic.py)
 # the toolkit's i % 5 == 4 rule puts a subject's 5th sequence in val or test: with fewer, s0/s1 val and test are empty
@@ -104,7 +106,7 @@ def make_toy(out: str | Path, layout: str, sequences: int | None = None, frames:
     return {"layout": layout, "root": str(out), **counts, "seconds": round(time.perf_counter() - start, 1)}
 
 
-MARKER = ".hoidata-toy.json"  # make-toy's mark on a folder it wrote (with the settings it wrote it with)
+MARKER = TOY_MARKER  # make-toy's mark on a folder it wrote (its settings inside); a store built from it is a toy store
 
 
 def prepare_folder(out: Path, settings: dict) -> None:
