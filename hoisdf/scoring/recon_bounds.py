@@ -71,12 +71,14 @@ def disc_triangle_area(zx, zy, r2, w):
 
 
 @numba.njit(cache=True)
-def piece_bounds(tri, fv, pv, fc, pc, t2, discs=True):
+def piece_bounds(tri, fv, pv, fc, pc, t2, slack, discs=True):
     """Per sub-triangle (vertices ``tri``, vertex squared distances ``fv`` and closest points ``pv``, centroid
-    squared distance ``fc`` and closest point ``pc``; squared thresholds ``t2``): area, lower and upper bound of the
-    integral of f, and per threshold lower and upper bounds of its area where d < t (module docstring and
-    :mod:`hoisdf.scoring.recon_exact`)."""
-    n, k = tri.shape[0], t2.shape[0]
+    squared distance ``fc`` and closest point ``pc``): area, lower and upper bound of the integral of f, and per
+    threshold lower and upper bounds of its area where d < t (module docstring and :mod:`hoisdf.scoring.recon_exact`).
+    The computed distances' rounding is allowed for: ``t2`` (2, k) holds each threshold's square taken in by it (for
+    the lower area bound) and out (for the upper), and the integral's bounds are widened by ``slack`` per unit area
+    (f's rounding)."""
+    n, k = tri.shape[0], t2.shape[1]
     area, lo, hi = np.empty(n), np.empty(n), np.empty(n)
     inside_lo, inside_hi = np.zeros((n, k)), np.zeros((n, k))
     w = np.empty((3, 2))
@@ -102,7 +104,7 @@ def piece_bounds(tri, fv, pv, fc, pc, t2, discs=True):
         near = max(dc - np.sqrt(r2max), 0.0) ** 2
         low = area[i] * max(fmean - 0.75 * m, near)
         high = area[i] * min(fc[i] + 0.25 * m, (dc + np.sqrt(r2max)) ** 2)
-        lo[i], hi[i] = min(low, high), high  # equal up to rounding where the piece is a point
+        lo[i], hi[i] = min(low, high) - area[i] * slack, high + area[i] * slack  # low > high only by rounding
         inf2 = max(inf2, near)
         # sup d over the piece: <= max over its vertices of the distance to any closest point already known
         sup2 = np.inf
@@ -117,8 +119,8 @@ def piece_bounds(tri, fv, pv, fc, pc, t2, discs=True):
             sup2 = min(sup2, worst)
         undecided = False
         for t in range(k):
-            inside_lo[i, t] = area[i] if sup2 < t2[t] else 0.0
-            inside_hi[i, t] = area[i] if (sup2 < t2[t] or inf2 < t2[t]) else 0.0
+            inside_lo[i, t] = area[i] if sup2 < t2[0, t] else 0.0
+            inside_hi[i, t] = area[i] if (sup2 < t2[0, t] or inf2 < t2[1, t]) else 0.0
             undecided |= inside_lo[i, t] < inside_hi[i, t]
         if not (discs and undecided and norm > 0.0):
             continue
@@ -142,9 +144,9 @@ def piece_bounds(tri, fv, pv, fc, pc, t2, discs=True):
         for t in range(k):
             if not inside_lo[i, t] < inside_hi[i, t]:
                 continue
-            upper = disc_triangle_area(-0.5 * alpha, -0.5 * beta, t2[t] - kappa, w)
-            if dc * dc > t2[t]:
-                gap = dc - np.sqrt(t2[t])
+            upper = disc_triangle_area(-0.5 * alpha, -0.5 * beta, t2[1, t] - kappa, w)
+            if dc * dc > t2[1, t]:
+                gap = dc - np.sqrt(t2[1, t])
                 upper = min(upper, area[i] - disc_triangle_area(0.0, 0.0, gap * gap, w))
             lower = 0.0
             for q in range(4):
@@ -152,7 +154,7 @@ def piece_bounds(tri, fv, pv, fc, pc, t2, discs=True):
                 r = p - c
                 h = r[0] * nv[0] + r[1] * nv[1] + r[2] * nv[2]
                 px, py = r[0] * e1[0] + r[1] * e1[1] + r[2] * e1[2], r[0] * e2[0] + r[1] * e2[1] + r[2] * e2[2]
-                lower = max(lower, disc_triangle_area(px, py, t2[t] - h * h, w))
+                lower = max(lower, disc_triangle_area(px, py, t2[0, t] - h * h, w))
             inside_hi[i, t] = min(area[i], max(upper + margin, 0.0))
             inside_lo[i, t] = min(max(lower - margin, 0.0), inside_hi[i, t])
     return area, lo, hi, inside_lo, inside_hi
@@ -183,10 +185,11 @@ EDGES = np.array([[0, 1], [1, 2], [2, 0]])  # the midpoints m01, m12, m20
 
 
 @numba.njit(cache=True)
-def split_pieces(tri, fv, pv, hv, area, lo, hi, inside_lo, inside_hi, idx, n, tree, t2, discs):
+def split_pieces(tri, fv, pv, hv, area, lo, hi, inside_lo, inside_hi, idx, n, tree, t2, slack, discs):
     """Write the four children (edge midpoints) of the pieces ``idx`` into rows n to n + 4 len(idx) of the pieces'
     arrays: corners, the corners' squared distances, closest points and faces (leaf order), and their
-    :func:`piece_bounds` (``discs`` False: the fractions' bounds by whole pieces only, as before the disc areas).
+    :func:`piece_bounds` (``t2``, ``slack``: its thresholds and rounding; ``discs`` False: the fractions' bounds by
+    whole pieces only, as before the disc areas).
     Each midpoint's query starts from the face of its edge's first corner, each centroid's from its first corner's."""
     m = len(idx)
     mid = np.empty((3 * m, 3))
@@ -216,7 +219,7 @@ def split_pieces(tri, fv, pv, hv, area, lo, hi, inside_lo, inside_hi, idx, n, tr
         for e in range(3):
             cen[r, e] = (tri[n + r, 0, e] + tri[n + r, 1, e] + tri[n + r, 2, e]) / 3
     fc, pc, _ = query(cen, hv[n:end, 0].copy(), tree)
-    b = piece_bounds(tri[n:end], fv[n:end], pv[n:end], fc, pc, t2, discs)
+    b = piece_bounds(tri[n:end], fv[n:end], pv[n:end], fc, pc, t2, slack, discs)
     area[n:end], lo[n:end], hi[n:end], inside_lo[n:end], inside_hi[n:end] = b
 
 

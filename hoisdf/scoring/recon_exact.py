@@ -81,10 +81,11 @@ class Pieces:
         self.live = np.ones(self.n, bool)
 
     @classmethod
-    def make(cls, tri: np.ndarray, fv: np.ndarray, pv: np.ndarray, hv: np.ndarray, target: Target,
-             thresholds: np.ndarray, discs: bool = True) -> Pieces:
+    def make(cls, tri: np.ndarray, fv: np.ndarray, pv: np.ndarray, hv: np.ndarray, target: Target, limits: tuple,
+             discs: bool = True) -> Pieces:
+        """``limits``: the squared thresholds taken in and out and f's slack (:func:`rounding_limits`)."""
         fc, pc, _ = target.query(tri.mean(1), np.ascontiguousarray(hv[:, 0]))
-        return cls((tri, fv, pv, hv, *piece_bounds(tri, fv, pv, fc, pc, np.square(thresholds), discs)))
+        return cls((tri, fv, pv, hv, *piece_bounds(tri, fv, pv, fc, pc, *limits, discs)))
 
     def view(self, name: str) -> np.ndarray:
         return getattr(self, name)[:self.n]
@@ -112,14 +113,30 @@ class Pieces:
             setattr(self, name, getattr(self, name)[keep])
         self.n = len(keep)
 
-    def split(self, idx: np.ndarray, target: Target, thresholds: np.ndarray, discs: bool = True) -> None:
+    def split(self, idx: np.ndarray, target: Target, limits: tuple, discs: bool = True) -> None:
         """Append the four children (edge midpoints) of the pieces ``idx``
         (:func:`hoisdf.scoring.recon_bounds.split_pieces`: seven distance queries each)."""
         self.reserve(4 * len(idx))
         target.queries += 7 * len(idx)
-        split_pieces(*(getattr(self, name) for name in FIELDS), idx, self.n, target.tree, np.square(thresholds), discs)
+        split_pieces(*(getattr(self, name) for name in FIELDS), idx, self.n, target.tree, *limits, discs)
         self.live[self.n:self.n + 4 * len(idx)] = True
         self.n += 4 * len(idx)
+
+
+ROUNDING = 64  # roundings of a coordinate's size allowed in a computed distance (each is some tens of operations)
+
+
+def rounding_limits(a: np.ndarray, b: np.ndarray, thresholds: np.ndarray, tol_sq: float) -> tuple[tuple, bool]:
+    """((squared thresholds (2, k) taken in and out by a computed distance's rounding, f's rounding), whether
+    refining can still narrow the bounds) for surfaces with vertices ``a`` and ``b``: a distance computed from
+    coordinates of size S is off by up to ROUNDING eps S, its square by ROUNDING eps S^2 (S = 1 m: 1e-12 cm and
+    1e-10 cm^2). Coordinates no float64 can hold to the tolerances (a prediction scaled by 1e30) give bounds as
+    wide as that rounding, honestly, and no refinement."""
+    size = float(max(np.abs(a).max(), np.abs(b).max()))
+    err = ROUNDING * np.finfo(np.float64).eps * size
+    slack = err * size
+    t2 = np.stack([np.maximum(thresholds - err, 0.0) ** 2 - slack, (thresholds + err) ** 2 + slack])
+    return (t2, slack), bool(4 * slack < tol_sq and err < 1e-3 * thresholds.min())
 
 
 RETIRE = 0.25  # a piece whose bound is this small a share of its area's part of the tolerances is set aside
@@ -142,7 +159,8 @@ def one_way(vertices: np.ndarray, faces: np.ndarray, target: Target, thresholds,
     thresholds = np.atleast_1d(np.asarray(thresholds, dtype=np.float64))
     start = target.queries
     fvert, pvert, hvert = target.query(vertices)
-    pieces = Pieces.make(vertices[faces], fvert[faces], pvert[faces], hvert[faces], target, thresholds, discs)
+    limits, refinable = rounding_limits(vertices, target.vertices, thresholds, tol_sq)
+    pieces = Pieces.make(vertices[faces], fvert[faces], pvert[faces], hvert[faces], target, limits, discs)
     total = float(pieces.area.sum())
     if not total > 0:
         raise ValueError("the surface has no area")
@@ -153,13 +171,13 @@ def one_way(vertices: np.ndarray, faces: np.ndarray, target: Target, thresholds,
         over, chosen, settled = plan_round(*(getattr(pieces, name) for name in BOUNDS), pieces.live, pieces.n, total,
                                            tol_sq, tol_frac, retire, (done_hi - done_lo) / total,
                                            (done_maybe - done_in) / total, budget)
-        if not over or target.queries - start >= max_queries:
+        if not over or not refinable or target.queries - start >= max_queries:
             break
         done_lo += pieces.lo[settled].sum()
         done_hi += pieces.hi[settled].sum()
         done_in += pieces.inside_lo[settled].sum(0)
         done_maybe += pieces.inside_hi[settled].sum(0)
-        pieces.split(chosen, target, thresholds, discs)
+        pieces.split(chosen, target, limits, discs)
         pieces.retire(settled)
         pieces.retire(chosen)
         if 2 * int(pieces.live[:pieces.n].sum()) < pieces.n:
