@@ -18,10 +18,11 @@ r_i^2, R = max r_i). Two facts about f bound each one's share (proofs in the doc
   ``min_x f >= min_i (f(v_i) - r_i^2)``; and d(x) <= |x - p| for any point p of B, whose maximum over T is at a
   vertex.
 
-Sub-triangles are split in four (edge midpoints) where their share of the bounds' width is largest, until both
-widths are under the tolerances or the query budget is spent (the bound is then wider, still rigorous, and says
-so). Distances are exact point-to-triangle distances (:class:`hoidata.geometry.bvh.MeshBVH`) in float64; the
-bounds hold up to float64 rounding (relative 1e-15).
+A piece straddling a threshold has its area where d < t bounded by discs in its plane
+(:mod:`hoisdf.scoring.recon_bounds`). Sub-triangles are split in four (edge midpoints) where their share of the
+bounds' width is largest, until both widths are under the tolerances or the query budget is spent (the bound is
+then wider, still rigorous, and says so). Distances are exact point-to-triangle distances
+(:class:`hoidata.geometry.bvh.MeshBVH`) in float64, their rounding allowed for (:func:`rounding_limits`).
 """
 
 from __future__ import annotations
