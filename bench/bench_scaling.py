@@ -122,7 +122,7 @@ def builds(counts, work: Path) -> tuple[list[int], list[float], list[float], Pat
     return records, seconds, sizes, store
 
 
-def loader_rates(store: Path, workers, batches: int = 6) -> list[float]:
+def loader_rates(store: Path, workers, batches: int = 20) -> list[float]:
     """Samples/s of the training loader over ``batches`` batches of 8 after an untimed first (start-up excluded)."""
     from hoisdf.data import StoreSpec, build_dataset, make_loader
 
