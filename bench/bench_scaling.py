@@ -19,8 +19,8 @@ other jobs on a shared machine add; the loader's samples/s are wall-clock, its w
 Each series' slope is the least-squares fit of log(cost) on log(size); a cost series whose slope is above
 ``LINEAR`` (a rate's below 1 / LINEAR) is named as worse than linear (bench/README.md explains each).
 
-Run: ``python -m bench.bench_scaling [--out FOLDER]`` (writes ``scaling.png`` and ``scaling.md`` there; about 10 minutes
-on 2 cores at the defaults).
+Run: ``python -m bench.bench_scaling [--out FOLDER]`` (writes ``scaling.png`` and ``scaling.md`` there; 30 minutes on
+2 busy cores at the defaults, most of it writing the 4,800-frame toy tree).
 """
 
 from __future__ import annotations
