@@ -1,14 +1,16 @@
 """Seconds per frame of ``hoisdf score recon``'s two protocols, side by side in one run: gSDF's sampled protocol
 (:func:`hoisdf.scoring.recon_gsdf.point_scores` on 30,000 surface samples per mesh), and the exact protocol
-(:func:`hoisdf.scoring.recon_exact.pair_scores`, proven bounds) at ``--tolerance`` with pieces set aside when
-settled (``retire`` 0.25, the default) and without (``retire`` 0).
+(:func:`hoisdf.scoring.recon_exact.one_way` both ways, proven bounds) at ``--tolerance``, with its fraction bounds
+by disc areas (the default) and by whole pieces (``discs=False``: a piece straddling a threshold wholly
+undecided, the bounds before issue 46).
 
 Frames: the toy MANO hand (``hoidata make-toy``'s procedural hand, closed with its wrist cap) at a random global
 rotation and 0.6-1.4 times the toy grasp mean, and a toy object (each of the five in turn); each prediction is its
 ground truth scaled by 1 + U(-3 %, 3 %) about its centroid, shifted 1-4 mm (hand) or 2-8 mm (object) and every
 vertex moved by N(0, 0.5 mm) (the noise of a marching-cubes surface, roughly). Each row: CPU seconds of the frame
 (both parts) per method, the exact protocol's distance queries and its widest half-width reached on a Chamfer
-(cm^2) and an F-score. The last line extrapolates to an HO-3D evaluation split (11,524 frames) on 2 free cores.
+(cm^2) and an F-score. The last lines give exact / gSDF's time and extrapolate to an HO-3D evaluation split
+(11,524 frames) on 2 free cores.
 
 Run: ``python -m bench.bench_recon [--frames 6] [--tolerance 0.01] [--max-queries 4000000]``.
 """
@@ -65,13 +67,13 @@ def sampled(frame: dict, rng: np.random.Generator) -> None:
         recon_gsdf.point_scores(points[0] * recon_gsdf.CM, points[1] * recon_gsdf.CM, part)
 
 
-def exact(frame: dict, tol: float, max_queries: int, retire: float) -> tuple[int, float, float]:
+def exact(frame: dict, tol: float, max_queries: int, discs: bool = True) -> tuple[int, float, float]:
     """Queries, widest Chamfer half-width, widest F half-width of one frame (both parts)."""
     queries, w_chamfer, w_f = 0, 0.0, 0.0
     for part, (pv, gv, f) in frame.items():
         thresholds = np.array([t for _, t in recon_gsdf.THRESHOLDS[part]])
         one = [recon_exact.one_way(a * recon_gsdf.CM, f, recon_exact.Target(b * recon_gsdf.CM, f), thresholds, tol,
-                                   tol / 2, max_queries, retire) for a, b in ((pv, gv), (gv, pv))]
+                                   tol / 2, max_queries, discs=discs) for a, b in ((pv, gv), (gv, pv))]
         queries += sum(o["queries"] for o in one)
         w_chamfer = max(w_chamfer, sum(o["sq"][1] - o["sq"][0] for o in one) / 2)
         for k in range(len(thresholds)):
@@ -94,20 +96,23 @@ def main() -> None:
     p.add_argument("--max-queries", type=int, default=recon_exact.MAX_QUERIES)
     args = p.parse_args()
     frames = toy_frames(args.frames)
-    exact(frames[0], 1.0, 10_000, 0.25)  # compile the kernel outside the timings
+    exact(frames[0], 1.0, 10_000)  # compile the kernels outside the timings
+    exact(frames[0], 1.0, 10_000, False)
     print(f"{len(frames)} toy frames, {os.cpu_count()} CPUs, load before {os.getloadavg()[0]:.2f}; CPU seconds per "
           f"frame (hand + object); exact at tolerance {args.tolerance:g}")
     print(f"{'frame':>5s} | {'gsdf s':>7s} | {'exact s':>7s} {'queries':>9s} {'+-CD':>8s} {'+-F':>8s} | "
-          f"{'no retire s':>11s} {'queries':>9s}")
+          f"{'whole pieces s':>14s} {'queries':>9s} {'+-CD':>8s} {'+-F':>8s}")
     rng, sums = np.random.default_rng(0), np.zeros(3)
     for i, frame in enumerate(frames):
         _, t_gsdf = cpu_timed(lambda: sampled(frame, rng))
-        (q, wc, wf), t_new = cpu_timed(lambda: exact(frame, args.tolerance, args.max_queries, 0.25))
-        (q0, _, _), t_old = cpu_timed(lambda: exact(frame, args.tolerance, args.max_queries, 0.0))
+        (q, wc, wf), t_new = cpu_timed(lambda: exact(frame, args.tolerance, args.max_queries))
+        (q0, wc0, wf0), t_old = cpu_timed(lambda: exact(frame, args.tolerance, args.max_queries, False))
         sums += (t_gsdf, t_new, t_old)
-        print(f"{i:5d} | {t_gsdf:7.2f} | {t_new:7.2f} {q:9d} {wc:8.1e} {wf:8.1e} | {t_old:11.2f} {q0:9d}")
+        print(f"{i:5d} | {t_gsdf:7.2f} | {t_new:7.2f} {q:9d} {wc:8.1e} {wf:8.1e} | {t_old:14.2f} {q0:9d} "
+              f"{wc0:8.1e} {wf0:8.1e}")
     mean = sums / len(frames)
-    print(f"mean CPU seconds per frame: gsdf {mean[0]:.2f}, exact {mean[1]:.2f}, exact without retiring "
+    print(f"exact / gsdf: {mean[1] / mean[0]:.2f} (whole pieces: {mean[2] / mean[0]:.2f})")
+    print(f"mean CPU seconds per frame: gsdf {mean[0]:.2f}, exact {mean[1]:.2f}, exact by whole pieces "
           f"{mean[2]:.2f} -> {HO3D_EVALUATION_FRAMES} frames on 2 free cores: gsdf "
           f"{mean[0] * HO3D_EVALUATION_FRAMES / 2 / 3600:.1f} h, exact {mean[1] * HO3D_EVALUATION_FRAMES / 2 / 3600:.1f} h"
           f"; load after {os.getloadavg()[0]:.2f}")

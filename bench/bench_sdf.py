@@ -32,20 +32,11 @@ import tempfile
 import time
 
 import numpy as np
-import torch
 import trimesh
-from scipy.spatial.transform import Rotation
 
+from bench.common import sdf_toy_frames as toy_frames
 from hoidata.geometry.sampling import compute_sdf_samples, sample_query_points
 from hoidata.geometry.sdf import brute_force_signed_distance
-from hoidata.hand import load_mano
-from hoidata.objects import load_object_mesh, repair_mesh
-from hoidata.toy.hand import write_toy_mano
-from hoidata.toy.objects import TOY_OBJECTS, write_toy_objects
-
-CURLS = (0.0, 0.5, 0.8, 1.0, 1.2)
-CAMERA_T = np.array([0.03, -0.02, 0.55])
-
 
 LEGEND = """bvh: compute_sdf_samples (backend 'bvh', hand sign by winding number); igl: the same call with
 backend='igl' (the previous path, the baseline); trimesh: trimesh.proximity.signed_distance, hand and object;
@@ -54,29 +45,6 @@ x: trimesh / bvh, x-igl: trimesh / igl, bvh/igl: igl / bvh, o3d/bvh: open3d / bv
 per-frame medians). |bvh-igl|, |bvh-ref|: max distance difference in metres to the baseline (all points) and
 to the brute-force reference (every 4th point), both meshes. sign errors: points whose sign differs from the
 brute-force reference's (every point), per method in the order bvh igl trimesh open3d, as hand+object."""
-
-
-def toy_frames(workdir: str, n_frames: int) -> list[dict]:
-    """Frame k: pose CURLS[k % 5] with a random rotation, object k % 5; camera frame, metres."""
-    write_toy_mano(workdir)
-    mano = load_mano(workdir, dtype=torch.float64)
-    objects = [repair_mesh(load_object_mesh(p)) for p in write_toy_objects(f"{workdir}/models")]
-    frames = []
-    for k in range(n_frames):
-        pose = torch.zeros(1, 48, dtype=torch.float64)
-        pose[0, :3] = torch.as_tensor(Rotation.random(random_state=k).as_rotvec())
-        pose[0, 3:] = mano.hands_mean * CURLS[k % len(CURLS)]
-        out = mano(pose, transl=torch.as_tensor(CAMERA_T)[None])
-        hand = mano.close(out.vertices)[0].numpy()
-        mesh, report = objects[k % len(objects)]
-        rot = Rotation.random(random_state=100 + k).as_matrix()
-        offset = Rotation.random(random_state=200 + k).apply([0.05, 0.0, 0.0])
-        obj = np.asarray(mesh.vertices) @ rot.T + hand.mean(0) + offset
-        frames.append(dict(name=f"curl {CURLS[k % len(CURLS)]:.1f} + {list(TOY_OBJECTS)[k % len(objects)]}",
-                           hand=hand, hand_faces=np.asarray(mano.closed_faces), parts=mano.closed_face_parts,
-                           root=out.joints[0, 0].numpy(), obj=obj, obj_faces=np.asarray(mesh.faces),
-                           watertight=report.watertight))
-    return frames
 
 
 def sdf_samples(frame: dict, points: np.ndarray, backend: str) -> tuple[np.ndarray, np.ndarray]:

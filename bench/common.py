@@ -1,4 +1,4 @@
-"""What the benchmark scripts share: toy inputs (DexYCB trees, stores, the MANO folder) and device helpers.
+"""What the benchmark scripts share: toy inputs (DexYCB trees, stores, the MANO folder, SDF frames) and device helpers.
 
 The scripts run as modules of the ``bench`` package from the repository root (``python -m bench.bench_build``),
 so they import this file and their helper modules (``bench.compile_bench``, ``bench.per_file_loaders``) by
@@ -11,11 +11,19 @@ import math
 import os
 from pathlib import Path
 
+import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 
+from hoidata.hand import load_mano
+from hoidata.objects import load_object_mesh, repair_mesh
 from hoidata.toy.dexycb import ToyDexYCBSize, write_toy_dexycb
+from hoidata.toy.hand import write_toy_mano
 from hoidata.toy.make import write_assets
+from hoidata.toy.objects import TOY_OBJECTS, write_toy_objects
 
+CURLS = (0.0, 0.5, 0.8, 1.0, 1.2)
+CAMERA_T = np.array([0.03, -0.02, 0.55])
 NOISE = 0.03  # half-width of the "gt" query-point jitter (scaled units), the training schedule's first value
 
 
@@ -84,3 +92,27 @@ def test_inputs(batch: dict, config, device: torch.device) -> dict:
 
     keep = {k: v for k, v in batch.items() if not k.endswith(("_points", "_sdf", "_rows"))}
     return augment_batch(to_device(keep, device), config.augment, None, train=False)
+
+
+def sdf_toy_frames(workdir: str, n_frames: int) -> list[dict]:
+    """bench_sdf's frames (and bench_scaling's), written under ``workdir``. Frame k: the closed toy MANO hand at
+    curl CURLS[k % 5] with a random rotation, toy object k % 5 beside it; camera frame, metres."""
+    write_toy_mano(workdir)
+    mano = load_mano(workdir, dtype=torch.float64)
+    objects = [repair_mesh(load_object_mesh(p)) for p in write_toy_objects(f"{workdir}/models")]
+    frames = []
+    for k in range(n_frames):
+        pose = torch.zeros(1, 48, dtype=torch.float64)
+        pose[0, :3] = torch.as_tensor(Rotation.random(random_state=k).as_rotvec())
+        pose[0, 3:] = mano.hands_mean * CURLS[k % len(CURLS)]
+        out = mano(pose, transl=torch.as_tensor(CAMERA_T)[None])
+        hand = mano.close(out.vertices)[0].numpy()
+        mesh, report = objects[k % len(objects)]
+        rot = Rotation.random(random_state=100 + k).as_matrix()
+        offset = Rotation.random(random_state=200 + k).apply([0.05, 0.0, 0.0])
+        obj = np.asarray(mesh.vertices) @ rot.T + hand.mean(0) + offset
+        frames.append(dict(name=f"curl {CURLS[k % len(CURLS)]:.1f} + {list(TOY_OBJECTS)[k % len(objects)]}",
+                           hand=hand, hand_faces=np.asarray(mano.closed_faces), parts=mano.closed_face_parts,
+                           root=out.joints[0, 0].numpy(), obj=obj, obj_faces=np.asarray(mesh.faces),
+                           watertight=report.watertight))
+    return frames

@@ -119,6 +119,10 @@ def test_bad_files_get_one_line(split, tmp_path, capsys):
          ["few.json", "verts_list", "778"]),
         (["--pred", tmp_path / "few.json"], ["few.json", "--order"]),
     ]
+    far = verts.copy()
+    far[1] *= 1e30  # coordinates no float64 bound holds (issue 44, part 5): refused before any bound is printed
+    cases.append((["--pred", _write_pred(tmp_path / "far.json", xyz, far), "--order", root / "evaluation.txt"],
+                  ["far.json", "verts_list", "entry 1", "beyond the 100 m"]))
     np.savez(tmp_path / "nokeys.npz", verts=verts)
     cases.append((["--pred", tmp_path / "nokeys.npz"], ["nokeys.npz", "'keys'", "missing"]))
     np.savez(tmp_path / "unknown.npz", verts=verts[:1], keys=np.array(["ho3d-evaluation-XX_0000"]))

@@ -210,6 +210,30 @@ def test_exact_protocol_identical_meshes_and_failures(tmp_path):
     assert centroid_penalty(v, f) == pytest.approx(2 * 9.0, rel=2e-3)
 
 
+def test_coordinates_no_float64_bound_holds(tmp_path, capsys):
+    """Issue 44, part 5: a prediction scaled by 1e30 is a failed prediction, named with its reason, never a Chamfer
+    of 1e61 "+- 5e-4"; and pair_scores on such coordinates gives a bound as wide as float64's rounding there."""
+    from hoisdf.scoring.recon_exact import pair_scores
+
+    pred, gt = _small_case(tmp_path)
+    m = trimesh.load(str(pred / "f0_hand.ply"), process=False)
+    trimesh.Trimesh(np.asarray(m.vertices) * 1e30, m.faces, process=False).export(str(pred / "f0_hand.ply"))
+    out = tmp_path / "scores.json"
+    fast = ["--chamfer-tolerance", "0.01", "--f-tolerance", "0.01"]
+    assert main(["recon", "--pred", str(pred), "--gt", str(gt), "--protocol", "exact", "--out", str(out), *fast]) == 0
+    text = capsys.readouterr().out
+    assert "hand: 1 of 1 predictions failed (first: f0: a vertex lies 3e+28 m from the camera, beyond the 100 m" in text
+    hand = json.loads(out.read_text())["parts"]["hand"]
+    assert hand["failures"] == 1 and 15 < hand["chamfer"] < 18  # the centroid penalty of a 3 cm sphere: 2 r^2 below
+    v, f = _mesh_cm(trimesh.creation.icosphere(1, 3.0))
+    result = pair_scores((v * 1e30, f), (v * 1e30, f), [0.1], ["f1"], 1e-3, 1e-3)
+    value, bound = result["chamfer"]
+    assert abs(value) <= bound and bound > 1e40 and not result["converged"]  # 0 inside, as wide as the rounding
+    assert result["f1"][1] >= 0.5 - 1e-12  # F undetermined: [0, 1]
+    result = pair_scores((v, f), (v, f), [0.1], ["f1"], 1e-3, 1e-3)
+    assert result["chamfer"][1] < 1e-3 and result["converged"]  # the rounding allowance at 3 cm: about 1e-12 cm^2
+
+
 def _small_case(root):
     """One frame: ground truth as named files, a prediction equal to it."""
     from hoidata.export.files import write_obj

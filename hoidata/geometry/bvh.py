@@ -45,6 +45,8 @@ RAYS = np.array([[s * (1.0 if d == k else _TILT[(d - k) % 3 - 1]) for d in range
                  for k in range(3) for s in (1.0, -1.0)])
 RAYS = RAYS / np.linalg.norm(RAYS, axis=1, keepdims=True)
 
+NO_HINT = np.zeros(0, np.int64)  # MeshBVH.closest without hints
+
 # Feature codes of MeshBVH.closest: the part of face (a, b, c) the closest point lies on.
 CORNER_A, CORNER_B, EDGE_AB, CORNER_C, EDGE_AC, EDGE_BC, INTERIOR = range(7)
 
@@ -73,18 +75,20 @@ class MeshBVH:
         _refit(vertices, faces, pad, self.order, self.left, self.start, self.count, self.boxes, self.tri)
         self._wide = None  # the closest-face query's wide view (bvh_wide.gather), made on its first call
 
-    def closest(self, points: np.ndarray, visit: np.ndarray | None = None
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def closest(self, points: np.ndarray, visit: np.ndarray | None = None, hint: np.ndarray | None = None,
+                leaf_faces: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """For validated points (N, 3) float64: distance (N,) float64, face (N,) int64, barycentric
         weights (N, 2) of the closest point q = a + v (b - a) + w (c - a), and its feature (N,) int8.
         ``visit``: the order to query them in (:func:`morton_order` of the points when None; a caller querying the
-        same points on several meshes passes it once); any permutation gives the same results."""
+        same points on several meshes passes it once); ``hint`` (N,): a face near each point, in leaf order (as
+        ``leaf_faces=True`` returns them: ``self.order`` maps them to face indices), -1 for none. Neither changes the
+        results, only the work."""
         n = len(points)
         dist, face, weights, feature = np.empty(n), np.empty(n, np.int64), np.empty((n, 2)), np.empty(n, np.int8)
         ref, lo, hi, blocks, first, count = self.wide()
-        closest_wide(points, morton_order(points) if visit is None else visit, self.order, lo, hi, ref, blocks, first,
-                     count, self.tri, dist, face, weights, feature)
-        return dist, self.order[face], weights, feature
+        closest_wide(points, morton_order(points) if visit is None else visit, NO_HINT if hint is None else hint,
+                     self.order, lo, hi, ref, blocks, first, count, self.tri, dist, face, weights, feature)
+        return dist, face if leaf_faces else self.order[face], weights, feature
 
     def crossings(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Signed crossing count (N,) int64 along a ray from each point (the one of :data:`RAYS` that

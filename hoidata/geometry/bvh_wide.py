@@ -201,15 +201,18 @@ def _box_distances(px, py, pz, lo, hi, node, out):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def closest_wide(points, visit, order, lo, hi, ref, blocks, first, count, tri, dist, face, weights, feature):
+def closest_wide(points, visit, hint, order, lo, hi, ref, blocks, first, count, tri, dist, face, weights, feature):
     """For each point (in the order ``visit``): its squared-distance minimum over all faces, the face (leaf
     order; lowest ``order`` index on ties), the weights and feature from ``point_triangle``. The first bound is
-    the previous point's face."""
+    face ``hint[i]`` (leaf order) where ``hint`` has one per point and it is not negative, else the previous
+    point's face."""
     stack, bound = np.empty(STACK, np.int64), np.empty(STACK)
     box_d, face_d = np.empty(lo.shape[2]), np.empty(blocks.shape[2])
-    last = 0
+    last, hinted = 0, len(hint) == len(points)
     for i in visit:
         px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        if hinted and hint[i] >= 0:
+            last = hint[i]
         best = point_triangle(px, py, pz, tri, last)[0]
         best_k = last
         stack[0], bound[0], top = 0, 0.0, 1

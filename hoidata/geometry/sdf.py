@@ -140,8 +140,8 @@ def winding_inside(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, 
       the signed crossing count of a ray, which is the winding number (an integer), and libigl's
       exact winding number where the ray meets an edge or a corner
       (:func:`hoidata.geometry.signs.winding_numbers`); given the points' exact unsigned distances ``dist``
-      and an order ``visit`` (as :meth:`MeshBVH.closest` took them), a point within the surface-free ball
-      of its predecessor in that order, or holding it in its own, shares its winding number instead;
+      and an order ``visit`` (as :meth:`MeshBVH.closest` took them), a point joined to a predecessor in that order
+      by a segment inside their two surface-free balls shares its winding number instead;
     - otherwise they get libigl's fast winding number (Barill et al. 2018: exact for nearby
       triangles, a far-field expansion for distant clusters; measured error <= 5e-3 on the toy
       hand and objects, against a margin of AMBIGUOUS = 0.25); wherever that lands within

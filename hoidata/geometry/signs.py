@@ -143,8 +143,8 @@ def winding_numbers(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
 
     With the points' unsigned distances to the mesh ``dist`` (N,) and an order ``visit`` (N,) of them, only some
     points cast a ray: the winding number of a closed mesh is constant off its surface, so a point shares its
-    predecessor's (in ``visit``) when the segment between them lies in a ball free of the surface, one of the two
-    balls of radius ``dist`` around them (:func:`_shared_winding`). The same numbers, fewer rays."""
+    predecessor's (in ``visit``) when the segment between them lies in the union of the two balls of radius ``dist``
+    around them, which holds no point of the surface (:func:`_shared_winding`). The same numbers, fewer rays."""
     if dist is None or visit is None:
         source = np.arange(len(points))
     else:
@@ -159,24 +159,28 @@ def winding_numbers(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
     return winding[source]
 
 
-SHARE_WINDOW = 16  # predecessors tried
-SHARE_MARGIN = 1e-9  # relative: the segment must be this much shorter than the ball's radius (rounding of both)
+SHARE_WINDOW = 32  # predecessors tried
+SHARE_MARGIN = 1e-9  # relative: the segment must be this much shorter than the two radii (rounding of all three)
+SHARE_ROUNDING = 1e-12  # and shorter by this share of the coordinates' size (a distance's absolute rounding)
 
 
 @numba.njit(cache=True)
 def _shared_winding(points, dist, visit):
     """(N,) int64: for each point, the point whose winding number it has, itself where it must cast a ray. Walking
-    ``visit``, a point p whose predecessor q satisfies |p - q| (1 + SHARE_MARGIN) < max(dist[p], dist[q]) takes
-    q's source: the segment pq then lies inside the open ball around p or q whose radius is that point's distance
-    to the surface, so it crosses no face and the winding number is the same at both ends."""
+    ``visit``, a point p whose predecessor q satisfies |p - q| (1 + SHARE_MARGIN) + rounding < dist[p] + dist[q]
+    takes q's source: the segment pq then lies in the union of the two open balls around p and q whose radii are
+    their distances to the surface (a point of it within dist[p] of p is in p's ball, any other within dist[q] of
+    q), a connected set that holds no point of the surface, so the winding number is the same at both ends."""
     source = np.arange(len(points))
     for t in range(1, len(visit)):
         i = visit[t]
         for back in range(1, min(t, SHARE_WINDOW) + 1):
             j = visit[t - back]
             d0, d1, d2 = points[i, 0] - points[j, 0], points[i, 1] - points[j, 1], points[i, 2] - points[j, 2]
-            gap = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2) * (1.0 + SHARE_MARGIN)
-            if gap < max(dist[i], dist[j]):
+            size = max(abs(points[i, 0]), abs(points[i, 1]), abs(points[i, 2]), abs(points[j, 0]), abs(points[j, 1]),
+                       abs(points[j, 2]))
+            gap = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2) * (1.0 + SHARE_MARGIN) + SHARE_ROUNDING * size
+            if gap < dist[i] + dist[j]:
                 source[i] = source[j]
                 break
     return source

@@ -18,18 +18,19 @@ r_i^2, R = max r_i). Two facts about f bound each one's share (proofs in the doc
   ``min_x f >= min_i (f(v_i) - r_i^2)``; and d(x) <= |x - p| for any point p of B, whose maximum over T is at a
   vertex.
 
-Sub-triangles are split in four (edge midpoints) where their share of the bounds' width is largest, until both
-widths are under the tolerances or the query budget is spent (the bound is then wider, still rigorous, and says
-so). Distances are exact point-to-triangle distances (:class:`hoidata.geometry.bvh.MeshBVH`) in float64; the
-bounds hold up to float64 rounding (relative 1e-15).
+A piece straddling a threshold has its area where d < t bounded by discs in its plane
+(:mod:`hoisdf.scoring.recon_bounds`). Sub-triangles are split in four (edge midpoints) where their share of the
+bounds' width is largest, until both widths are under the tolerances or the query budget is spent (the bound is
+then wider, still rigorous, and says so). Distances are exact point-to-triangle distances
+(:class:`hoidata.geometry.bvh.MeshBVH`) in float64, their rounding allowed for (:func:`rounding_limits`).
 """
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
-from hoidata.geometry.bvh import MeshBVH
+from hoidata.geometry.bvh import MeshBVH, morton_order
+from hoisdf.scoring.recon_bounds import piece_bounds, plan_round, query, split_pieces
 
 MAX_QUERIES = 4_000_000  # distance queries per direction of one part of one frame (about 1 GB of sub-triangles)
 
@@ -40,158 +41,151 @@ class Target:
     def __init__(self, vertices: np.ndarray, faces: np.ndarray):
         self.vertices, self.faces = vertices, faces
         self.bvh = MeshBVH(vertices, faces, pose_shape=True)  # its tree a function of this mesh alone
+        ref, lo, hi, blocks, first, count = self.bvh.wide()
+        self.tree = (self.bvh.order, lo, hi, ref, blocks, first, count, self.bvh.tri)
         self.queries = 0
 
-    def query(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Squared distances (N,) and closest points (N, 3) of points (N, 3)."""
+    def query(self, points: np.ndarray, hint: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Squared distances (N,), closest points (N, 3) and faces (N,, the tree's leaf order) of points (N, 3);
+        ``hint``: a face near each point (leaf order), else the points are visited along a Morton curve."""
         self.queries += len(points)
-        dist, face, w, _ = self.bvh.closest(np.ascontiguousarray(points, dtype=np.float64))
-        tri = self.vertices[self.faces[face]]
-        closest = tri[:, 0] + w[:, :1] * (tri[:, 1] - tri[:, 0]) + w[:, 1:] * (tri[:, 2] - tri[:, 0])
-        return dist * dist, closest
+        points = np.ascontiguousarray(points, dtype=np.float64)
+        if hint is not None:
+            return query(points, hint, self.tree)
+        visit = morton_order(points)
+        d2, closest, face = query(points[visit], np.full(len(points), -1), self.tree)
+        out = np.empty_like(d2), np.empty_like(closest), np.empty_like(face)
+        for got, dst in zip((d2, closest, face), out):
+            dst[visit] = got
+        return out
 
 
 def _areas(tri: np.ndarray) -> np.ndarray:
     return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
 
 
-@numba.njit(cache=True)
-def piece_bounds(tri, fv, pv, fc, pc, t2):
-    """Per sub-triangle (vertices ``tri``, vertex squared distances ``fv`` and closest points ``pv``, centroid
-    squared distance ``fc`` and closest point ``pc``; squared thresholds ``t2``): area, lower and upper bound of the
-    integral of f, and per threshold whether d < t surely / maybe holds on the whole piece (module docstring)."""
-    n, k = tri.shape[0], t2.shape[0]
-    area, lo, hi = np.empty(n), np.empty(n), np.empty(n)
-    surely, maybe = np.empty((n, k), np.bool_), np.empty((n, k), np.bool_)
-    for i in range(n):
-        a = tri[i, 1] - tri[i, 0]
-        b = tri[i, 2] - tri[i, 0]
-        cx = a[1] * b[2] - a[2] * b[1]
-        cy = a[2] * b[0] - a[0] * b[2]
-        cz = a[0] * b[1] - a[1] * b[0]
-        area[i] = 0.5 * np.sqrt(cx * cx + cy * cy + cz * cz)
-        c = (tri[i, 0] + tri[i, 1] + tri[i, 2]) / 3.0
-        m, r2max, fmean, inf2 = 0.0, 0.0, 0.0, np.inf
-        for j in range(3):
-            r2 = 0.0
-            for e in range(3):
-                r2 += (tri[i, j, e] - c[e]) ** 2
-            m += r2 / 3.0
-            r2max = max(r2max, r2)
-            fmean += fv[i, j] / 3.0
-            inf2 = min(inf2, fv[i, j] - r2)
-        dc = np.sqrt(fc[i])
-        near = max(dc - np.sqrt(r2max), 0.0) ** 2
-        low = area[i] * max(fmean - 0.75 * m, near)
-        high = area[i] * min(fc[i] + 0.25 * m, (dc + np.sqrt(r2max)) ** 2)
-        lo[i], hi[i] = min(low, high), high  # equal up to rounding where the piece is a point
-        inf2 = max(inf2, near)
-        # sup d over the piece: <= max over its vertices of the distance to any closest point already known
-        sup2 = np.inf
-        for q in range(4):
-            p = pc[i] if q == 0 else pv[i, q - 1]
-            worst = 0.0
-            for j in range(3):
-                d2 = 0.0
-                for e in range(3):
-                    d2 += (tri[i, j, e] - p[e]) ** 2
-                worst = max(worst, d2)
-            sup2 = min(sup2, worst)
-        for t in range(k):
-            surely[i, t] = sup2 < t2[t]
-            maybe[i, t] = surely[i, t] or inf2 < t2[t]
-    return area, lo, hi, surely, maybe
-
-
-FIELDS = ("tri", "fv", "pv", "area", "lo", "hi", "surely", "maybe")
+FIELDS = ("tri", "fv", "pv", "hv", "area", "lo", "hi", "inside_lo", "inside_hi")
+BOUNDS = ("area", "lo", "hi", "inside_lo", "inside_hi")  # zero for a piece no longer counted here
 
 
 class Pieces:
-    """Sub-triangles (``tri`` (n, 3, 3)) with their vertices' squared distances ``fv`` and closest points ``pv``, and
-    their bounds, computed once when they are made: ``lo`` / ``hi`` of the integral of f, and per threshold whether
-    the piece lies surely within it (``surely``) or maybe (``maybe``)."""
+    """Sub-triangles (``tri`` (n, 3, 3)) with their vertices' squared distances ``fv``, closest points ``pv`` and
+    closest faces ``hv`` (the target tree's leaf order), and their bounds, computed once when they are made
+    (:func:`hoisdf.scoring.recon_bounds.piece_bounds`): ``lo`` / ``hi`` of the integral of f, and per threshold
+    ``inside_lo`` / ``inside_hi`` of its area where d < t. The first ``n`` rows of arrays with room to grow; a piece
+    split or set aside stays in its row with its bounds zeroed (``live`` False) until :meth:`compact`."""
 
-    def __init__(self, **arrays):
-        for name in FIELDS:
-            setattr(self, name, arrays[name])
+    def __init__(self, arrays: tuple):
+        self.n = len(arrays[0])
+        for name, a in zip(FIELDS, arrays):
+            setattr(self, name, a)
+        self.live = np.ones(self.n, bool)
 
     @classmethod
-    def make(cls, tri: np.ndarray, fv: np.ndarray, pv: np.ndarray, target: Target, thresholds: np.ndarray) -> Pieces:
-        fc, pc = target.query(tri.mean(1))
-        area, lo, hi, surely, maybe = piece_bounds(tri, fv, pv, fc, pc, np.square(thresholds))
-        return cls(tri=tri, fv=fv, pv=pv, area=area, lo=lo, hi=hi, surely=surely, maybe=maybe)
+    def make(cls, tri: np.ndarray, fv: np.ndarray, pv: np.ndarray, hv: np.ndarray, target: Target, limits: tuple,
+             discs: bool = True) -> Pieces:
+        """``limits``: the squared thresholds taken in and out and f's slack (:func:`rounding_limits`)."""
+        fc, pc, _ = target.query(tri.mean(1), np.ascontiguousarray(hv[:, 0]))
+        return cls((tri, fv, pv, hv, *piece_bounds(tri, fv, pv, fc, pc, *limits, discs)))
 
-    def take(self, idx: np.ndarray) -> Pieces:
-        return Pieces(**{name: getattr(self, name)[idx] for name in FIELDS})
+    def view(self, name: str) -> np.ndarray:
+        return getattr(self, name)[:self.n]
 
-    def join(self, other: Pieces) -> Pieces:
-        return Pieces(**{name: np.concatenate([getattr(self, name), getattr(other, name)]) for name in FIELDS})
+    def retire(self, idx: np.ndarray) -> None:
+        """Stop counting the pieces ``idx`` here (their bounds were summed elsewhere, or their children hold them)."""
+        for name in BOUNDS:
+            getattr(self, name)[idx] = 0
+        self.live[idx] = False
 
-    def split(self, idx: np.ndarray, target: Target, thresholds: np.ndarray) -> Pieces:
-        """The four children (edge midpoints) of the pieces ``idx``."""
-        tri, fv, pv = self.tri[idx], self.fv[idx], self.pv[idx]
-        mid = np.stack([(tri[:, 0] + tri[:, 1]) / 2, (tri[:, 1] + tri[:, 2]) / 2, (tri[:, 2] + tri[:, 0]) / 2], 1)
-        fm, pm = target.query(mid.reshape(-1, 3))
-        fm, pm = fm.reshape(-1, 3), pm.reshape(-1, 3, 3)
-        # children: (v0, m01, m20), (m01, v1, m12), (m20, m12, v2), (m01, m12, m20)
-        pts = np.concatenate([tri, mid], 1)
-        fs, ps = np.concatenate([fv, fm], 1), np.concatenate([pv, pm], 1)
-        kids = np.array([[0, 3, 5], [3, 1, 4], [5, 4, 2], [3, 4, 5]])
-        return Pieces.make(pts[:, kids].reshape(-1, 3, 3), fs[:, kids].reshape(-1, 3), ps[:, kids].reshape(-1, 3, 3),
-                           target, thresholds)
+    def reserve(self, m: int) -> None:
+        """Room for m more rows (the arrays at least doubled when they grow)."""
+        if self.n + m > len(self.tri):
+            room = max(self.n + m, 2 * len(self.tri))
+            for name in (*FIELDS, "live"):
+                old = getattr(self, name)
+                new = np.zeros((room, *old.shape[1:]), old.dtype)
+                new[:self.n] = old[:self.n]
+                setattr(self, name, new)
+
+    def compact(self) -> None:
+        """Drop the rows no longer counted."""
+        keep = np.flatnonzero(self.live[:self.n])
+        for name in (*FIELDS, "live"):
+            setattr(self, name, getattr(self, name)[keep])
+        self.n = len(keep)
+
+    def split(self, idx: np.ndarray, target: Target, limits: tuple, discs: bool = True) -> None:
+        """Append the four children (edge midpoints) of the pieces ``idx``
+        (:func:`hoisdf.scoring.recon_bounds.split_pieces`: seven distance queries each)."""
+        self.reserve(4 * len(idx))
+        target.queries += 7 * len(idx)
+        split_pieces(*(getattr(self, name) for name in FIELDS), idx, self.n, target.tree, *limits, discs)
+        self.live[self.n:self.n + 4 * len(idx)] = True
+        self.n += 4 * len(idx)
+
+
+ROUNDING = 64  # roundings of a coordinate's size allowed in a computed distance (each is some tens of operations)
+
+
+def rounding_limits(a: np.ndarray, b: np.ndarray, thresholds: np.ndarray, tol_sq: float) -> tuple[tuple, bool]:
+    """((squared thresholds (2, k) taken in and out by a computed distance's rounding, f's rounding), whether
+    refining can still narrow the bounds) for surfaces with vertices ``a`` and ``b``: a distance computed from
+    coordinates of size S is off by up to ROUNDING eps S, its square by ROUNDING eps S^2 (S = 1 m: 1e-12 cm and
+    1e-10 cm^2). Coordinates no float64 can hold to the tolerances (a prediction scaled by 1e30) give bounds as
+    wide as that rounding, honestly, and no refinement."""
+    size = float(max(np.abs(a).max(), np.abs(b).max()))
+    err = ROUNDING * np.finfo(np.float64).eps * size
+    slack = err * size
+    t2 = np.stack([np.maximum(thresholds - err, 0.0) ** 2 - slack, (thresholds + err) ** 2 + slack])
+    return (t2, slack), bool(4 * slack < tol_sq and err < 1e-3 * thresholds.min())
 
 
 RETIRE = 0.25  # a piece whose bound is this small a share of its area's part of the tolerances is set aside
 
 
 def one_way(vertices: np.ndarray, faces: np.ndarray, target: Target, thresholds, tol_sq: float,
-            tol_frac: float, max_queries: int = MAX_QUERIES, retire: float = RETIRE) -> dict:
+            tol_frac: float, max_queries: int = MAX_QUERIES, retire: float = RETIRE, discs: bool = True) -> dict:
     """Bounds of A's mean squared distance to B (cm^2) and of A's area fraction within each threshold (cm).
 
     Refines until the mean's bound is at most ``tol_sq`` wide and each fraction's at most ``tol_frac`` wide, or
     ``max_queries`` distance queries were made: each round splits the pieces that hold the larger half of the
     bounds' width. Each piece's bounds are computed once, when it is made. Pieces are set aside for good (their
-    bounds summed) when they are settled: those that straddle no threshold and whose width is at most ``retire``
-    times their area's share of ``tol_sq`` (together at most ``retire * tol_sq``, so the rest of the tolerance is
-    left for the others), and those whose share of the width is negligible. Setting a piece aside only stops its
-    refinement: the bounds stay rigorous whatever ``retire`` is (0: only negligible pieces).
+    bounds summed) when they are settled: those whose width on the mean and on each fraction is at most ``retire``
+    times their area's share of that tolerance (together at most ``retire`` times it, so the rest of the tolerance
+    is left for the others), and those whose share of the width is negligible. Setting a piece aside only stops its
+    refinement: the bounds stay rigorous whatever ``retire`` is (0: only negligible pieces). ``discs`` False bounds
+    each fraction by whole pieces only (a piece straddling a threshold wholly undecided), as before the disc areas
+    of :mod:`hoisdf.scoring.recon_bounds`.
     """
     thresholds = np.atleast_1d(np.asarray(thresholds, dtype=np.float64))
     start = target.queries
-    fvert, pvert = target.query(vertices)
-    pieces = Pieces.make(vertices[faces], fvert[faces], pvert[faces], target, thresholds)
+    fvert, pvert, hvert = target.query(vertices)
+    limits, refinable = rounding_limits(vertices, target.vertices, thresholds, tol_sq)
+    pieces = Pieces.make(vertices[faces], fvert[faces], pvert[faces], hvert[faces], target, limits, discs)
     total = float(pieces.area.sum())
     if not total > 0:
         raise ValueError("the surface has no area")
     done_lo = done_hi = 0.0
     done_in, done_maybe = np.zeros(len(thresholds)), np.zeros(len(thresholds))
     while True:
-        w_sq = (pieces.hi - pieces.lo) / total
-        w_frac = (pieces.area[:, None] * (pieces.maybe & ~pieces.surely)) / total
-        width_sq = w_sq.sum() + (done_hi - done_lo) / total
-        width_frac = w_frac.sum(0) + (done_maybe - done_in) / total
-        over = (width_sq > tol_sq) or bool((width_frac > tol_frac).any())
-        if not over or target.queries - start >= max_queries:
+        budget = (max_queries - (target.queries - start)) // 7
+        over, chosen, settled = plan_round(*(getattr(pieces, name) for name in BOUNDS), pieces.live, pieces.n, total,
+                                           tol_sq, tol_frac, retire, (done_hi - done_lo) / total,
+                                           (done_maybe - done_in) / total, budget)
+        if not over or not refinable or target.queries - start >= max_queries:
             break
-        score = w_sq / tol_sq + (w_frac / tol_frac).max(1)
-        order = np.argsort(-score)
-        cum = np.cumsum(score[order])
-        n = max(1, int(np.searchsorted(cum, 0.5 * cum[-1])) + 1)
-        n = min(n, max(1, (max_queries - (target.queries - start)) // 7))
-        chosen, rest = order[:n], order[n:]
-        keep = np.zeros(len(score), bool)
-        keep[rest] = score[rest] > 1e-6 * cum[-1] / max(len(score), 1)
-        keep[rest] &= (w_sq[rest] > retire * tol_sq * pieces.area[rest] / total) | (w_frac[rest] > 0).any(1)
-        settled = ~keep
-        settled[chosen] = False
         done_lo += pieces.lo[settled].sum()
         done_hi += pieces.hi[settled].sum()
-        done_in += (pieces.area[settled, None] * pieces.surely[settled]).sum(0)
-        done_maybe += (pieces.area[settled, None] * pieces.maybe[settled]).sum(0)
-        pieces = pieces.take(np.flatnonzero(keep)).join(pieces.split(chosen, target, thresholds))
-    lo_sum, hi_sum = done_lo + pieces.lo.sum(), done_hi + pieces.hi.sum()
-    f_lo = (done_in + (pieces.area[:, None] * pieces.surely).sum(0)) / total
-    f_hi = (done_maybe + (pieces.area[:, None] * pieces.maybe).sum(0)) / total
+        done_in += pieces.inside_lo[settled].sum(0)
+        done_maybe += pieces.inside_hi[settled].sum(0)
+        pieces.split(chosen, target, limits, discs)
+        pieces.retire(settled)
+        pieces.retire(chosen)
+        if 2 * int(pieces.live[:pieces.n].sum()) < pieces.n:
+            pieces.compact()
+    lo_sum, hi_sum = done_lo + pieces.view("lo").sum(), done_hi + pieces.view("hi").sum()
+    f_lo = (done_in + pieces.view("inside_lo").sum(0)) / total
+    f_hi = (done_maybe + pieces.view("inside_hi").sum(0)) / total
     return {"sq": (lo_sum / total, hi_sum / total), "frac": (np.clip(f_lo, 0, 1), np.clip(f_hi, 0, 1)),
             "area_cm2": total, "queries": target.queries - start, "converged": not over}
 
@@ -233,5 +227,5 @@ def centroid_penalty(vertices: np.ndarray, faces: np.ndarray) -> float:
     c = (area[:, None] * cen).sum(0) / area.sum()
     m = np.square(tri - cen[:, None]).sum(2).mean(1)
     spread = float((area * (np.square(cen - c).sum(1) + m / 4)).sum() / area.sum())
-    d2, _ = Target(vertices, faces).query(c[None])
+    d2, _, _ = Target(vertices, faces).query(c[None])
     return spread + float(d2[0])

@@ -88,10 +88,14 @@ def read_ids(path) -> list[str]:
     return ids
 
 
+REACH_M = 100.0  # metres: no coordinate of a hand or object in a camera frame lies farther (float64 then keeps
+# the exact protocol's bounds to 1e-10 cm^2; hoisdf.scoring.recon_exact.rounding_limits)
+
+
 def check_mesh(path: Path | None) -> tuple[tuple[np.ndarray, np.ndarray] | None, str]:
     """``((vertices (V, 3) float64 m, faces (F, 3) int64), '')`` of a usable triangle mesh, or ``(None, why)``:
-    missing, unreadable, not a triangle mesh, no faces, a face index out of range, a non-finite vertex or no
-    area. Read with trimesh (``process=False``), as gSDF reads it."""
+    missing, unreadable, not a triangle mesh, no faces, a face index out of range, a non-finite vertex, a vertex
+    beyond REACH_M or no area. Read with trimesh (``process=False``), as gSDF reads it."""
     if path is None or not Path(path).is_file():
         return None, "missing"
     import trimesh
@@ -109,6 +113,9 @@ def check_mesh(path: Path | None) -> tuple[tuple[np.ndarray, np.ndarray] | None,
         return None, "a face index is out of range"
     if not np.isfinite(vertices).all():
         return None, "a vertex is NaN or infinite"
+    reach = float(np.abs(vertices).max())
+    if reach > REACH_M:
+        return None, f"a vertex lies {reach:.3g} m from the camera, beyond the {REACH_M:g} m of a physical scene"
     tri = vertices[faces]
     if not np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum() > 0:
         return None, "the surface has no area"

@@ -39,6 +39,7 @@ from hoisdf.scoring.plausibility import (
     frame_metrics_many,
     summarize,
 )
+from hoisdf.scoring.recon_files import REACH_M
 from hoisdf.scoring.submissions import OPENCV_TO_OPENGL, read_ho3d_lists
 
 MANO_VERTS = 778
@@ -54,6 +55,10 @@ def _finite_hands(verts, path, field: str) -> np.ndarray:
     bad = np.flatnonzero(~np.isfinite(verts).all((1, 2)))
     if len(bad):
         raise DataError(path, field, f"entry {bad[0]} holds NaN or inf ({len(bad)} entries do)")
+    far = np.flatnonzero(np.abs(verts).max((1, 2)) > REACH_M)
+    if len(far):
+        raise DataError(path, field, f"entry {far[0]} has a vertex {float(np.abs(verts[far[0]]).max()):.3g} m from "
+                                     f"the camera, beyond the {REACH_M:g} m of a physical scene ({len(far)} entries do)")
     return verts.astype(np.float64)
 
 
@@ -130,6 +135,9 @@ def posed_objects(index, rows: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]
         if mirrored:  # the store poses the mirrored model in the mirrored frame
             v, f = mirror_mesh(np.asarray(v), np.asarray(f))
         posed = np.asarray(v, dtype=np.float64) @ pose[:3, :3].T + pose[:3, 3]
+        if not np.abs(posed).max() <= REACH_M:
+            raise DataError(index.path, "object_pose", f"record {labels['key'][r]} poses its object beyond the "
+                                                       f"{REACH_M:g} m of a physical scene")
         out.append(mirror_mesh(posed, np.asarray(f)) if mirrored else (posed, np.asarray(f, dtype=np.int64)))
     return out
 

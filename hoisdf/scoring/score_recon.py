@@ -247,7 +247,8 @@ def format_result(result: dict) -> str:
     for part, p in result["parts"].items():
         label = (f"survivor mean over {p['survivor']['frames']} frames: FAILURES DROPPED, as gSDF's tools/eval.py"
                  if drop else "mean over every frame, failures penalised (F 0, centroid-point Chamfer)")
-        lines.append(f"  {part}: {p['failures']} of {p['frames']} predictions failed; {label}")
+        first = f" (first: {p['failed'][0]['id']}: {p['failed'][0]['why']})" if p["failed"] else ""
+        lines.append(f"  {part}: {p['failures']} of {p['frames']} predictions failed{first}; {label}")
         values = p["survivor"] if drop else p
         for name in [*metric_names(part), "chamfer_median"]:
             text = f"{values[name]:.6f}"
