@@ -120,7 +120,7 @@ def test_toy_commands_build_whole_stores_inside_an_array_task(tmp_path, monkeypa
     monkeypatch.setenv("SLURM_ARRAY_TASK_COUNT", "4")
     for name, run in (("a", lambda out: hoidata(["toy-pipeline", "--out", str(out)])),
                       ("b", lambda out: hoisdf.toy.main(["--out", str(out), "--steps", "1"]))):
-        (tmp_path / name / "data").mkdir(parents=True)
+        (tmp_path / name / "data" / "dexycb" / "mano").mkdir(parents=True)  # build-sdf's MANO folder, found
         (tmp_path / name / "data" / ("made-seed0" + ("--sequences10--frames5" if name == "b" else "") + ".ok")).touch()
         assert run(tmp_path / name) == 2  # the stand-in's error, after it saw the part
     assert parts == [(0, 1), (0, 1)]  # toy-pipeline and python -m hoisdf.toy: the whole store, not part 3 of 4
