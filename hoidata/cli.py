@@ -12,13 +12,13 @@ import sys
 from pathlib import Path
 
 from hoidata import __version__
+from hoidata.cli_defaults import HOMES
 from hoidata.cli_types import ArgumentParser, count_type, non_negative_int, positive_int
 from hoidata.engine import add_launcher_flags, launch
-from hoidata.cli_defaults import HOMES
 from hoidata.errors import run_cli
 from hoidata.export.formats import FORMATS as EXPORT_FORMATS
-from hoidata.sections import pipeline_names
 from hoidata.provenance import MANO_VARIABLE
+from hoidata.sections import pipeline_names
 from hoidata.toy.make import ALL_LAYOUTS, LAYOUTS
 
 
@@ -145,11 +145,10 @@ def cmd_build_sdf(args: argparse.Namespace) -> int:
 
 def cmd_export(args: argparse.Namespace) -> int:
     """Write a dataset's frames as another codebase's files (docs/other-codebases.md)."""
+    from hoidata import cli_defaults as defaults
     from hoidata.export import export_dataset
     from hoidata.records.settings import load_build_config
     from hoidata.store.verify import opened_store
-
-    from hoidata import cli_defaults as defaults
 
     out = folder(args, "out")
     store = opened_store(args.store, "hoidata export --store") if args.store else None  # before anything is written
@@ -272,7 +271,7 @@ def cmd_toy_pipeline(args: argparse.Namespace) -> int:
 
 def add_dataset_flags(p: argparse.ArgumentParser) -> None:
     """--root, --mano and --models of the commands that read a dataset, their defaults from :data:`HOMES`."""
-    homes = [h for (_, version), h in HOMES.items()]
+    homes = list(HOMES.values())
     p.add_argument("--root", default=None, help="dataset folder (default: " + ", ".join(
         f"${h.variable} for {h.label}" for h in homes) + ")")
     p.add_argument("--mano", default=None, help=f"folder with MANO_RIGHT.pkl / MANO_LEFT.pkl (default: ROOT/mano when "
