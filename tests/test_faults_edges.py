@@ -37,10 +37,12 @@ def _tree(folder: Path) -> dict[str, bytes]:
 LAUNCHER_DESTS = ("launcher", "ray_address", "slurm_array", "slurm_partition", "slurm_cpus", "slurm_time",
                   "slurm_extra", "slurm_executor", "dry_run", "part", "workers")
 COMMANDS = {  # each command's own options, abbreviated where argparse lets them be (other prefixes than the probe's)
-    "build-sdf": ["--datas", "toy", "--ro", "R", "--mod", "M", "--ou", "OUT", "record.sdf_samples_hand=256"],
+    "build-sdf": ["--datas", "toy", "--ro", "R", "--mod", "M", "--man", "MANO", "--ou", "OUT",
+                  "record.sdf_samples_hand=256"],
     "export": ["--form", "gsdf", "--datas", "toy", "--ro", "R", "--ou", "OUT", "--sto", "{store}", "--spl",
                "train,test", "--man=-odd-mano-folder", "dataset.frame_stride=2"],
-    "render-synthetic": ["--sou", "SRC", "--ou", "OUT", "--cou", "12", "--records-per", "4", "--crop", "64"],
+    "render-synthetic": ["--sou", "SRC", "--ou", "OUT", "--cou", "12", "--records-per", "4", "--crop", "64", "--man",
+                         "MANO"],
 }
 
 
