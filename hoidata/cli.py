@@ -12,12 +12,11 @@ import sys
 from pathlib import Path
 
 from hoidata import __version__
-from hoidata.cli_defaults import HOMES
+from hoidata.cli_defaults import add_dataset_flags
 from hoidata.cli_types import ArgumentParser, count_type, non_negative_int, positive_int
 from hoidata.engine import add_launcher_flags, launch
 from hoidata.errors import run_cli
 from hoidata.export.formats import FORMATS as EXPORT_FORMATS
-from hoidata.provenance import MANO_VARIABLE
 from hoidata.sections import pipeline_names
 from hoidata.toy.make import ALL_LAYOUTS, LAYOUTS
 
@@ -129,7 +128,8 @@ def cmd_build_sdf(args: argparse.Namespace) -> int:
         print_skips(s.reader_skipped, "reader")
         print_skips(s.skipped, "build")
         if s.empty_splits:  # a split asked for but without a frame: say so, the store holds none of its records
-            print(f"note: no frames in split(s) {', '.join(s.empty_splits)} of {root.value}: the store holds none of them")
+            print(f"note: no frames in split(s) {', '.join(s.empty_splits)} of {root.value}: the store holds none of "
+                  "them")
         print("index.zarr already lists every shard: nothing written" if s.finish_kept else "index.zarr written"
               if s.finished else "index not written yet: other parts still have shards to build")
         if s.finished or s.finish_kept:
@@ -269,17 +269,6 @@ def cmd_toy_pipeline(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_dataset_flags(p: argparse.ArgumentParser) -> None:
-    """--root, --mano and --models of the commands that read a dataset, their defaults from :data:`HOMES`."""
-    homes = list(HOMES.values())
-    p.add_argument("--root", default=None, help="dataset folder (default: " + ", ".join(
-        f"${h.variable} for {h.label}" for h in homes) + ")")
-    p.add_argument("--mano", default=None, help=f"folder with MANO_RIGHT.pkl / MANO_LEFT.pkl (default: ROOT/mano when "
-                                                f"the dataset folder holds one, else ${MANO_VARIABLE})")
-    p.add_argument("--models", default=None, help="object meshes (default: where the dataset keeps them: " + ", ".join(
-        f"{h.label} ROOT/{h.models}" for h in homes) + ")")
-
-
 def build_parser() -> argparse.ArgumentParser:
     parser = ArgumentParser(prog="hoidata", description="Hand-object datasets -> training-ready stores.")
     parser.add_argument("--version", action="version", version=f"hoidata {__version__}")
@@ -293,7 +282,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = add("make-toy", f"write toy datasets in the real layouts ({', '.join(LAYOUTS)}) with procedural MANO files "
                         "and objects")
-    p.add_argument("--out", required=True, help=f"output folder; with --layout all it gets {'/ and '.join(ALL_LAYOUTS)}/")
+    p.add_argument("--out", required=True,
+                   help=f"output folder; with --layout all it gets {'/ and '.join(ALL_LAYOUTS)}/")
     p.add_argument("--layout", choices=(*LAYOUTS, "all"), default="all",
                    help="; ".join([*(f"{name}: {text}" for name, text in LAYOUTS.items()),
                                    f"all (default): {' and '.join(ALL_LAYOUTS)}"]))
@@ -305,11 +295,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_make_toy)
 
     p = add("build-sdf", "build a verified training store (SDF samples, masks, crops, labels)")
-    p.add_argument("--dataset", required=True, help=f"pipeline name (pipelines/<name>.toml: {', '.join(pipeline_names())}) "
-                                                    "or a .toml")
+    p.add_argument("--dataset", required=True,
+                   help=f"pipeline name (pipelines/<name>.toml: {', '.join(pipeline_names())}) or a .toml")
     add_dataset_flags(p)
-    p.add_argument("--out", default=None, help="store folder (resumes an interrupted build; default: shards/<pipeline>, "
-                                               "one store per split, the second and later in shards/<pipeline>_<split>)")
+    p.add_argument("--out", default=None, help="store folder (resumes an interrupted build; default: one store per "
+                                               "split, shards/<pipeline>, then shards/<pipeline>_<split>)")
     p.add_argument("--workers", type=positive_int, default=1, help="worker processes (1: build in this process)")
     p.add_argument("--part", type=_part, default=None,
                    help="i/N: build only shards k with k %% N == i (default: a Slurm array task's, else all)")

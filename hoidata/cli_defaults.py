@@ -95,6 +95,17 @@ def models_folder(given: str | None, root: Path, where: Home) -> Chosen:
     return Chosen("models", root / where.models, f"default: ROOT/{where.models}, {where.models_note}")
 
 
+def add_dataset_flags(p) -> None:
+    """--root, --mano and --models of the commands that read a dataset, their defaults from :data:`HOMES`."""
+    homes = list(HOMES.values())
+    p.add_argument("--root", default=None, help="dataset folder (default: " + ", ".join(
+        f"${h.variable} for {h.label}" for h in homes) + ")")
+    p.add_argument("--mano", default=None, help=f"folder with MANO_RIGHT.pkl / MANO_LEFT.pkl (default: ROOT/mano when "
+                                                f"the dataset folder holds one, else ${MANO_VARIABLE})")
+    p.add_argument("--models", default=None, help="object meshes (default: where the dataset keeps them: " + ", ".join(
+        f"{h.label} ROOT/{h.models}" for h in homes) + ")")
+
+
 def _flag(args, name: str) -> Path | None:
     """The folder option ``args.<name>`` as a local path (None when not given): text naming a URL is one error line
     before anything is read or written."""

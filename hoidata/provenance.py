@@ -82,5 +82,6 @@ def find_recorded_mano(stores, variable: str | None) -> ManoChoice | None:
         seen.add(path)
     state = "which is missing now" if mano_digest(folder) is None else "whose MANO_RIGHT.pkl has changed since"
     also = f"; {MANO_VARIABLE}={variable} holds another MANO_RIGHT.pkl" if variable else ""
-    raise DataError(name, "inputs.mano", f"built with the MANO folder {folder}, {state}{also}: pass --mano DIR or set "
-                                         f"{MANO_VARIABLE} to a folder with that MANO_RIGHT.pkl (sha256 {digest[:16]}...)")
+    raise DataError(name, "inputs.mano", f"built with the MANO folder {folder}, {state}{also}: pass --mano DIR or "
+                                         f"set {MANO_VARIABLE} to a folder with that MANO_RIGHT.pkl "
+                                         f"(sha256 {digest[:16]}...)")

@@ -208,7 +208,8 @@ def run(args, argv: list[str]) -> int:
         if sources is not None:
             lines += describe_config(config, sources)
         else:
-            lines.append(f"resumed: the run's own resolved settings ({run_dir}/config.json, recipe {config.train.recipe})")
+            lines.append(f"resumed: the run's own resolved settings ({run_dir}/config.json, recipe "
+                         f"{config.train.recipe})")
         if init:
             lines.append(f"model settings: {args.init}'s own (--init), with the command line's model.* overrides")
         print("\n".join(lines), flush=True)

@@ -42,7 +42,8 @@ def test_train_stores_train_and_the_test_stores_beside_them_validate():
 
 
 def test_val_stores_are_preferred_to_test_stores():
-    choice = choose_stores(Path("s"), [facts("toy", pipeline="toy"), facts("toy_val", "val", "toy"), facts("toy_test", "test", "toy")])
+    stores = [facts("toy", pipeline="toy"), facts("toy_val", "val", "toy"), facts("toy_test", "test", "toy")]
+    choice = choose_stores(Path("s"), stores)
     assert [f.path.name for f in choice.validation] == ["toy_val"]
 
 
@@ -106,7 +107,8 @@ def test_a_changed_mano_file_and_stores_of_two_manos_are_refused(tmp_path, monke
     with pytest.raises(DataError, match="changed since"):
         training_mano(None, [facts("a", mano=tmp_path / "mano", digest=digest)])
     with pytest.raises(DataError, match="another MANO_RIGHT.pkl than"):
-        training_mano(None, [facts("a", mano=tmp_path / "x", digest="d1"), facts("b", mano=tmp_path / "y", digest="d2")])
+        training_mano(None, [facts("a", mano=tmp_path / "x", digest="d1"),
+                             facts("b", mano=tmp_path / "y", digest="d2")])
     with pytest.raises(DataError, match=r"does not record its MANO folder.*--mano.*MANO_DIR"):
         training_mano(None, [facts("old", pipeline=None)])
 
