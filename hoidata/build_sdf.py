@@ -54,7 +54,7 @@ def read_frames(cfg: BuildConfig, root: Path, mano_dir: Path,
     return got.frames, got.skips
 
 
-class NoFrames(DataError):
+class NoFramesDataError(DataError):
     """The selection holds no frame to build (raised before anything is written)."""
 
 
@@ -87,7 +87,7 @@ def build_store(cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path, 
     start = time.perf_counter()
     frames, reader_skips = read_frames(cfg, root, Path(mano_dir), models_dir)
     if not frames:
-        raise NoFrames(root, None, f"no frames to build for splits {cfg.dataset.splits}: "
+        raise NoFramesDataError(root, None, f"no frames to build for splits {cfg.dataset.splits}: "
                                    f"{describe_skips(reader_skips, 'the reader skipped')}")
     for line in stated_count_warnings(cfg.dataset, [f.split for f in frames]):
         print(line, file=sys.stderr)

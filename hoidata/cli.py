@@ -86,16 +86,16 @@ def cmd_build_sdf(args: argparse.Namespace) -> int:
     """Build (or resume) a training store from a dataset, as pipelines/<dataset>.toml says: into --out, or one store
     per split under shards/ (:func:`hoidata.cli_defaults.build_outputs`)."""
     from hoidata import cli_defaults as defaults
-    from hoidata.build_sdf import NoFrames, build_store, estimate_build
+    from hoidata.build_sdf import NoFramesDataError, build_store, estimate_build
     from hoidata.records.settings import load_build_config
 
     cfg = load_build_config(args.dataset, args.overrides)
     root, mano, models = defaults.dataset_inputs(args, cfg.dataset)
     stores = defaults.build_outputs(args, cfg.dataset.splits)
-    print(f"hoidata build-sdf --dataset {args.dataset}\n" + defaults.chosen_lines([root, mano, models, *stores]),
-          flush=True)
+    defaults.announce(args, f"hoidata build-sdf --dataset {args.dataset}", [root, mano, models, *stores])
     if toy := defaults.toy_overrides(root.value, cfg):
-        print(f"note: {root.value} is make-toy's toy data, trained under the toy preset: {' '.join(toy)}")
+        defaults.announce(args, f"note: {root.value} is make-toy's toy data, trained under the toy preset: "
+                                f"{' '.join(toy)}")
         args.overrides = [*args.overrides, *toy]
         cfg = load_build_config(args.dataset, args.overrides)
     if args.estimate:
@@ -112,7 +112,7 @@ def cmd_build_sdf(args: argparse.Namespace) -> int:
                                  inputs=inputs)
         try:
             s = launch(run, task, "build-sdf")
-        except NoFrames as exc:  # one split of several without frames: the others are still built
+        except NoFramesDataError as exc:  # one split of several without frames: the others are still built
             if run is args:
                 raise
             empty.append(exc)
@@ -154,8 +154,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     store = opened_store(args.store, "hoidata export --store") if args.store else None  # before anything is written
     cfg = load_build_config(args.dataset, args.overrides)
     root, mano, models = defaults.dataset_inputs(args, cfg.dataset)
-    print(f"hoidata export --format {args.format} --dataset {args.dataset}\n"
-          + defaults.chosen_lines([root, mano, models]), flush=True)
+    defaults.announce(args, f"hoidata export --format {args.format} --dataset {args.dataset}", [root, mano, models])
     task = functools.partial(export_dataset, args.format, cfg, root.value, mano.value, models.value, out,
                              splits=args.splits, store=store)
     s = launch(args, task, "export")
@@ -201,7 +200,7 @@ def cmd_render_synthetic(args: argparse.Namespace) -> int:
     mano, models = defaults.synth_files(folder(args, "mano"), folder(args, "models"), source.value, recorded)
     count = defaults.Chosen("count", args.count or "one per right-hand grasp of the source",
                             "--count" if args.count else "default")
-    print("hoidata render-synthetic\n" + defaults.chosen_lines([source, out, mano, models, count]), flush=True)
+    defaults.announce(args, "hoidata render-synthetic", [source, out, mano, models, count])
     args.source, args.out = str(source.value), str(out.value)  # what an array task's command line names
     preset = defaults.synth_preset(source.value, recorded)
     inputs = defaults.inputs_record(defaults.SYNTH_PIPELINE, preset, source=source.value, mano=mano.value,

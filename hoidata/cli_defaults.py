@@ -55,6 +55,17 @@ def chosen_lines(items: list[Chosen]) -> str:
     return "\n".join(f"  {c.name:<7} {str(c.value):<{width}}  ({c.origin})" for c in items)
 
 
+def announce(args, title: str, items: list[Chosen] = ()) -> None:
+    """Print ``title`` and the choices at the start of a command (URLs masked): on stdout, or on stderr under
+    ``--dry-run``, whose stdout is the sbatch line alone."""
+    import sys
+
+    from hoidata.errors import redact_urls
+
+    text = "\n".join([title, *([chosen_lines(list(items))] if items else [])])
+    print(redact_urls(text), file=sys.stderr if getattr(args, "dry_run", False) else sys.stdout, flush=True)
+
+
 def _variable(name: str) -> str | None:
     value = os.environ.get(name, "").strip()
     return value or None

@@ -212,7 +212,7 @@ def run(args, argv: list[str]) -> int:
                          f"{config.train.recipe})")
         if init:
             lines.append(f"model settings: {args.init}'s own (--init), with the command line's model.* overrides")
-        print("\n".join(lines), flush=True)
+        print(redact_urls("\n".join(lines)), flush=True)  # a store or MANO URL's secrets stay out
     if args.dry_run:
         return 0
     rank, world, device = distributed_setup(args.device)
