@@ -54,6 +54,10 @@ def read_frames(cfg: BuildConfig, root: Path, mano_dir: Path,
     return got.frames, got.skips
 
 
+class NoFramesDataError(DataError):
+    """The selection holds no frame to build (raised before anything is written)."""
+
+
 @dataclass
 class BuildTask(StoreTask):
     """build-sdf's task for :func:`hoidata.engine.run_task`: shard n holds the frames n*R .. (n+1)*R-1 of the
@@ -74,19 +78,21 @@ class BuildTask(StoreTask):
 
 
 def build_store(cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path, out: Path, workers: int = 1,
-                part: tuple[int, int] = (0, 1), progress: bool = True, executor=None) -> RunSummary:
+                part: tuple[int, int] = (0, 1), progress: bool = True, executor=None,
+                inputs: dict | None = None) -> RunSummary:
     """Build (or resume) the store in `out`; see the module docstring (``executor``: what runs the shard jobs,
-    see :func:`hoidata.engine.run_task`). The summary counts frames (items) and shards (units)."""
+    see :func:`hoidata.engine.run_task`; ``inputs``: where the inputs came from, recorded in the index,
+    :mod:`hoidata.provenance`). The summary counts frames (items) and shards (units)."""
     root, out, models_dir = Path(root), Path(out), Path(models_dir)
     start = time.perf_counter()
     frames, reader_skips = read_frames(cfg, root, Path(mano_dir), models_dir)
     if not frames:
-        raise DataError(root, None, f"no frames to build for splits {cfg.dataset.splits}: "
-                                    f"{describe_skips(reader_skips, 'the reader skipped')}")
+        raise NoFramesDataError(root, None, f"no frames to build for splits {cfg.dataset.splits}: "
+                                   f"{describe_skips(reader_skips, 'the reader skipped')}")
     for line in stated_count_warnings(cfg.dataset, [f.split for f in frames]):
         print(line, file=sys.stderr)
     keys = [schema.record_key(f.dataset, f.split, f.frame_id) for f in frames]
-    writer = StoreWriter(out, cfg.as_dict(), models_dir, root)
+    writer = StoreWriter(out, cfg.as_dict(), models_dir, root, inputs)
     crops = cfg.record.crop_policy()
     writer.pin(keys, build_inputs(frames, root, Path(mano_dir), models_dir, crops.reads_object_folders))
     spec = RecordWorkerSpec(Path(mano_dir), models_dir, cfg.record.crop_size)

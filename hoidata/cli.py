@@ -9,31 +9,25 @@ from __future__ import annotations
 import argparse
 import functools
 import sys
-from pathlib import Path
 
 from hoidata import __version__
-from hoidata.cli_types import ArgumentParser, count_type, non_negative_int, positive_int
+from hoidata.cli_defaults import add_dataset_flags
+from hoidata.cli_store import add_store_commands
+from hoidata.cli_types import ArgumentParser, count_type, folder, non_negative_int, positive_int
 from hoidata.engine import add_launcher_flags, launch
 from hoidata.errors import run_cli
-from hoidata.store.sources import SOURCES
-
-
-def folder(args: argparse.Namespace, name: str, default: Path | None = None) -> Path | None:
-    """The folder option ``args.<name>`` as a local path (``default`` when not given): text naming a URL is one
-    error line before anything is read or written (:func:`hoidata.store.paths.local_folder`)."""
-    from hoidata.store.paths import local_folder
-
-    value = getattr(args, name)
-    return default if value is None else local_folder(value, f"hoidata {args.command} --{name.replace('_', '-')}")
+from hoidata.export.formats import FORMATS as EXPORT_FORMATS
+from hoidata.sections import pipeline_names
+from hoidata.toy.make import ALL_LAYOUTS, LAYOUTS
 
 
 def cmd_make_toy(args: argparse.Namespace) -> int:
     """Write the procedural hand, objects and toy datasets in the real layouts, then check them."""
     from hoidata.records.inputs import format_rows, mano_rows, object_rows
-    from hoidata.toy.make import HO3D_MAX_SEQUENCES, empty_split_notes, make_toy, split_rows
+    from hoidata.toy.make import ALL_LAYOUTS, HO3D_MAX_SEQUENCES, empty_split_notes, make_toy, split_rows
 
     out = folder(args, "out")
-    layouts = ("dexycb", "ho3d") if args.layout == "all" else (args.layout,)
+    layouts = ALL_LAYOUTS if args.layout == "all" else (args.layout,)
     for layout in layouts:
         root = out / layout if args.layout == "all" else out
         sequences = args.sequences
@@ -81,54 +75,82 @@ def _part(text: str) -> tuple[int, int]:
 
 
 def cmd_build_sdf(args: argparse.Namespace) -> int:
-    """Build (or resume) a training store from a dataset, as pipelines/<dataset>.toml says."""
-    from hoidata.build_sdf import build_store, estimate_build
+    """Build (or resume) a training store from a dataset, as pipelines/<dataset>.toml says: into --out, or one store
+    per split under shards/ (:func:`hoidata.cli_defaults.build_outputs`)."""
+    from hoidata import cli_defaults as defaults
+    from hoidata.build_sdf import NoFramesDataError, build_store, estimate_build
     from hoidata.records.settings import load_build_config
 
-    root, out = folder(args, "root"), folder(args, "out")
-    mano, models = folder(args, "mano", root / "mano"), folder(args, "models", root / "models")
     cfg = load_build_config(args.dataset, args.overrides)
+    root, mano, models = defaults.dataset_inputs(args, cfg.dataset)
+    stores = defaults.build_outputs(args, cfg.dataset.splits)
+    defaults.announce(args, f"hoidata build-sdf --dataset {args.dataset}", [root, mano, models, *stores])
+    if toy := defaults.toy_overrides(root.value, cfg):
+        defaults.announce(args, f"note: {root.value} is make-toy's toy data, trained under the toy preset: "
+                                f"{' '.join(toy)}")
+        args.overrides = [*args.overrides, *toy]
+        cfg = load_build_config(args.dataset, args.overrides)
     if args.estimate:
-        for k, v in estimate_build(cfg, root, mano, models, workers=args.workers).items():
+        for k, v in estimate_build(cfg, root.value, mano.value, models.value, workers=args.workers).items():
             print(f"{k:>30}: {v}")
         return 0
-    s = launch(args, functools.partial(build_store, cfg, root, mano, models, out), "build-sdf")
-    if s is None:  # --dry-run
-        return 0
-    empty = f" ({s.empty_units} empty: every frame skipped)" if s.empty_units else ""
-    print(f"{s.out}: {s.written} records written in {s.seconds:.1f} s ({s.items_per_second:.2f} frames/s), "
-          f"{s.units_written} shards written{empty}, {s.units_kept} kept from an earlier run")
-    print(f"skipped: {len(s.reader_skipped)} by the dataset reader (each a frame, or a whole camera or sequence), "
-          f"{len(s.skipped)} frames while building")
-    print_skips(s.reader_skipped, "reader")
-    print_skips(s.skipped, "build")
-    if s.empty_splits:  # a split asked for but without a frame: say so, the store holds none of its records
-        print(f"note: no frames in split(s) {', '.join(s.empty_splits)} of {root}: the store holds none of them")
-    print("index.zarr already lists every shard: nothing written" if s.finish_kept else "index.zarr written"
-          if s.finished else "index not written yet: other parts still have shards to build")
-    for line in s.notes:
-        print(f"note: {line}")
-    if s.finished or s.finish_kept:
-        from hoidata.build_sdf import mask_iou_line, supervision_line
+    inputs = defaults.inputs_record(args.dataset, defaults.training_preset(args.dataset, root.value),
+                                    root=root.value, mano=mano.value, models=models.value)
+    empty = []
+    for out in stores:
+        run = defaults.store_args(args, out)  # one split's store: what an array task's command line says too
+        build_cfg = cfg if run is args else load_build_config(args.dataset, run.overrides)
+        task = functools.partial(build_store, build_cfg, root.value, mano.value, models.value, out.value,
+                                 inputs=inputs)
+        try:
+            s = launch(run, task, "build-sdf")
+        except NoFramesDataError as exc:  # one split of several without frames: the others are still built
+            if run is args:
+                raise
+            empty.append(exc)
+            print(f"note: no frames in the {out.split} split of {root.value}: {out.value} not written")
+            continue
+        if s is None:  # --dry-run
+            continue
+        empty_units = f" ({s.empty_units} empty: every frame skipped)" if s.empty_units else ""
+        print(f"{s.out}: {s.written} records written in {s.seconds:.1f} s ({s.items_per_second:.2f} frames/s), "
+              f"{s.units_written} shards written{empty_units}, {s.units_kept} kept from an earlier run")
+        print(f"skipped: {len(s.reader_skipped)} by the dataset reader (each a frame, or a whole camera or sequence), "
+              f"{len(s.skipped)} frames while building")
+        print_skips(s.reader_skipped, "reader")
+        print_skips(s.skipped, "build")
+        if s.empty_splits:  # a split asked for but without a frame: say so, the store holds none of its records
+            print(f"note: no frames in split(s) {', '.join(s.empty_splits)} of {root.value}: the store holds none of "
+                  "them")
+        print("index.zarr already lists every shard: nothing written" if s.finish_kept else "index.zarr written"
+              if s.finished else "index not written yet: other parts still have shards to build")
+        for line in s.notes:
+            print(f"note: {line}")
+        if s.finished or s.finish_kept:
+            from hoidata.build_sdf import mask_iou_line, supervision_line
 
-        line = mask_iou_line(s.out)
-        print(line or "", end="\n" if line else "")
-        print(supervision_line(s.out))
+            line = mask_iou_line(s.out)
+            print(line or "", end="\n" if line else "")
+            print(supervision_line(s.out))
+    if len(empty) == len(stores):
+        raise empty[0]
     return 0
 
 
 def cmd_export(args: argparse.Namespace) -> int:
     """Write a dataset's frames as another codebase's files (docs/other-codebases.md)."""
+    from hoidata import cli_defaults as defaults
     from hoidata.export import export_dataset
     from hoidata.records.settings import load_build_config
     from hoidata.store.verify import opened_store
 
-    root, out = folder(args, "root"), folder(args, "out")
-    mano, models = folder(args, "mano", root / "mano"), folder(args, "models", root / "models")
+    out = folder(args, "out")
     store = opened_store(args.store, "hoidata export --store") if args.store else None  # before anything is written
     cfg = load_build_config(args.dataset, args.overrides)
-    task = functools.partial(export_dataset, args.format, cfg, root, mano, models, out, splits=args.splits,
-                             store=store)
+    root, mano, models = defaults.dataset_inputs(args, cfg.dataset)
+    defaults.announce(args, f"hoidata export --format {args.format} --dataset {args.dataset}", [root, mano, models])
+    task = functools.partial(export_dataset, args.format, cfg, root.value, mano.value, models.value, out,
+                             splits=args.splits, store=store)
     s = launch(args, task, "export")
     if s is None:  # --dry-run
         return 0
@@ -158,16 +180,29 @@ def print_skips(skips: list, who: str, limit: int = 10) -> None:
 
 def cmd_render_synthetic(args: argparse.Namespace) -> int:
     """Render perturbed grasps of a store or dataset from new views into a training store."""
+    from hoidata import cli_defaults as defaults
     from hoidata.records import RecordSettings
     from hoidata.render_synthetic import check_count, render_synthetic
 
-    check_count(args.count)  # here, not in each array task
-    source, out = folder(args, "source"), folder(args, "out")
-    mano, models = folder(args, "mano", source / "mano"), folder(args, "models", source / "models")
+    if args.count is not None:
+        check_count(args.count)  # here, not in each array task
+    source = defaults.synth_source(folder(args, "source"))
+    given = folder(args, "out")
+    out = defaults.Chosen("out", given, "--out") if given else defaults.Chosen("out", defaults.SYNTH_OUT,
+                                                                               "default: shards/ho3d_render")
+    recorded = defaults.source_inputs(source.value)
+    mano, models = defaults.synth_files(folder(args, "mano"), folder(args, "models"), source.value, recorded)
+    count = defaults.Chosen("count", args.count or "one per right-hand grasp of the source",
+                            "--count" if args.count else "default")
+    defaults.announce(args, "hoidata render-synthetic", [source, out, mano, models, count])
+    args.source, args.out = str(source.value), str(out.value)  # what an array task's command line names
+    preset = defaults.synth_preset(source.value, recorded)
+    inputs = defaults.inputs_record(defaults.SYNTH_PIPELINE, preset, source=source.value, mano=mano.value,
+                                    models=models.value)
     record = RecordSettings(crop_size=args.crop_size)
-    task = functools.partial(render_synthetic, source, out, args.count, mano, models, seed=args.seed,
-                             backgrounds=folder(args, "backgrounds"), record=record,
-                             records_per_shard=args.records_per_shard)
+    task = functools.partial(render_synthetic, source.value, out.value, args.count, mano.value, models.value,
+                             seed=args.seed, backgrounds=folder(args, "backgrounds"), record=record,
+                             records_per_shard=args.records_per_shard, inputs=inputs)
     s = launch(args, task, "render-synthetic")
     if s is None:  # --dry-run
         return 0
@@ -178,47 +213,6 @@ def cmd_render_synthetic(args: argparse.Namespace) -> int:
         from hoidata.store import read_index
 
         print(f"physical check: {read_index(s.out).provenance['synthetic']}")
-    return 0
-
-
-def cmd_verify(args: argparse.Namespace) -> int:
-    from hoidata.store import verify_store
-
-    report = verify_store(args.store)
-    print(report)
-    return 0 if report.ok else 1
-
-
-def cmd_inspect(args: argparse.Namespace) -> int:
-    from hoidata.store.inspect import inspect_store
-    from hoidata.store.paths import local_store
-
-    store = local_store(args.store, "hoidata inspect")
-    print(f"wrote {inspect_store(store, n=args.n, out=folder(args, 'out'))}")
-    return 0
-
-
-def cmd_card(args: argparse.Namespace) -> int:
-    """(Re)write a finished store's dataset card and the other loaders' index files (docs/other-loaders.md)."""
-    from hoidata.store.card import CARD_NAME, write_store_files
-    from hoidata.store.paths import local_store
-
-    store = local_store(args.store, "hoidata card")
-    for line in write_store_files(store, args.source):
-        print(f"note: {line}")
-    print(f"wrote {store / CARD_NAME} and the loader index files beside the shards")
-    return 0
-
-
-def cmd_view(args: argparse.Namespace) -> int:
-    """Write records of a store as a rerun recording (hoidata/view.py says what it holds)."""
-    from hoidata.store.paths import local_store
-    from hoidata.view import write_recording
-
-    store = local_store(args.store, "hoidata view")
-    out, n = write_recording(store, folder(args, "out"), key=args.key, row=args.index, sequence=args.sequence,
-                             mano_dir=folder(args, "mano"))
-    print(f"wrote {out} ({n} record{'s' if n != 1 else ''}); open it with: rerun {out}")
     return 0
 
 
@@ -262,11 +256,13 @@ def build_parser() -> argparse.ArgumentParser:
     def add(name: str, text: str) -> argparse.ArgumentParser:
         return sub.add_parser(name, help=text, parents=[common])
 
-    p = add("make-toy", "write toy DexYCB / HO-3D datasets with procedural MANO files and objects")
-    p.add_argument("--out", required=True, help="output folder; with --layout all it gets dexycb/ and ho3d/")
-    p.add_argument("--layout", choices=("dexycb", "ho3d", "ho3d_v3", "hot3d", "arctic", "all"), default="all",
-                   help="dataset layout (default: all = dexycb and ho3d; ho3d_v3: HO-3D v3's JPEG layout; hot3d: "
-                        "HOT3D-Clips tars; arctic: ARCTIC's arctic_data/data, no images)")
+    p = add("make-toy", f"write toy datasets in the real layouts ({', '.join(LAYOUTS)}) with procedural MANO files "
+                        "and objects")
+    p.add_argument("--out", required=True,
+                   help=f"output folder; with --layout all it gets {'/ and '.join(ALL_LAYOUTS)}/")
+    p.add_argument("--layout", choices=(*LAYOUTS, "all"), default="all",
+                   help="; ".join([*(f"{name}: {text}" for name, text in LAYOUTS.items()),
+                                   f"all (default): {' and '.join(ALL_LAYOUTS)}"]))
     p.add_argument("--sequences", type=positive_int, default=None,
                    help="sequences per subject (DexYCB; val and test need 5 or more) / training sequences (HO-3D) / clips (HOT3D: 3 by default, up to 90; multiples of 10 are val)")
     p.add_argument("--frames", type=positive_int, default=None, help="frames per sequence and camera (per clip: HOT3D)")
@@ -275,11 +271,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_make_toy)
 
     p = add("build-sdf", "build a verified training store (SDF samples, masks, crops, labels)")
-    p.add_argument("--dataset", required=True, help="pipeline name (pipelines/<name>.toml: dexycb, dexycb_full, ho3d, ho3d_eval, ho3d_v3, ho3d_v3_eval, toy) or a .toml")
-    p.add_argument("--root", required=True, help="dataset folder (DexYCB or HO-3D layout)")
-    p.add_argument("--mano", default=None, help="folder with MANO_RIGHT.pkl / MANO_LEFT.pkl (default ROOT/mano)")
-    p.add_argument("--models", default=None, help="YCB models folder (default ROOT/models)")
-    p.add_argument("--out", required=True, help="store folder (resumes if it holds an interrupted build)")
+    p.add_argument("--dataset", required=True,
+                   help=f"pipeline name (pipelines/<name>.toml: {', '.join(pipeline_names())}) or a .toml")
+    add_dataset_flags(p)
+    p.add_argument("--out", default=None, help="store folder (resumes an interrupted build; default: one store per "
+                                               "split, shards/<pipeline>, then shards/<pipeline>_<split>)")
     p.add_argument("--workers", type=positive_int, default=1, help="worker processes (1: build in this process)")
     p.add_argument("--part", type=_part, default=None,
                    help="i/N: build only shards k with k %% N == i (default: a Slurm array task's, else all)")
@@ -288,12 +284,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("overrides", nargs="*", help="section.key=value overrides, e.g. record.sdf_samples_hand=2048")
     p.set_defaults(func=cmd_build_sdf)
 
-    p = add("export", "write a dataset as another codebase's files (HandOccNet family, gSDF)")
-    p.add_argument("--format", required=True, choices=("handoccnet", "gsdf"), help="the consumer's layout")
-    p.add_argument("--dataset", required=True, help="pipeline name (its [dataset] selects the frames) or a .toml")
-    p.add_argument("--root", required=True, help="dataset folder (DexYCB or HO-3D layout)")
-    p.add_argument("--mano", default=None, help="folder with MANO_RIGHT.pkl / MANO_LEFT.pkl (default ROOT/mano)")
-    p.add_argument("--models", default=None, help="YCB models folder (default ROOT/models)")
+    p = add("export", f"write a dataset as another codebase's files ({', '.join(EXPORT_FORMATS)})")
+    p.add_argument("--format", required=True, choices=tuple(EXPORT_FORMATS),
+                   help="the consumer's layout: " + "; ".join(f"{k}: {v}" for k, v in EXPORT_FORMATS.items()))
+    p.add_argument("--dataset", required=True, help=f"pipeline name (its [dataset] selects the frames: "
+                                                    f"{', '.join(pipeline_names())}) or a .toml")
+    add_dataset_flags(p)
     p.add_argument("--out", required=True, help="the folder the consumer reads (resumes an interrupted export)")
     p.add_argument("--store", default=None, help="gsdf: a built store whose SDF rows are re-used where they fit")
     p.add_argument("--splits", type=lambda text: tuple(text.split(",")), default=None,
@@ -306,11 +302,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_export)
 
     p = add("render-synthetic", "render perturbed grasps from new views into a training store")
-    p.add_argument("--source", required=True, help="a store, or an HO-3D / DexYCB / toy dataset folder, to take grasps from")
-    p.add_argument("--out", required=True, help="store folder (resumes an interrupted run)")
-    p.add_argument("--count", type=positive_int, required=True, help="samples to render")
-    p.add_argument("--mano", default=None, help="MANO folder (default SOURCE/mano)")
-    p.add_argument("--models", default=None, help="YCB models folder (default SOURCE/models)")
+    p.add_argument("--source", default=None, help="a store, or an HO-3D / DexYCB / toy dataset folder, to take grasps "
+                                                  "from (default: shards/ho3d when it is a store, else $HO3D_DIR)")
+    p.add_argument("--out", default=None, help="store folder (resumes an interrupted run; default: shards/ho3d_render)")
+    p.add_argument("--count", type=positive_int, default=None,
+                   help="samples to render (default: one per right-hand grasp of the source)")
+    p.add_argument("--mano", default=None, help="MANO folder (default: the source store's, else SOURCE/mano, "
+                                                "else $MANO_DIR)")
+    p.add_argument("--models", default=None, help="YCB models folder (default: the source store's, else SOURCE/models)")
     p.add_argument("--backgrounds", default=None, help="folder of background images (default: procedural)")
     p.add_argument("--seed", type=non_negative_int, default=0)
     p.add_argument("--workers", type=positive_int, default=1, help="worker processes (1: render in this process)")
@@ -321,31 +320,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_launcher_flags(p, count_type)
     p.set_defaults(func=cmd_render_synthetic)
 
-    p = add("verify", "decode every record of a store and check counts and checksums")
-    p.add_argument("store")
-    p.set_defaults(func=cmd_verify)
-
-    p = add("inspect", "PNG grid of records: image, masks, joints, heatmap, SDF samples")
-    p.add_argument("store")
-    p.add_argument("--n", type=positive_int, default=16, help="records to show")
-    p.add_argument("--out", default="grid.png", help="output PNG")
-    p.set_defaults(func=cmd_inspect)
-
-    p = add("card", "(re)write a store's dataset card README.md and its wids / DALI index files")
-    p.add_argument("store")
-    p.add_argument("--source", default=None, choices=sorted(SOURCES),
-                   help="the dataset the records come from (default: what the store records, else its dataset.name)")
-    p.set_defaults(func=cmd_card)
-
-    p = add("view", "write records of a store as a rerun recording (.rrd): crop, camera, meshes, joints, SDF samples")
-    p.add_argument("store")
-    which = p.add_mutually_exclusive_group()
-    which.add_argument("--key", default=None, help="the record with this key")
-    which.add_argument("--index", type=non_negative_int, default=None, help="the record at this index (default 0)")
-    which.add_argument("--sequence", default=None, help="every record of a sequence (a key without its frame number)")
-    p.add_argument("--mano", default=None, help="MANO folder: draws the posed hand mesh (default: joints only)")
-    p.add_argument("--out", default="record.rrd", help="output .rrd file")
-    p.set_defaults(func=cmd_view)
+    add_store_commands(add)
 
     p = add("toy-pipeline", "toy data -> verified train/test stores (the data half of python -m hoisdf.toy)")
     p.add_argument("--out", default="toy_run", help="output folder (data/, store/train, store/test, store_grid.png)")

@@ -52,3 +52,12 @@ def local_path(text: str) -> Path:
 
 
 local_path.__name__ = "local path"
+
+
+def folder(args: argparse.Namespace, name: str, default: Path | None = None) -> Path | None:
+    """The folder option ``args.<name>`` as a local path (``default`` when not given): text naming a URL is one
+    error line before anything is read or written (:func:`hoidata.store.paths.local_folder`)."""
+    from hoidata.store.paths import local_folder
+
+    value = getattr(args, name)
+    return default if value is None else local_folder(value, f"hoidata {args.command} --{name.replace('_', '-')}")

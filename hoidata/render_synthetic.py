@@ -215,6 +215,12 @@ def check_count(count: int) -> None:
                          "stores (another --seed each) and train on all of them (--shards A B)")
 
 
+def default_count(grasps: list) -> int:
+    """``--count`` when it is not given: one render per grasp of the source, so that the renders and the store they
+    were drawn from mix 1:1 at weight 1 each (the paper does not say how many it rendered; docs/synthetic.md)."""
+    return min(len(grasps), MAX_COUNT)
+
+
 @dataclass
 class SynthJob:
     """One shard to render: its sample indices and keys, the run's seed and settings, the store folder."""
@@ -247,12 +253,15 @@ class SynthTask(StoreTask):
                         self.store.out)
 
 
-def render_synthetic(source: Path, out: Path, count: int, mano_dir: Path, models_dir: Path, seed: int = 0,
+def render_synthetic(source: Path, out: Path, count: int | None, mano_dir: Path, models_dir: Path, seed: int = 0,
                      backgrounds: Path | None = None, workers: int = 1, part: tuple[int, int] = (0, 1),
                      settings: SynthSettings = SynthSettings(), record: RecordSettings = RecordSettings(),
-                     records_per_shard: int = 256, progress: bool = True, executor=None) -> RunSummary:
-    """Render `count` synthetic samples from the grasps of `source` into the store `out` (``executor``: what runs
-    the shard jobs, see :func:`hoidata.engine.run_task`); the summary counts samples (items) and shards (units)."""
+                     records_per_shard: int = 256, progress: bool = True, executor=None,
+                     inputs: dict | None = None) -> RunSummary:
+    """Render `count` synthetic samples (None: one per grasp of the source, :func:`default_count`) from the grasps
+    of `source` into the store `out` (``executor``: what runs the shard jobs, see :func:`hoidata.engine.run_task`;
+    ``inputs``: where the inputs came from, recorded in the index, :mod:`hoidata.provenance`); the summary
+    counts samples (items) and shards (units)."""
     import time
 
     from hoidata.hand import load_mano
@@ -260,17 +269,21 @@ def render_synthetic(source: Path, out: Path, count: int, mano_dir: Path, models
 
     start = time.perf_counter()
     out, source = Path(out), Path(source)
-    check_count(count)
+    if count is not None:
+        check_count(count)
     files = list_backgrounds(backgrounds)
     if records_per_shard < 1:
         raise ValueError(f"--records-per-shard must be at least 1, got {records_per_shard}")
     # fail early, in the parent; the grasps are picked with the MANO and models that render them (as in the workers)
     grasps = load_grasps(source, load_mano(mano_dir, dtype=torch.float64), Path(mano_dir), Path(models_dir))
+    if count is None:
+        count = default_count(grasps)
+        print(f"count = {count} (default: one render per right-hand grasp of the source)", flush=True)
     keys = [schema.record_key("synthetic", "train", f"{seed}_{i:08d}") for i in range(count)]
     # the source resolved: a resume with --source spelled another way (relative, absolute, a link) is the same run
     config = {"synthetic": asdict(settings), "record": asdict(record), "source": str(source.resolve()), "count": count,
               "seed": seed, "backgrounds": [Path(f).name for f in files], "records_per_shard": records_per_shard}
-    writer = StoreWriter(out, config, Path(models_dir))
+    writer = StoreWriter(out, config, Path(models_dir), inputs=inputs)
     writer.pin(keys, _inputs(grasps, mano_dir, models_dir, files))
     spec = SynthWorkerSpec(Path(mano_dir), Path(models_dir), source, tuple(files), record.crop_size)
     summary = run_task(SynthTask(keys, seed, settings, record, writer, spec, Plan(count, records_per_shard)), workers,

@@ -40,6 +40,12 @@ def pipelines_dir():
     return files("hoidata.presets")
 
 
+def pipeline_names() -> tuple[str, ...]:
+    """The named pipelines, sorted: every ``<name>.toml`` of :func:`pipelines_dir` (what the commands' help lists,
+    so a new file is listed without another edit)."""
+    return tuple(sorted(p.name[:-len(".toml")] for p in pipelines_dir().iterdir() if p.name.endswith(".toml")))
+
+
 _SCALARS = {"bool": (bool,), "int": (int,), "float": (int, float), "str": (str,)}
 _WORDS = {"bool": "true or false", "int": "an integer", "float": "a number", "str": "a string"}
 

@@ -1,7 +1,10 @@
-"""``python -m hoisdf.train --shards STORE[:WEIGHT] ... --mano DIR [--config NAME] [section.key=value ...]``
+"""``python -m hoisdf.train --shards STORE[:WEIGHT] ... [--mano DIR] [--config NAME] [section.key=value ...]``
 
 Trains HOISDF on one or more stores (weights set the mixing ratio, e.g. ``shards/dexycb:1.0
-shards/ho3d_render:0.6``); a store is a folder or an explicit ``http(s)://``, ``s3://`` or ``gs://`` URL. Multi-GPU / multi-process: ``torchrun --nproc_per_node N -m hoisdf.train ...``
+shards/ho3d_render:0.6``); a store is a folder or an explicit ``http(s)://``, ``s3://`` or ``gs://`` URL; a folder of
+stores (``--shards shards/``) trains on its train stores and validates on the val or test stores beside them. The
+preset (``--config``) and the MANO folder (``--mano``) default to what the stores were built with.
+Multi-GPU / multi-process: ``torchrun --nproc_per_node N -m hoisdf.train ...``
 (NCCL on GPUs, gloo on CPUs). ``--resume`` continues ``--out``'s last checkpoint exactly; ``--init RUN`` fine-tunes from
 another run's weights (e.g. an imported released checkpoint) with its model settings.
 """
@@ -23,12 +26,22 @@ import torch
 from hoidata.atomic import write_atomic
 from hoidata.cli_types import ArgumentParser, local_path
 from hoidata.errors import DataError, redact_urls, run_cli
-from hoidata.provenance import git_commit
+from hoidata.provenance import MANO_VARIABLE, git_commit
+from hoidata.sections import pipeline_names
 from hoidata.store import resolve_store
 from hoidata.store.paths import refuse_repeated_stores
 from hoidata.store.remote import url_authority
 from hoisdf.config import TrainConfig, describe_config, overridden_config, resolve_train_config
 from hoisdf.data import StoreSpec
+from hoisdf.data.store_choice import (
+    choose_stores,
+    folder_facts,
+    folder_lines,
+    folder_of_stores,
+    store_facts,
+    stores_preset,
+    training_mano,
+)
 from hoisdf.training.checkpoint import CHECKPOINTS, LAST, find_checkpoint, load_checkpoint, load_weights
 from hoisdf.training.trainer import CURVE, Trainer, unwrap
 
@@ -109,11 +122,13 @@ def build_parser() -> argparse.ArgumentParser:
     p = ArgumentParser(prog="python -m hoisdf.train", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--shards", nargs="+", required=True, metavar="STORE[:WEIGHT]",
-                   help="training stores: folders or http(s)://, s3://, gs:// URLs")
+                   help="training stores: folders or http(s)://, s3://, gs:// URLs; or one folder of stores (its train "
+                        "stores train, the val or test stores beside them validate)")
     p.add_argument("--val-shards", nargs="*", default=[], metavar="STORE", help="validation stores (folders or URLs)")
-    p.add_argument("--mano", required=True, type=Path, help="folder with MANO_RIGHT.pkl")
-    p.add_argument("--config", default=None, help="pipelines/<name>.toml or a path (default: hoisdf/config.py's "
-                                                  "defaults, the project recipe; the dataset presets train as upstream)")
+    p.add_argument("--mano", default=None, type=Path, help="folder with MANO_RIGHT.pkl (default: the stores' build "
+                                                           f"record, while its digest holds, else ${MANO_VARIABLE})")
+    p.add_argument("--config", default=None, help=f"pipelines/<name>.toml ({', '.join(pipeline_names())}) or a path "
+                                                  "(default: the preset the stores were built for)")
     p.add_argument("--out", type=local_path, default=None, help="run folder (default runs/<config>)")
     p.add_argument("--resume", action="store_true", help="continue the run folder's last checkpoint")
     p.add_argument("--init", type=Path, default=None, metavar="RUN_OR_CKPT",
@@ -121,6 +136,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "checkpoint, python -m hoisdf.import_upstream); optimizer and progress start fresh")
     p.add_argument("--device", default=None, help="cpu, cuda, cuda:1 (default: cuda when present)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--dry-run", action="store_true", help="print the stores, MANO folder and settings, then stop")
     p.add_argument("--debug", action="store_true", help="on an error, show the traceback instead of one line")
     p.add_argument("overrides", nargs="*", metavar="section.key=value", help="e.g. train.batch_size=8 model.depth=18")
     return p
@@ -132,15 +148,44 @@ def main(argv: list[str] | None = None) -> int:
     return run_cli("", lambda: run(args, argv), args.debug)
 
 
+def choose_inputs(args) -> tuple[list[StoreSpec], list[StoreSpec], list, list, list[str]]:
+    """(train stores, validation stores, what the train stores' indexes say, and every used store's, lines to print)
+    from ``--shards`` (stores, or one folder of stores: :mod:`hoisdf.data.store_choice`) and ``--val-shards``."""
+    folders = [f for f in map(folder_of_stores, args.shards) if f is not None]
+    if folders and len(args.shards) > 1:
+        raise DataError(folders[0], "--shards", "a folder of stores: give it alone, or name its stores")
+    if folders:
+        choice = choose_stores(folders[0], folder_facts(folders[0]))
+        stores = [StoreSpec(f.path, 1.0) for f in choice.train]
+        val = [StoreSpec(resolve_store(s)) for s in args.val_shards] or [StoreSpec(f.path) for f in choice.validation]
+        used = choice.train + ([] if args.val_shards else choice.validation)
+        return stores, val, choice.train, used, folder_lines(folders[0], choice)
+    stores = [parse_store(s) for s in args.shards]
+    val = [StoreSpec(resolve_store(s)) for s in args.val_shards]
+    refuse_repeated_stores([s.path for s in stores], "--shards", " (a weight, STORE:2, samples a store more often)")
+    refuse_repeated_stores([s.path for s in val], "--val-shards")
+    need = args.config is None or args.mano is None  # read the indexes only for what the stores must tell
+    facts = [store_facts(s.path) for s in stores] if need else []
+    return stores, val, facts, facts, []
+
+
+def chosen_config(args, facts) -> tuple[str | None, str]:
+    """(--config's value or the stores' preset, why), None for hoisdf/config.py's defaults."""
+    if args.config is not None:
+        return args.config, "--config"
+    found = stores_preset(facts)
+    if found is None:
+        return None, "the stores record no preset (built before stores recorded one): hoisdf/config.py's defaults"
+    return found[0], f"the stores' preset; {found[1]}"
+
+
 def run(args, argv: list[str]) -> int:
     from hoidata.hand import load_mano
 
     _split_overrides(args)
-    stores = [parse_store(s) for s in args.shards]
-    val_stores = [StoreSpec(resolve_store(s)) for s in args.val_shards]
-    refuse_repeated_stores([s.path for s in stores], "--shards", " (a weight, STORE:2, samples a store more often)")
-    refuse_repeated_stores([s.path for s in val_stores], "--val-shards")
-    run_dir = args.out or Path("runs") / Path(args.config or "default").stem
+    stores, val_stores, train_facts, facts, lines = choose_inputs(args)
+    name, why = chosen_config(args, train_facts)
+    run_dir = args.out or Path("runs") / Path(name or "default").stem
     checkpoint = find_checkpoint(run_dir) if args.resume else None
     payload = load_checkpoint(checkpoint) if args.resume else None
     sources = None
@@ -149,18 +194,33 @@ def run(args, argv: list[str]) -> int:
     else:
         if (run_dir / CHECKPOINTS / LAST).exists():
             raise DataError(run_dir, None, "the run folder already holds a checkpoint: pass --resume or another --out")
-        config, sources = resolve_train_config(args.config, args.overrides)
+        config, sources = resolve_train_config(name, args.overrides)
     init = load_checkpoint(args.init) if args.init and not payload else None
     if init:  # the weights' own model settings (model.* overrides still apply); the rest from --config
         model_overrides = [o for o in args.overrides if o.startswith("model.")]
         config = replace(config, model=overridden_config(init["config"], model_overrides, args.init).model)
         sources = {k: v for k, v in (sources or {}).items() if not k.startswith("model.")}  # printed apart
+    mano_dir = training_mano(args.mano, facts)
+    if int(os.environ.get("RANK", "0")) == 0:
+        label = name if name is None or name.endswith(".toml") else f"pipelines/{name}.toml"
+        lines += [f"config: {label or 'hoisdf/config.py defaults'} ({why})",
+                  f"mano: {mano_dir.folder} ({mano_dir.origin})"]
+        if sources is not None:
+            lines += describe_config(config, sources)
+        else:
+            lines.append(f"resumed: the run's own resolved settings ({run_dir}/config.json, recipe "
+                         f"{config.train.recipe})")
+        if init:
+            lines.append(f"model settings: {args.init}'s own (--init), with the command line's model.* overrides")
+        print(redact_urls("\n".join(lines)), flush=True)  # a store or MANO URL's secrets stay out
+    if args.dry_run:
+        return 0
     rank, world, device = distributed_setup(args.device)
     torch.manual_seed(config.train.seed + rank)
     run_dir.mkdir(parents=True, exist_ok=True)
     if not payload and rank == 0 and (removed := clean_dead_run(run_dir)):
         print(f"note: {run_dir} held an earlier run that never wrote a checkpoint; removed its {', '.join(removed)}")
-    mano = load_mano(args.mano, side="right")
+    mano = load_mano(mano_dir.folder, side="right")
     trainer = Trainer(config, stores, mano, run_dir, device, val_stores, rank, world)
     rng = trainer.load(payload, checkpoint) if payload else None
     if init:
@@ -168,12 +228,6 @@ def run(args, argv: list[str]) -> int:
     if rank == 0 and not payload:
         write_run_info(run_dir, config, stores, val_stores, world, argv)
     if rank == 0:
-        if sources is not None:
-            print("\n".join(describe_config(config, sources)), flush=True)
-        else:
-            print(f"resumed: the run's own resolved settings ({run_dir}/config.json, recipe {config.train.recipe})")
-        if init:
-            print(f"model settings: {args.init}'s own (--init), with the command line's model.* overrides")
         p = trainer.progress
         print(f"training {config.model.depth}-layer HOISDF on {device} x{world}: epoch {p.epoch} step {p.step}, "
               f"{len(trainer.dataset)} batches/epoch, run folder {run_dir}", flush=True)

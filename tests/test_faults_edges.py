@@ -37,10 +37,12 @@ def _tree(folder: Path) -> dict[str, bytes]:
 LAUNCHER_DESTS = ("launcher", "ray_address", "slurm_array", "slurm_partition", "slurm_cpus", "slurm_time",
                   "slurm_extra", "slurm_executor", "dry_run", "part", "workers")
 COMMANDS = {  # each command's own options, abbreviated where argparse lets them be (other prefixes than the probe's)
-    "build-sdf": ["--datas", "toy", "--ro", "R", "--mod", "M", "--ou", "OUT", "record.sdf_samples_hand=256"],
+    "build-sdf": ["--datas", "toy", "--ro", "R", "--mod", "M", "--man", "MANO", "--ou", "OUT",
+                  "record.sdf_samples_hand=256"],
     "export": ["--form", "gsdf", "--datas", "toy", "--ro", "R", "--ou", "OUT", "--sto", "{store}", "--spl",
                "train,test", "--man=-odd-mano-folder", "dataset.frame_stride=2"],
-    "render-synthetic": ["--sou", "SRC", "--ou", "OUT", "--cou", "12", "--records-per", "4", "--crop", "64"],
+    "render-synthetic": ["--sou", "SRC", "--ou", "OUT", "--cou", "12", "--records-per", "4", "--crop", "64", "--man",
+                         "MANO"],
 }
 
 
@@ -120,7 +122,7 @@ def test_toy_commands_build_whole_stores_inside_an_array_task(tmp_path, monkeypa
     monkeypatch.setenv("SLURM_ARRAY_TASK_COUNT", "4")
     for name, run in (("a", lambda out: hoidata(["toy-pipeline", "--out", str(out)])),
                       ("b", lambda out: hoisdf.toy.main(["--out", str(out), "--steps", "1"]))):
-        (tmp_path / name / "data").mkdir(parents=True)
+        (tmp_path / name / "data" / "dexycb" / "mano").mkdir(parents=True)  # build-sdf's MANO folder, found
         (tmp_path / name / "data" / ("made-seed0" + ("--sequences10--frames5" if name == "b" else "") + ".ok")).touch()
         assert run(tmp_path / name) == 2  # the stand-in's error, after it saw the part
     assert parts == [(0, 1), (0, 1)]  # toy-pipeline and python -m hoisdf.toy: the whole store, not part 3 of 4

@@ -124,7 +124,7 @@ HOIDATA_LAYERS = (
     ("hoidata.records",),
     ("hoidata.synth",),
     RECIPES,
-    ("hoidata.cli", "hoidata.__main__"),
+    ("hoidata.cli", "hoidata.cli_defaults", "hoidata.cli_store", "hoidata.__main__"),
 )
 
 

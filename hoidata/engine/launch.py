@@ -25,7 +25,11 @@ from hoidata.errors import DataError
 from hoidata.engine import slurm
 from hoidata.engine.engine import RunSummary
 
-LAUNCHERS = ("local", "slurm", "ray")
+LAUNCHERS = {  # name -> where the jobs run (--launcher's choices and help are made from this table)
+    "local": "a process pool on this machine (default)",
+    "slurm": "a Slurm job array, through submitit",
+    "ray": "Ray tasks on a Ray cluster",
+}
 # what an array task's command line leaves out: where the jobs run, and the part and workers (the task's own)
 _NOT_FORWARDED = {"launcher", "ray_address", "slurm_array", "slurm_partition", "slurm_cpus", "slurm_time",
                   "slurm_extra", "slurm_executor", "dry_run", "part", "workers", "help"}
@@ -35,8 +39,8 @@ _SUMMED = ("written", "units_written", "units_kept")  # this run's counts (RunSu
 def add_launcher_flags(parser: argparse.ArgumentParser, count_type) -> None:
     """The ``--launcher`` options of a command (see the module docstring)."""
     g = parser.add_argument_group("where the jobs run (docs/cluster.md)")
-    g.add_argument("--launcher", choices=LAUNCHERS, default="local",
-                   help="local pool (default), a Slurm array through submitit, or Ray tasks")
+    g.add_argument("--launcher", choices=tuple(LAUNCHERS), default="local",
+                   help="; ".join(f"{name}: {text}" for name, text in LAUNCHERS.items()))
     g.add_argument("--ray-address", default=None, help="ray: the cluster to join (default: start a local Ray)")
     g.add_argument("--slurm-array", type=count_type(1), default=None, metavar="N", help="slurm: array tasks (parts)")
     g.add_argument("--slurm-partition", default=None, metavar="P", help="slurm: the partition to submit to")

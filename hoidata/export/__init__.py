@@ -9,6 +9,15 @@
 ``docs/other-codebases.md`` lists, per consumer, the command, the folder it writes and the loader it serves.
 """
 
-from hoidata.export.job import DATASETS, FORMATS, default_splits, export_dataset
+from hoidata.export.formats import DATASETS, FORMATS
 
 __all__ = ["DATASETS", "FORMATS", "default_splits", "export_dataset"]
+
+
+def __getattr__(name: str):
+    """The job's names on first use: ``hoidata --help`` lists the formats without importing the exporters."""
+    if name in ("default_splits", "export_dataset"):
+        from hoidata.export import job
+
+        return getattr(job, name)
+    raise AttributeError(f"module 'hoidata.export' has no attribute {name!r}")

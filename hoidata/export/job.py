@@ -26,13 +26,12 @@ from hoidata.engine import Plan, RunSummary, ShardTask, run_task
 from hoidata.errors import DataError, read_json
 from hoidata.export import gsdf, handoccnet
 from hoidata.export.files import write_json
+from hoidata.export.formats import DATASETS, FORMATS
 from hoidata.export.worker import ExportJob, ExportWorkerSpec, chunk_path
 from hoidata.records import BuildConfig, RecordSettings, build_inputs, fingerprint, stated_count_warnings
 
 WORK_DIR = ".hoidata-export"
 SPEC_FILE = "export.json"
-FORMATS = ("handoccnet", "gsdf")
-DATASETS = {"handoccnet": ("dexycb", "ho3d"), "gsdf": ("dexycb",)}  # gSDF has no HO-3D dataset class
 
 
 def export_frames(cfg: BuildConfig, root: Path, mano_dir: Path, models_dir: Path, splits) -> tuple[list, list, list]:
@@ -148,7 +147,7 @@ def export_dataset(fmt: str, cfg: BuildConfig, root: Path, mano_dir: Path, model
         executor: what runs the chunk jobs (see :func:`hoidata.engine.run_task`).
     """
     if fmt not in FORMATS:
-        raise ValueError(f"unknown export format {fmt!r}; expected one of {FORMATS}")
+        raise ValueError(f"unknown export format {fmt!r}; expected one of {tuple(FORMATS)}")
     if cfg.dataset.name not in DATASETS[fmt]:
         raise DataError(None, "dataset.name",
                         f"the {fmt} format reads {' and '.join(DATASETS[fmt])}, not {cfg.dataset.name}")

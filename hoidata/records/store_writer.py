@@ -24,8 +24,8 @@ from pathlib import Path
 from hoidata import schema, store
 from hoidata.atomic import write_json_atomic
 from hoidata.engine import RunSummary, ShardTask
-from hoidata.errors import DataError
-from hoidata.provenance import git_commit
+from hoidata.errors import DataError, read_json
+from hoidata.provenance import INPUTS, git_commit
 from hoidata.records import fingerprint
 from hoidata.records.records import RecordSettings
 from hoidata.store.card import write_store_files
@@ -199,6 +199,7 @@ class StoreWriter:
     config: dict
     models_dir: Path
     root: Path | None = None
+    inputs: dict | None = None  # where the inputs came from (pipeline, preset, folders): the index records it
 
     def pin(self, keys: list[str], inputs: dict) -> None:
         """Write ``build.json`` into a new store folder, or refuse a store built with other settings, keys or
@@ -220,6 +221,10 @@ class StoreWriter:
         written) and every shard's skips (:func:`finish_store`)."""
         run.out = self.out
         if run.all_done:
+            if self.inputs is not None:  # with the MANO digests build.json pinned (hoidata.provenance)
+                pinned = read_json(self.out / BUILD_FILE, "build record")
+                mano = pinned.get("inputs", {}).get("mano", {}) if isinstance(pinned, dict) else {}
+                provenance = {**(provenance or {}), INPUTS: {**self.inputs, "mano_sha256": mano}}
             run.skipped = finish_store(self.out, self.config, self.models_dir, run.units, reader_skips, run,
                                        provenance)
         return run

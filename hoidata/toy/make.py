@@ -8,8 +8,15 @@ from pathlib import Path
 
 from hoidata.store.sources import TOY_MARKER
 
-LAYOUTS = ("dexycb", "ho3d", "ho3d_v3", "hot3d", "arctic")  # ho3d_v3: HO-3D v3's layout (hoidata/toy/ho3d.py); hot3d:
-# clips; arctic: arctic_data/data (hoidata/toy/arctic.py)
+# make-toy's layouts, the one table: the command's choices and help are made from it (a layout added here is listed)
+LAYOUTS = {
+    "dexycb": "DexYCB (the dex-ycb-toolkit's layout, models/ inside)",
+    "ho3d": "HO-3D v2",
+    "ho3d_v3": "HO-3D v3 (JPEG frames, its own lists; hoidata/toy/ho3d.py)",
+    "hot3d": "HOT3D-Clips (clip tars, object_models_eval/)",
+    "arctic": "ARCTIC (arctic_data/data: raw_seqs, meta, splits_json; no images; hoidata/toy/arctic.py)",
+}
+ALL_LAYOUTS = ("dexycb", "ho3d")  # what --layout all writes, each in OUT/<layout>
 # the toolkit's i % 5 == 4 rule puts a subject's 5th sequence in val or test: with fewer, s0/s1 val and test are empty
 DEXYCB_SPLIT_SEQUENCES = 5
 HOT3D_MAX_CLIPS = 90  # toy HOT3D clips: 1, 2 (train), 10 (val), then 3, 4, ... (multiples of 10 val; toy_clips)
@@ -62,7 +69,7 @@ def make_toy(out: str | Path, layout: str, sequences: int | None = None, frames:
     from hoidata.toy.ho3d import ToyHO3DSize, write_toy_ho3d
 
     if layout not in LAYOUTS:
-        raise ValueError(f"unknown toy layout {layout!r}; expected one of {LAYOUTS}")
+        raise ValueError(f"unknown toy layout {layout!r}; expected one of {tuple(LAYOUTS)}")
     for name, value in (("sequences", sequences), ("frames", frames)):
         if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
             raise ValueError(f"{name} must be a whole number >= 1 (or None for the default size), got {value!r}")
@@ -107,6 +114,11 @@ def make_toy(out: str | Path, layout: str, sequences: int | None = None, frames:
 
 
 MARKER = TOY_MARKER  # make-toy's mark on a folder it wrote (its settings inside); a store built from it is a toy store
+
+
+def is_toy(folder) -> bool:
+    """Whether ``folder`` is a dataset make-toy wrote (its :data:`MARKER` file is there)."""
+    return (Path(folder) / MARKER).is_file()
 
 
 def prepare_folder(out: Path, settings: dict) -> None:
