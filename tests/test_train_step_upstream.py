@@ -279,7 +279,8 @@ def test_the_trainable_and_frozen_parameters_are_upstreams(step, setting):
 def test_gradients_equal_upstreams(step, setting):
     """Every parameter's gradient: norm within the golden's tolerance (2.5e-3 relative) and cosine > 0.9999 (of the
     count sketches), except the gradients that are zero in exact arithmetic (listed in the golden, |g| < 1.1e-6
-    upstream: float noise on both sides) and the two density widths, whose float32 gradient is ill-conditioned (golden README)."""
+    upstream: float noise on both sides) and the two density widths, whose float32 gradient is ill-conditioned
+    (golden README)."""
     rec, (gold, info) = step(setting), _golden(setting)
     tol = info["tolerance"]
     worst = {}
