@@ -1,0 +1,102 @@
+"""The guarded door's images and meshes (:mod:`hoidata.reading` for the rest): an empty, cut-short or undecodable
+image and a mesh that its decoder refuses are each one DataError naming the file (and member), never the
+decoder's own exception (OpenCV's ``cv2.error`` on an empty buffer, Pillow's ``OSError``, trimesh's many).
+"""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import numpy as np
+
+from hoidata.errors import DataError, decoding
+from hoidata.reading import MAX_BYTES, read_bytes
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+PNG_END = b"IEND\xaeB`\x82"  # the IEND chunk's type and CRC, the last bytes of every PNG
+MAX_IMAGE_BYTES = 256 << 20
+MAX_MESH_BYTES = 2 << 30
+
+
+def incomplete_image(data: bytes) -> str | None:
+    """Why a JPEG or PNG file is cut short (None when it ends as it should, or is neither format).
+
+    OpenCV decodes a truncated JPEG without an error (it fills the rest with grey and only prints a warning),
+    so the end is checked here: a JPEG must end with its end-of-image marker (trailing zero padding allowed),
+    a PNG with its IEND chunk.
+    """
+    data = bytes(data)
+    if data[:2] == b"\xff\xd8":
+        return None if data.rstrip(b"\0").endswith(b"\xff\xd9") else "truncated JPEG (no end-of-image marker)"
+    if data[:8] == PNG_MAGIC:
+        return None if data.rstrip(b"\0").endswith(PNG_END) else "truncated PNG (no IEND chunk)"
+    return None
+
+
+def image_problem(data: bytes, what: str = "image") -> str | None:
+    """What makes ``data`` no image before any decoder sees it: empty, or a JPEG / PNG cut short; else None."""
+    if not len(data):
+        return f"empty {what} (0 bytes)"
+    problem = incomplete_image(data)
+    return f"{problem}: the {what} is cut short" if problem else None
+
+
+def decode_image(data: bytes, path, field: str | None = None, flags: int | None = None,
+                 what: str = "image") -> np.ndarray:
+    """``data`` decoded by OpenCV (``flags``: ``cv2.IMREAD_COLOR`` when None, so BGR); empty, cut short or not
+    decodable is a DataError naming the file and field."""
+    import cv2
+
+    problem = image_problem(data, what)
+    if problem:
+        raise DataError(path, field, problem)
+    with decoding(path if field is None else f"{path}: {field!r}", what):  # cv2.error on some bad buffers
+        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR if flags is None else flags)
+    if image is None:
+        raise DataError(path, field, f"cannot decode the {what} (corrupt or not an image)")
+    return image
+
+
+def read_image(path, flags: int | None = None, what: str = "image", max_bytes: int = MAX_IMAGE_BYTES) -> np.ndarray:
+    """The image file at ``path`` decoded by OpenCV (see :func:`decode_image`)."""
+    return decode_image(read_bytes(path, what, max_bytes), path, None, flags, what)
+
+
+def decode_pil(data: bytes, path, field: str | None = None, what: str = "image", mode: str = "RGB"):
+    """``data`` decoded by Pillow and converted to ``mode`` (decoded in full here, so a damaged file fails here and
+    nowhere later); empty, cut short or not decodable is a DataError naming the file and field."""
+    from PIL import Image, UnidentifiedImageError
+
+    problem = image_problem(data, what)
+    if problem:
+        raise DataError(path, field, problem)
+    try:
+        with Image.open(io.BytesIO(bytes(data))) as img:
+            out = img.convert(mode)
+            out.load()
+            return out
+    except (OSError, UnidentifiedImageError, ValueError, Image.DecompressionBombError, SyntaxError) as exc:
+        raise DataError(path, field, f"Pillow cannot decode this {what} ({exc})") from None
+
+
+def decode_mesh(data: bytes, path, file_type: str, what: str = "mesh", **options):
+    """What trimesh loads from ``data`` (a Trimesh, a Scene or a PointCloud, as trimesh returns it) with
+    ``options``; any failure of trimesh on these bytes is a DataError naming the file. Materials and textures are
+    looked up beside ``path`` unless ``options`` gives a resolver."""
+    import trimesh
+
+    if not len(data):
+        raise DataError(path, None, f"empty {what} file (0 bytes)")
+    options.setdefault("resolver", trimesh.resolvers.FilePathResolver(str(path)))
+    with decoding(path, what):  # trimesh raises many exception types on malformed files
+        return trimesh.load(io.BytesIO(bytes(data)), file_type=file_type, **options)
+
+
+def read_mesh(path, what: str = "mesh", max_bytes: int = MAX_MESH_BYTES, **options):
+    """The mesh file at ``path`` as trimesh loads it (its format from the suffix; see :func:`decode_mesh`)."""
+    suffix = Path(path).suffix.lower().lstrip(".")
+    if not suffix:
+        raise DataError(path, None, f"a {what} file needs a suffix that names its format (.ply, .obj, ...)")
+    return decode_mesh(read_bytes(path, what, max_bytes), path, suffix, what, **options)
+
