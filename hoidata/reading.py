@@ -74,19 +74,22 @@ def read_lines(path, what: str = "list", max_bytes: int = MAX_BYTES) -> list[str
     return [line.strip() for line in read_text(path, what, max_bytes).splitlines() if line.strip()]
 
 
-def json_depth(data: bytes, limit: int = MAX_JSON_DEPTH) -> int:
-    """How deep JSON ``data`` nests its arrays and objects (brackets inside strings not counted), read no further
-    than where it passes ``limit``: a cheap scan that runs before the parser, whose recursion it guards."""
+def too_deep(data: bytes, limit: int = MAX_JSON_DEPTH) -> bool:
+    """Whether JSON ``data`` nests its arrays and objects more than ``limit`` deep (brackets inside strings not
+    counted): a cheap scan that runs before the parser, whose recursion it guards. A file with no more than
+    ``limit`` opening brackets in all is not scanned."""
+    if data.count(b"[") + data.count(b"{") <= limit:
+        return False
     if b'"' in data:
         data = _STRING.sub(b"", data)
     brackets = np.frombuffer(data.translate(None, _NOT_BRACKETS), np.uint8)
-    depth = deepest = 0
+    depth = 0
     for start in range(0, len(brackets), _SCAN_BLOCK):
         steps = np.cumsum(_OPEN[brackets[start:start + _SCAN_BLOCK]], dtype=np.int64) + depth
-        deepest, depth = max(deepest, int(steps.max())), int(steps[-1])
-        if deepest > limit:
-            break
-    return deepest
+        if int(steps.max()) > limit:
+            return True
+        depth = int(steps[-1])
+    return False
 
 
 def numbers_only(data: bytes) -> bool:
@@ -105,8 +108,7 @@ def parse_json(data: bytes | str, path, field: str | None = None, what: str = "J
     raw = data if isinstance(data, (bytes, bytearray, memoryview)) else None
     source = text(raw, path, field, what) if raw is not None else data
     raw = bytes(raw) if raw is not None else source.encode("utf-8", "surrogatepass")
-    depth = json_depth(raw, max_depth)
-    if depth > max_depth:
+    if too_deep(raw, max_depth):
         raise DataError(path, field, f"not {what}: nested more than {max_depth} deep (JSON arrays and objects)")
     try:
         return json.loads(source)
@@ -126,6 +128,37 @@ def read_json(path, what: str = "JSON file", hint: str = "", max_bytes: int = MA
         if not hint:
             raise
         raise DataError(exc.path, exc.field, f"{exc.problem}; {hint}") from None
+
+
+def read_table(path, what: str = "table of numbers", max_bytes: int = MAX_BYTES) -> np.ndarray:
+    """A whitespace-separated table of numbers (``np.loadtxt``, float64, at least 2-D); anything else is a
+    DataError naming the file."""
+    source = read_text(path, what, max_bytes)
+    try:
+        return np.loadtxt(io.StringIO(source), dtype=np.float64, ndmin=2)
+    except ValueError as exc:
+        raise DataError(path, None, f"not a whitespace-separated {what} ({exc})") from None
+
+
+def read_yaml(path, what: str = "YAML file", max_bytes: int = MAX_BYTES):
+    """The value of a YAML file (``yaml.safe_load``: no tags that build objects); not UTF-8 or not YAML is a
+    DataError naming it. The caller checks the value's shape."""
+    import yaml
+
+    source = read_text(path, what, max_bytes)
+    with decoding(path, what):  # yaml.YAMLError, RecursionError on absurd nesting
+        return yaml.safe_load(source)
+
+
+def read_toml(path, what: str = "TOML file", max_bytes: int = 64 << 20) -> dict:
+    """The tables of a TOML file; not UTF-8 or not TOML is a DataError naming it."""
+    import tomllib
+
+    source = read_text(path, what, max_bytes)
+    try:
+        return tomllib.loads(source)
+    except (tomllib.TOMLDecodeError, RecursionError) as exc:
+        raise DataError(path, None, f"invalid TOML: {exc}") from None
 
 
 # ---------------------------------------------------------------- zip archives and .npz files
@@ -174,24 +207,46 @@ def read_zip_member(path, choose: Callable[[list[str]], str], what: str = "zip a
     return name, data
 
 
-def read_npz(path, keys: tuple[str, ...], what: str = ".npz file", max_bytes: int = MAX_BYTES,
-             data: bytes | None = None) -> dict[str, np.ndarray]:
-    """The arrays ``keys`` of an ``.npz`` (from ``data`` if given), pickles refused. A file that is not an npz, cut
-    short, damaged (a bad CRC), lacking a key or holding an object array is a DataError naming the file and
-    key. The caller checks dtypes and shapes (:func:`hoidata.shapes.numbers`)."""
+def open_npz(path, what: str = ".npz file", max_bytes: int = MAX_BYTES, data: bytes | None = None):
+    """The ``.npz`` at ``path`` (or in ``data``) opened, pickles refused: a numpy ``NpzFile`` to use in a ``with``
+    block. A file that is not an npz or is cut short is a DataError naming it."""
     data = read_bytes(path, what, max_bytes) if data is None else data
     with decoding(path, what):
         npz = np.load(io.BytesIO(data), allow_pickle=False)
     if not isinstance(npz, np.lib.npyio.NpzFile):
         raise DataError(path, None, f"not a {what}: a single .npy array, not an archive of named arrays")
-    out = {}
-    with npz:
-        for key in keys:
-            if key not in npz.files:
-                raise DataError(path, key, f"missing (the file holds {sorted(npz.files)})")
-            with decoding(f"{path}: {key!r}", "array"):
-                out[key] = npz[key]
-    return out
+    return npz
+
+
+def npz_array(npz, key: str, path) -> np.ndarray:
+    """Member ``key`` of an open npz decoded; missing, damaged (a bad CRC, cut short) or an object array is a
+    DataError naming the file and key."""
+    if key not in npz.files:
+        raise DataError(path, key, f"missing (the file holds {sorted(npz.files)})")
+    with decoding(f"{path}: {key!r}", "array"):
+        return npz[key]
+
+
+def npz_header(npz, key: str, path) -> tuple[tuple, np.dtype]:
+    """(shape, dtype) of member ``key`` of an open npz from its ``.npy`` header only (not decoded)."""
+    read = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+    with decoding(f"{path}: {key!r}", "array header"):
+        with npz.zip.open(f"{key}.npy") as f:
+            version = np.lib.format.read_magic(f)
+            if version not in read:  # format 3.0 (utf-8 field names): decode the member instead
+                value = npz[key]
+                return value.shape, value.dtype
+            shape, _, dtype = read[version](f)
+    return tuple(shape), np.dtype(dtype)
+
+
+def read_npz(path, keys: tuple[str, ...], what: str = ".npz file", max_bytes: int = MAX_BYTES,
+             data: bytes | None = None) -> dict[str, np.ndarray]:
+    """The arrays ``keys`` of an ``.npz`` (from ``data`` if given), pickles refused. A file that is not an npz, cut
+    short, damaged (a bad CRC), lacking a key or holding an object array is a DataError naming the file and
+    key. The caller checks dtypes and shapes (:func:`hoidata.shapes.numbers`)."""
+    with open_npz(path, what, max_bytes, data) as npz:
+        return {key: npz_array(npz, key, path) for key in keys}
 
 
 def decode_npy(data: bytes, path, field: str | None = None) -> np.ndarray:

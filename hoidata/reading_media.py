@@ -89,8 +89,12 @@ def decode_mesh(data: bytes, path, file_type: str, what: str = "mesh", **options
     if not len(data):
         raise DataError(path, None, f"empty {what} file (0 bytes)")
     options.setdefault("resolver", trimesh.resolvers.FilePathResolver(str(path)))
-    with decoding(path, what):  # trimesh raises many exception types on malformed files
+    try:
         return trimesh.load(io.BytesIO(bytes(data)), file_type=file_type, **options)
+    except Exception as exc:  # noqa: BLE001 - trimesh raises many exception types on malformed files
+        lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+        detail = f"{type(exc).__name__}: {lines[-1][:200]}" if lines else type(exc).__name__
+        raise DataError(path, None, f"cannot read {what} ({detail})") from exc
 
 
 def read_mesh(path, what: str = "mesh", max_bytes: int = MAX_MESH_BYTES, **options):

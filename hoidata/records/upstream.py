@@ -26,6 +26,8 @@ from hoidata import schema
 from hoidata.datasets.frame import Frame
 from hoidata.errors import DataError
 from hoidata.geometry import upstream_crop as up
+from hoidata.reading import read_bytes
+from hoidata.reading_media import MAX_IMAGE_BYTES, decode_pil
 
 CROPS = ("project", "upstream")
 IMAGE_SIZE = (640, 480)  # both datasets' frames; upstream clips its crop to them
@@ -76,20 +78,13 @@ class CropPolicy:
 def decode_as_upstream(frame: Frame, data: bytes | None = None):
     """The frame's image as upstream decodes it: ``PIL.Image.open(path).convert("RGB")``, size checked (``data``: the
     file's bytes, read already)."""
-    import io
-
-    from PIL import Image, UnidentifiedImageError
-
     from hoidata.datasets.frame import read_rgb
 
     if frame.image is not None:
         raise DataError(frame.image_path, "record.crop", "upstream's crop needs the original image file")
     read_rgb(frame.image_path, frame.image_size)  # the project's checks: present, complete, decodable, the size
-    try:
-        with Image.open(frame.image_path if data is None else io.BytesIO(data)) as img:
-            return img.convert("RGB")
-    except (OSError, UnidentifiedImageError) as exc:
-        raise DataError(frame.image_path, None, f"PIL cannot decode this image ({exc})") from None
+    data = read_bytes(frame.image_path, "image file", MAX_IMAGE_BYTES) if data is None else data
+    return decode_pil(data, frame.image_path, None, "image")
 
 
 def flip_image(image):
@@ -176,7 +171,7 @@ def region_view(frame: Frame, box3d: np.ndarray) -> dict:
     flipped for a left hand, black outside the frame; what readers get), ``to_pixels`` (3, 3) the frame -> region
     pixel map (a translation), ``meta``: schema.REGION_FIELDS."""
     x0, y0, n = region_square(frame, box3d)
-    data = Path(frame.image_path).read_bytes()
+    data = read_bytes(frame.image_path, "image file", MAX_IMAGE_BYTES)
     if data[:2] != b"\xff\xd8" and data[:8] != b"\x89PNG\r\n\x1a\n":
         raise DataError(frame.image_path, "record.upstream_region", "the record keeps the frame's file as shipped: a "
                                                                     "JPEG or PNG file, not this")

@@ -99,7 +99,7 @@ def check_mesh(path: Path | None) -> tuple[tuple[np.ndarray, np.ndarray] | None,
     try:
         mesh = read_mesh(path, process=False)
     except DataError as err:  # trimesh's many exception types on a damaged file, as one: each is a failure
-        return None, f"unreadable ({err.problem})"[:200]
+        return None, f"unreadable: {err.problem}"[:200]
     if not isinstance(mesh, trimesh.Trimesh):
         return None, f"not one triangle mesh (trimesh reads a {type(mesh).__name__})"
     vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
