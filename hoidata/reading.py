@@ -33,15 +33,26 @@ def _size_problem(size: int, limit: int, what: str) -> str:
     return f"{size:,} bytes, more than a {what} may hold ({limit:,})"
 
 
+def file_size(path, what: str = "file", max_bytes: int = MAX_BYTES) -> int:
+    """The size of the file at ``path``; missing, a folder or over ``max_bytes`` is a DataError naming it."""
+    try:
+        info = os.stat(path)
+    except FileNotFoundError:
+        raise DataError(path, None, f"{what} not found") from None
+    except OSError as exc:
+        raise DataError(path, None, f"cannot read the {what} ({exc.strerror or exc})") from None
+    if stat.S_ISDIR(info.st_mode):
+        raise DataError(path, None, f"a folder, not a {what}")
+    if info.st_size > max_bytes:
+        raise DataError(path, None, _size_problem(info.st_size, max_bytes, what))
+    return info.st_size
+
+
 def read_bytes(path, what: str = "file", max_bytes: int = MAX_BYTES) -> bytes:
     """The bytes of the file at ``path``; missing, a folder, unreadable or over ``max_bytes`` is a DataError
     naming it and ``what`` it should be."""
+    file_size(path, what, max_bytes)
     try:
-        info = os.stat(path)
-        if stat.S_ISDIR(info.st_mode):
-            raise DataError(path, None, f"a folder, not a {what}")
-        if info.st_size > max_bytes:
-            raise DataError(path, None, _size_problem(info.st_size, max_bytes, what))
         with open(path, "rb") as f:
             data = f.read(max_bytes + 1)  # a file that grows (or a pipe) is bounded too
     except FileNotFoundError:
@@ -51,6 +62,22 @@ def read_bytes(path, what: str = "file", max_bytes: int = MAX_BYTES) -> bytes:
     if len(data) > max_bytes:
         raise DataError(path, None, _size_problem(len(data), max_bytes, what))
     return data
+
+
+def file_digest(path, what: str = "file") -> tuple[int, str]:
+    """(size in bytes, sha256 hex) of the file at ``path``, read in 1 MiB blocks (never whole into memory)."""
+    import hashlib
+
+    file_size(path, what, 1 << 62)
+    sha, size = hashlib.sha256(), 0
+    try:
+        with open(path, "rb") as f:
+            while chunk := f.read(1 << 20):
+                sha.update(chunk)
+                size += len(chunk)
+    except OSError as exc:
+        raise DataError(path, None, f"cannot read the {what} ({exc.strerror or exc})") from None
+    return size, sha.hexdigest()
 
 
 def text(data: bytes, path, field: str | None = None, what: str = "text") -> str:
@@ -100,22 +127,23 @@ def numbers_only(data: bytes) -> bool:
 
 def parse_json(data: bytes | str, path, field: str | None = None, what: str = "JSON",
                max_depth: int = MAX_JSON_DEPTH):
-    """The value of JSON ``data`` (bytes decoded strictly as UTF-8); not UTF-8, not JSON or nested deeper than
-    ``max_depth`` is a DataError naming the file and field. The caller checks the value's shape
-    (:func:`hoidata.shapes.check`)."""
+    """The value of JSON ``data`` (bytes decoded strictly as UTF-8; ``what`` names it in that error); not UTF-8,
+    not JSON or nested deeper than ``max_depth`` is a DataError naming the file and field. The caller checks the
+    value's shape (:func:`hoidata.shapes.check`)."""
     import json
 
     raw = data if isinstance(data, (bytes, bytearray, memoryview)) else None
     source = text(raw, path, field, what) if raw is not None else data
     raw = bytes(raw) if raw is not None else source.encode("utf-8", "surrogatepass")
     if too_deep(raw, max_depth):
-        raise DataError(path, field, f"not {what}: nested more than {max_depth} deep (JSON arrays and objects)")
+        raise DataError(path, field, f"not JSON this reader takes: arrays and objects nested more than {max_depth} "
+                                     "deep")
     try:
         return json.loads(source)
     except RecursionError:  # only below the depth bound on a nearly exhausted stack
-        raise DataError(path, field, f"not {what}: nested too deeply to read") from None
+        raise DataError(path, field, "not JSON this reader takes: nested too deeply to read") from None
     except ValueError as exc:
-        raise DataError(path, field, f"not {what} ({exc})") from None
+        raise DataError(path, field, f"not JSON ({exc})") from None
 
 
 def read_json(path, what: str = "JSON file", hint: str = "", max_bytes: int = MAX_BYTES):
@@ -123,7 +151,7 @@ def read_json(path, what: str = "JSON file", hint: str = "", max_bytes: int = MA
     or nested too deeply is one DataError naming it, ``what`` it should be and ``hint`` (what to do). The caller
     checks the value's shape."""
     try:
-        return parse_json(read_bytes(path, what, max_bytes), path, None, what)
+        return parse_json(read_bytes(path, what, max_bytes), path, None, f"JSON ({what})")
     except DataError as exc:
         if not hint:
             raise
@@ -169,11 +197,12 @@ ZIP_ERRORS = (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError, Not
 def is_zip(data_or_path) -> bool:
     """Whether a file (or its first bytes) starts as a zip archive does, even when it is cut short (a truncated
     archive has lost its end record, which :func:`zipfile.is_zipfile` looks for)."""
-    head = data_or_path[:4] if isinstance(data_or_path, (bytes, bytearray)) else _head(data_or_path, 4)
+    head = data_or_path[:4] if isinstance(data_or_path, (bytes, bytearray)) else head_bytes(data_or_path, 4)
     return head in (b"PK\x03\x04", b"PK\x05\x06")
 
 
-def _head(path, count: int) -> bytes:
+def head_bytes(path, count: int) -> bytes:
+    """The first ``count`` bytes of a file (fewer for a shorter one; none when it cannot be read)."""
     try:
         with open(path, "rb") as f:
             return f.read(count)
@@ -181,12 +210,23 @@ def _head(path, count: int) -> bytes:
         return b""
 
 
+def describe_head(head: bytes) -> str:
+    """What a file's first bytes look like, for a message: ``it starts with '{' (JSON?)``, ``it is empty``."""
+    if not head:
+        return "it is empty (0 bytes)"
+    if head.lstrip()[:1] in (b"{", b"["):
+        return f"it starts with {head.lstrip()[:1].decode()!r} (JSON?)"
+    if all(32 <= b < 127 or b in b"\t\r\n\x1b" for b in head):
+        return f"it starts with {head.decode('ascii')!r} (text?)"
+    return f"it starts with the bytes {head.hex(' ')}"
+
+
 def read_zip_member(path, choose: Callable[[list[str]], str], what: str = "zip archive",
                     max_bytes: int = MAX_BYTES) -> tuple[str, bytes]:
     """(name, bytes) of the member of the zip archive at ``path`` that ``choose`` picks from the names of its file
     members (``choose`` raises a DataError when none fits). An archive cut short or damaged, a member over
     ``max_bytes`` or whose bytes fail their CRC is a DataError naming the archive and the member."""
-    read_bytes(path, what, max_bytes)  # present, a file, within the bound
+    file_size(path, what, max_bytes)  # present, a file, within the bound
     try:
         with zipfile.ZipFile(path) as zf:
             infos = {i.filename: i for i in zf.infolist() if not i.is_dir()}

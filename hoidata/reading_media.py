@@ -1,22 +1,26 @@
-"""The guarded door's images and meshes (:mod:`hoidata.reading` for the rest): an empty, cut-short or undecodable
-image and a mesh that its decoder refuses are each one DataError naming the file (and member), never the
-decoder's own exception (OpenCV's ``cv2.error`` on an empty buffer, Pillow's ``OSError``, trimesh's many).
+"""The guarded door's images, meshes and PyTorch checkpoints (:mod:`hoidata.reading` for the rest): an empty,
+cut-short or undecodable image, a mesh that its decoder refuses and a file that is not a checkpoint are each one
+DataError naming the file (and member), never the decoder's own exception (OpenCV's ``cv2.error`` on an empty
+buffer, Pillow's ``OSError``, trimesh's many, torch's ``weights_only`` advice).
 """
 
 from __future__ import annotations
 
 import io
+import re
 from pathlib import Path
 
 import numpy as np
 
 from hoidata.errors import DataError, decoding
-from hoidata.reading import MAX_BYTES, read_bytes
+from hoidata.reading import describe_head, file_size, head_bytes, read_bytes
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 PNG_END = b"IEND\xaeB`\x82"  # the IEND chunk's type and CRC, the last bytes of every PNG
 MAX_IMAGE_BYTES = 256 << 20
 MAX_MESH_BYTES = 2 << 30
+TORCH_HEADS = (b"PK\x03\x04", b"\x80")  # torch.save's zip archive; its legacy format, a pickle
+_ANSI = re.compile(r"\x1b\[[0-9;?]*[ -/]*[@-~]")  # terminal colour / bold codes
 
 
 def incomplete_image(data: bytes) -> str | None:
@@ -104,3 +108,45 @@ def read_mesh(path, what: str = "mesh", max_bytes: int = MAX_MESH_BYTES, **optio
         raise DataError(path, None, f"a {what} file needs a suffix that names its format (.ply, .obj, ...)")
     return decode_mesh(read_bytes(path, what, max_bytes), path, suffix, what, **options)
 
+
+
+# ---------------------------------------------------------------- PyTorch checkpoints
+
+
+def refusal_text(exc: BaseException) -> str:
+    """One plain line for an error of ``torch.load(..., weights_only=True)`` (checkpoints, weights files): the
+    terminal codes stripped, and for a refused pickle what it held, without torch's advice to load it with
+    ``weights_only=False`` or to allow-list a global (either would run the code in the file)."""
+    text = _ANSI.sub("", str(exc))
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    if "weights only load failed" not in text.lower() and "weightsunpickler" not in text.lower():
+        return lines[0] if lines else type(exc).__name__
+    findings = []
+    for line in lines:
+        if line.startswith(("Weights only load failed", "Check the documentation", "Please file", "(1)", "(2)")):
+            continue  # torch's advice, not what it found
+        line = line.split("WeightsUnpickler error:", 1)[-1].strip()
+        if line:
+            findings.append(re.split(r"\.(?:\s|$)", line)[0])  # the finding, not the advice that follows it
+    what = findings[0] if findings else "a pickle torch does not accept"
+    if "GLOBAL" in what or "global" in what:
+        return (f"it holds more than tensors and plain values ({what}); it was not loaded, since loading it "
+                "would run code from the file")
+    return f"not a file torch reads safely ({what}): damaged, or not a checkpoint"
+
+
+def read_torch(path, what: str = "PyTorch checkpoint", map_location="cpu"):
+    """``torch.load(path, weights_only=True)``: no code in the file runs. A file that does not start as a
+    checkpoint does (JSON, text, an image) is refused before torch sees it, saying what it looks like; a damaged
+    one, or one holding more than tensors and plain values, is one DataError line without torch's advice."""
+    import torch
+
+    file_size(path, what, 1 << 62)  # present and a file (torch reads it)
+    head = head_bytes(path, 16)
+    if not head.startswith(TORCH_HEADS):
+        raise DataError(path, None, f"not a {what}: {describe_head(head)}, where a checkpoint starts with a zip "
+                                    "or pickle header; damaged, or another kind of file")
+    try:
+        return torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - a damaged or crafted file: one line naming it
+        raise DataError(path, None, f"not a readable {what} ({refusal_text(exc)})") from None

@@ -30,6 +30,7 @@ import numpy as np
 
 from hoidata.export.files import link, write_coco
 from hoidata.hand.pose import flat_to_mean_relative
+from hoidata.reading import read_lines
 
 
 def cam_param(K: np.ndarray) -> dict:
@@ -76,7 +77,7 @@ def finish(out: Path, cfg, splits, entries, root: Path, models_dir: Path) -> tup
         notes.append(f"{name}: {n} annotations")
         listed = root / f"{split}.txt"
         if dataset == "ho3d" and split == "evaluation" and listed.is_file():
-            lines = sum(1 for line in listed.read_text().splitlines() if line.strip())
+            lines = len(read_lines(listed, "HO-3D frame list"))
             if n != lines:  # HandOccNet dumps its predictions in annotation order, the challenge scores all lines
                 notes.append(f"warning: {name} holds {n} of the {lines} frames of {listed.name}: a prediction file "
                              "made from it would not be complete")

@@ -23,7 +23,8 @@ from pathlib import Path
 from hoidata import schema
 from hoidata.datasets.open import read_splits
 from hoidata.engine import Plan, RunSummary, ShardTask, run_task
-from hoidata.errors import DataError, read_json
+from hoidata.errors import DataError
+from hoidata.reading import read_json
 from hoidata.export import gsdf, handoccnet
 from hoidata.export.files import write_json
 from hoidata.export.worker import ExportJob, ExportWorkerSpec, chunk_path

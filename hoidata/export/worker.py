@@ -6,8 +6,6 @@ the raw object files, and the store whose SDF rows a gsdf export re-uses."""
 
 from __future__ import annotations
 
-import io
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -16,6 +14,7 @@ import numpy as np
 from hoidata.errors import DataError
 from hoidata.export import gsdf, handoccnet
 from hoidata.export.files import write_json
+from hoidata.reading import decode_npy, parse_json
 from hoidata.records import RecordWorker
 
 
@@ -100,8 +99,8 @@ class ExportWorker:
             for members in store.read_shard_members(self.store / name):  # checks the tar and member names
                 if schema.SDF not in members:  # an 'eval' record: no SDF rows to re-use
                     continue
-                meta = json.loads(members[schema.META])
-                sdf = np.load(io.BytesIO(members[schema.SDF]), allow_pickle=False)
+                meta = parse_json(members[schema.META], self.store / name, schema.META)
+                sdf = decode_npy(members[schema.SDF], self.store / name, schema.SDF)
                 schema.dequantize_sdf(sdf)  # raises ValueError unless int16 (N, 6)
                 self._shards[name][meta["key"]] = {"sdf": sdf, "meta": meta}
         return self._shards[name].get(key)

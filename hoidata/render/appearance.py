@@ -8,7 +8,6 @@ from pathlib import Path
 
 import numpy as np
 
-from hoidata.errors import DataError
 from hoidata.reading import read_bytes
 from hoidata.reading_media import MAX_IMAGE_BYTES, decode_pil
 

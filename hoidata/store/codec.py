@@ -268,7 +268,8 @@ def _decode_image(data: bytes, where, key, member: str) -> np.ndarray:
     kind = {IMG: "JPEG", IMG_LOSSLESS: "8-bit RGB PNG"}.get(member, "8-bit grey PNG")
     if size is None or not 0 < max(size) <= MAX_IMAGE_SIDE:
         raise DataError(where, _field(key, member), f"not a {kind} of at most {MAX_IMAGE_SIDE} px (header: {size})")
-    # RGB straight (the door refuses a JPEG or PNG cut short) from the decoder: the values of BGR then cvtColor (or [..., ::-1]), without the extra pass
+    # RGB straight from the decoder: the values of BGR then cvtColor (or [..., ::-1]), without the extra pass (the
+    # door refuses a JPEG or PNG cut short)
     flag = cv2.IMREAD_COLOR_RGB if member in (IMG, IMG_LOSSLESS) else cv2.IMREAD_UNCHANGED
     return decode_image(data, where, _field(key, member), flag, kind)
 

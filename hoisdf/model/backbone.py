@@ -241,13 +241,9 @@ class ResNetUNet(nn.Module):
             path = Path(weights)
             if not path.is_file():
                 raise FileNotFoundError(f"backbone weights file not found: {path}")
-        try:
-            state = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as exc:  # noqa: BLE001 - a damaged or crafted file: one line naming it
-            from hoidata.errors import DataError
-            from hoidata.safe_pickle import refusal_text
+        from hoidata.reading_media import read_torch
 
-            raise DataError(path, None, f"cannot read the backbone weights: {refusal_text(exc)}") from None
+        state = read_torch(path, "backbone weights file")
         state = {k: v for k, v in state.items() if not k.startswith("fc.")}
         self.backbone.load_state_dict(state, strict=True)
 

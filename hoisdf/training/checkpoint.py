@@ -138,13 +138,10 @@ def find_checkpoint(run_or_file: str | os.PathLike) -> Path:
 
 def load_checkpoint(run_or_file: str | os.PathLike, map_location="cpu") -> dict:
     """Read a checkpoint with ``weights_only=True`` (no code in the file is run); errors name the file."""
-    path = find_checkpoint(run_or_file)
-    try:
-        payload = torch.load(path, map_location=map_location, weights_only=True)
-    except Exception as e:
-        from hoidata.safe_pickle import refusal_text
+    from hoidata.reading_media import read_torch
 
-        raise DataError(path, None, f"cannot read checkpoint: {refusal_text(e)}") from e
+    path = find_checkpoint(run_or_file)
+    payload = read_torch(path, "checkpoint", map_location)
     if not isinstance(payload, dict):
         raise DataError(path, None, f"expected a checkpoint dict, got {type(payload).__name__}")
     for key in ("model", "config"):

@@ -23,6 +23,7 @@ from torch import nn
 
 from hoidata.atomic import append_whole, write_atomic
 from hoidata.errors import DataError, naming_os_errors
+from hoidata.reading import read_text
 from hoidata.store import read_index
 from hoisdf.config import TrainConfig, sdf_rows
 from hoisdf.data import StoreSpec, build_dataset, make_loader
@@ -100,8 +101,7 @@ def trim_log(path: Path, global_step: int) -> None:
     """Drop the metrics.csv rows logged after ``global_step`` (a resumed run logs those steps again)."""
     if not path.is_file():
         return
-    with open(path, newline="") as f:
-        rows = list(csv.reader(f))
+    rows = list(csv.reader(io.StringIO(read_text(path, "training log"), newline="")))
     if not rows:
         return
     kept = [rows[0]] + [r for r in rows[1:] if len(r) == 5 and r[2].isdigit() and int(r[2]) <= global_step]
