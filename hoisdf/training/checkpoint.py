@@ -5,12 +5,14 @@ A run folder (``python -m hoisdf.train --out RUN``) holds::
     RUN/config.json            resolved TrainConfig, stores, git commit, package version
     RUN/checkpoints/last.pt    the newest checkpoint (also epoch-NNN.pt at epoch ends)
     RUN/metrics.csv            one line per logging step and per validation (the training curve)
+    RUN/keys-rank<R>.txt       with train.record_keys: the key of every record trained on, per rank
     RUN/tb/                    TensorBoard event files
 
 A checkpoint is a dict: ``model`` (state dict; MANO is not in it), ``optimizer``, ``scheduler``, ``rng``
 (torch CPU / CUDA and Python ``random`` states, the augmentation generator) of rank 0 and ``rng_ranks`` (the
 same for every rank, in rank order: a DDP resume gives each rank its own), ``progress`` (epoch, step in
-the epoch, global step) and ``config`` (TrainConfig.as_dict()).
+the epoch, global step), ``config`` (TrainConfig.as_dict()) and ``keys_bytes`` (per rank, the size its keys file had:
+``--resume`` cuts it back to that).
 """
 
 from __future__ import annotations
