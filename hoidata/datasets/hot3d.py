@@ -47,6 +47,7 @@ from hoidata.geometry.fisheye624 import Fisheye624
 from hoidata.hand.pose import change_frame, pca_to_axis_angle
 from hoidata.reading import parse_json
 from hoidata.reading_media import decode_image
+from hoidata.shapes import ANY, Integer, MapOf, check
 
 CLIP_FOLDERS = ("train_aria", "train_quest3")
 SPLITS = ("train", "val")
@@ -248,7 +249,12 @@ def object_mask_iou(frame: Frame, ours: np.ndarray, to_mask: np.ndarray) -> floa
     src = frame.image_source
     name = f"{frame.source['key']}.objects.json"
     objects = parse_json(ClipMembers(Path(src.tar)).read(tuple(frame.source["objects_json"]), name), src.tar, name)
-    rle = objects[frame.source["object_uid"]][0].get("masks_amodal", {}).get(frame.source["stream"])
+    uid = frame.source["object_uid"]
+    instances = check(objects, MapOf(ANY), src.tar, name).get(uid)
+    if not isinstance(instances, list) or not instances or not isinstance(instances[0], dict):
+        raise DataError(src.tar, f"{name}: {uid}", "no instance of the frame's object (the clip changed?)")
+    masks = instances[0].get("masks_amodal", {})
+    rle = masks.get(frame.source["stream"]) if isinstance(masks, dict) else None
     if rle is None:
         return -1.0
     mask = rle_decode(rle, src.tar, f"{name}: {frame.source['object_uid']}.masks_amodal.{frame.source['stream']}")
@@ -294,6 +300,7 @@ def nearest_object(objects: dict, point: np.ndarray, path, name: str) -> tuple[i
         for inst in instances if isinstance(instances, list) else [instances]:
             if not isinstance(inst, dict) or "object_bop_id" not in inst:
                 raise DataError(path, f"{name}: {uid}.object_bop_id", "missing")
+            check(inst["object_bop_id"], Integer(0), path, f"{name}: {uid}.object_bop_id")
             pose = transform(inst.get("T_world_from_object"), path, f"{name}: {uid}.T_world_from_object")
             d = float(np.linalg.norm(pose[:3, 3] - point))
             if best is None or d < best[0]:

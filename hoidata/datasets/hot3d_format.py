@@ -18,7 +18,7 @@ from hoidata.geometry.crop_camera import crop_intrinsics
 from hoidata.geometry.fisheye624 import Fisheye624
 from hoidata.geometry.se3 import se3_from_wxyz
 from hoidata.reading import list_tar, parse_json, read_span
-from hoidata.shapes import ANY, MapOf, check
+from hoidata.shapes import ANY, Integer, MapOf, Record, String, check
 from hoidata.shapes import numbers as declared_numbers
 
 HAND_SHAPES = "__hand_shapes.json__"
@@ -28,6 +28,9 @@ SIDES = ("left", "right")
 RLE_LOOP_RUNS = 20_000  # rle_decode sets up to this many runs one slice each, more through one cumulative sum
 
 
+CAMERA = Record({"calibration": Record({"projection_model_type": String(), "projection_params": ANY, "label": String(),
+                                         "image_width": Integer(1, 1 << 16), "image_height": Integer(1, 1 << 16)}),
+                 "T_world_from_camera": ANY})  # one cameras.json entry; the parameters and pose checked below
 FRAME_SHAPES = {"hand_crops.json": MapOf(MapOf(ANY))}  # each side: {stream: crop}; other members: an object
 
 
@@ -129,15 +132,13 @@ class StreamCamera:
 
 def stream_camera(value, path, name: str) -> StreamCamera:
     """One entry of ``cameras.json`` (``name`` = ``<key>.cameras.json: <stream>``)."""
-    try:
-        calib = value["calibration"]
-        model, params = calib["projection_model_type"], calib["projection_params"]
-        width, height, label = int(calib["image_width"]), int(calib["image_height"]), str(calib["label"])
-        pose = value["T_world_from_camera"]
-    except (KeyError, TypeError, ValueError) as e:
-        raise DataError(path, name, f"camera entry lacks {e}") from None
+    entry = check(value, CAMERA, path, name)
+    calib, pose = entry["calibration"], entry["T_world_from_camera"]
+    model, params, label = calib["projection_model_type"], calib["projection_params"], calib["label"]
+    width, height = calib["image_width"], calib["image_height"]
     if model != FISHEYE624:
         raise DataError(path, f"{name}.projection_model_type", f"expected {FISHEYE624}, got {model!r}")
+    params = declared_numbers(params, path, f"{name}.projection_params", (None,))
     try:
         camera = Fisheye624.from_params(params, width, height)
     except (TypeError, ValueError) as e:

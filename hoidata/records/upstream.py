@@ -165,16 +165,22 @@ def region_square(frame: Frame, box3d: np.ndarray | None) -> tuple[int, int, int
     return x0 - (grown - n) // 2, y0 - (grown - n) // 2, grown
 
 
+def frame_file(frame: Frame) -> bytes:
+    """The frame's image file as shipped (what a record.upstream_region record keeps): a JPEG or PNG file."""
+    data = read_bytes(frame.image_path, "image file", MAX_IMAGE_BYTES)
+    if data[:2] != b"\xff\xd8" and data[:8] != b"\x89PNG\r\n\x1a\n":
+        raise DataError(frame.image_path, "record.upstream_region", "the record keeps the frame's file as shipped: a "
+                                                                    "JPEG or PNG file, not this")
+    return data
+
+
 def region_view(frame: Frame, box3d: np.ndarray) -> dict:
     """A record.upstream_region record's image and fields: ``frame_bytes`` the original frame file's bytes (what the
     record stores, as shipped), ``img`` (n, n, 3) uint8 the square of that frame (decoded as upstream decodes it,
     flipped for a left hand, black outside the frame; what readers get), ``to_pixels`` (3, 3) the frame -> region
     pixel map (a translation), ``meta``: schema.REGION_FIELDS."""
     x0, y0, n = region_square(frame, box3d)
-    data = read_bytes(frame.image_path, "image file", MAX_IMAGE_BYTES)
-    if data[:2] != b"\xff\xd8" and data[:8] != b"\x89PNG\r\n\x1a\n":
-        raise DataError(frame.image_path, "record.upstream_region", "the record keeps the frame's file as shipped: a "
-                                                                    "JPEG or PNG file, not this")
+    data = frame_file(frame)
     image = decode_as_upstream(frame, data)
     image = flip_image(image) if frame.mirror else image
     inputs = train_inputs(frame, box3d)

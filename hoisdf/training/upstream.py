@@ -160,8 +160,8 @@ def checked_weight(value: torch.Tensor, dtype: torch.dtype, path, field: str) ->
         "bool" if value.dtype == torch.bool else "integer"
     want = "float" if dtype.is_floating_point else "integer"
     if kind != want:
-        raise DataError(path, field, f"{value.dtype} values where the model holds {dtype} ones: a {want} weight "
-                                     f"stored as {kind} values (a damaged or converted file); refused, not cast")
+        raise DataError(path, field, f"{value.dtype} values where the model holds {dtype} ones ({kind} values where "
+                                     f"{want} ones belong: a damaged or converted file); refused, not cast")
     cast = value.to(dtype)
     if want == "float":
         nan, inf = int(torch.isnan(cast).sum()), int(torch.isinf(cast).sum())
