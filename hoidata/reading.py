@@ -161,9 +161,13 @@ def read_json(path, what: str = "JSON file", hint: str = "", max_bytes: int = MA
 def read_table(path, what: str = "table of numbers", max_bytes: int = MAX_BYTES) -> np.ndarray:
     """A whitespace-separated table of numbers (``np.loadtxt``, float64, at least 2-D); anything else is a
     DataError naming the file."""
+    import warnings
+
     source = read_text(path, what, max_bytes)
     try:
-        return np.loadtxt(io.StringIO(source), dtype=np.float64, ndmin=2)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # "input contained no data": an empty table, for the caller to judge
+            return np.loadtxt(io.StringIO(source), dtype=np.float64, ndmin=2)
     except ValueError as exc:
         raise DataError(path, None, f"not a whitespace-separated {what} ({exc})") from None
 
@@ -229,8 +233,12 @@ def read_zip_member(path, choose: Callable[[list[str]], str], what: str = "zip a
     file_size(path, what, max_bytes)  # present, a file, within the bound
     try:
         with zipfile.ZipFile(path) as zf:
-            infos = {i.filename: i for i in zf.infolist() if not i.is_dir()}
+            files = [i for i in zf.infolist() if not i.is_dir()]
+            infos = {i.filename: i for i in files}
             name = choose(list(infos))
+            if sum(i.filename == name for i in files) > 1:
+                raise DataError(path, name, "two members of the archive have this name: which one is meant is not "
+                                            "known")
             info = infos[name]
             if info.file_size > max_bytes:
                 raise DataError(path, name, _size_problem(info.file_size, max_bytes, "member"))

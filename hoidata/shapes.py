@@ -23,7 +23,9 @@ def kind_of(value) -> str:
         return "null"
     if isinstance(value, str):
         return f"a string ({value[:20]!r}{'...' if len(value) > 20 else ''})"
-    if isinstance(value, (int, float)):
+    if isinstance(value, float):
+        return f"the number {value!r}"
+    if isinstance(value, int):
         return "a number"
     if isinstance(value, dict):
         return "an object"

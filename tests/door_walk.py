@@ -96,11 +96,11 @@ def _functions(tree: ast.AST):
 
 
 def _own_calls(func: ast.AST):
-    """Calls in a function's body, not in the functions nested in it."""
+    """Calls in a function's body (its lambdas and comprehensions included), not in the functions nested in it."""
     todo = list(ast.iter_child_nodes(func))
     while todo:
         node = todo.pop()
-        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda, ast.ClassDef)):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
             continue
         if isinstance(node, ast.Call):
             yield node

@@ -180,7 +180,7 @@ def read_labels(path: Path, num_objects: int, keys=None, check_rest: bool = True
             continue
         if found[key][0] != shape:
             raise DataError(path, key, f"expected shape {shape}, got {found[key][0]}")
-        if found[key][1].kind not in "biuf":
+        if found[key][1].kind not in "iuf":  # numbers, never booleans or strings
             raise DataError(path, key, f"expected numbers, got dtype {found[key][1]}")
     return labels
 

@@ -33,11 +33,12 @@ def shard_rows(path: Path) -> dict[str, dict]:
     for members in store.read_shard_members(path):
         if schema.SDF not in members:
             continue
-        meta = check(parse_json(members[schema.META], path, schema.META), Record({"key": String()}), path,
-                     schema.META)
-        sdf = decode_npy(members[schema.SDF], path, schema.SDF)
+        key = members.get("__key__")
+        meta = check(parse_json(store.record_member(members, schema.META, path), path, f"{key}.{schema.META}"),
+                     Record({"key": String()}), path, f"{key}.{schema.META}")
+        sdf = decode_npy(members[schema.SDF], path, f"{key}.{schema.SDF}")
         if sdf.dtype != np.int16 or sdf.ndim != 2 or sdf.shape[1] != 6:
-            raise DataError(path, schema.SDF, f"expected int16 (N, 6) rows, got {sdf.dtype} {sdf.shape}")
+            raise DataError(path, f"{key}.{schema.SDF}", f"expected int16 (N, 6) rows, got {sdf.dtype} {sdf.shape}")
         out[meta["key"]] = {"sdf": sdf, "meta": meta}
     return out
 

@@ -23,6 +23,7 @@ import trimesh
 from hoidata.errors import DataError, naming_os_errors
 from hoidata.reading import read_bytes, read_npz, read_table
 from hoidata.reading_media import decode_mesh, read_mesh
+from hoidata.shapes import not_finite
 from hoidata.objects.meshops import (
     MeshReport,
     check_mesh,
@@ -123,6 +124,9 @@ def load_object_mesh(path: str | os.PathLike) -> trimesh.Trimesh:
         loaded = geometries[0] if geometries else None
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
         raise DataError(path, "faces", "no triangle faces")
+    problem = not_finite(np.asarray(loaded.vertices))
+    if problem:
+        raise DataError(path, "vertices", f"{loaded.vertices.size} coordinates, {problem}")
     return loaded
 
 
@@ -149,6 +153,9 @@ def load_points(path: str | os.PathLike) -> np.ndarray:
     """(N, 3) float64 points of a ``points.xyz`` file (metres)."""
     path = Path(path)
     points = read_table(path, "'x y z' points file")
+    problem = not_finite(points)
+    if problem:
+        raise DataError(path, "points", f"{points.size} coordinates, {problem}")
     if points.shape[1] != 3 or len(points) == 0:
         raise DataError(path, "points", f"expected (N, 3) coordinates, got shape {points.shape}")
     return points

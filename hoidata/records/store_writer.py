@@ -41,7 +41,7 @@ def read_shard_skips(out: Path, number: int) -> dict:
     """Shard ``number``'s skips file, checked: {"skipped": [...], "records": n, "inputs": {...}, ...}."""
     path = Path(out) / extra_name(number)
     value = read_json(path, "skips file", "rerun the build to rewrite it")
-    ok = isinstance(value, dict) and isinstance(value.get("skipped"), list) and isinstance(value.get("records"), int)
+    ok = isinstance(value, dict) and isinstance(value.get("skipped"), list) and type(value.get("records")) is int
     if not ok or not all(isinstance(s, dict) and {"frame_id", "reason"} <= set(s) for s in value["skipped"]):
         raise DataError(path, None, "not a skips file (expected 'skipped' entries and 'records'); rerun the build")
     return value
@@ -117,7 +117,7 @@ def _shard_metas(path: Path, info) -> list[dict]:
     digest = hashlib.sha256()
     try:
         members = store.read_shard_members(path, info.size, digest)
-        metas = [parse_json(m[schema.META], path, schema.META) for m in members]
+        metas = [parse_json(store.record_member(m, schema.META, path), path, f"{m.get('__key__')}.{schema.META}") for m in members]
     except DataError as exc:
         raise DataError(path, exc.field, f"{exc.problem}; rerun the build into this folder to rewrite it") from None
     if digest.hexdigest() != info.sha256:
@@ -153,7 +153,7 @@ def check_build_file(out: Path, config: dict, keys: list[str], inputs: dict) -> 
             "frames": len(keys), "schema_version": schema.SCHEMA_VERSION, "inputs": inputs}
     spec = json.loads(json.dumps(spec))
     path = Path(out) / BUILD_FILE
-    if path.is_file():
+    if path.exists():  # a folder of that name is refused by the read
         old = read_json(path, "store build file", "use a new --out folder")
         where = fingerprint.first_difference(fingerprint.current_names(old, RecordSettings.RENAMED), spec)
         if where is not None:

@@ -18,6 +18,7 @@ from hoidata.errors import DataError
 from hoidata.geometry.upstream_crop import cut_region
 from hoidata.reading import decode_npy, parse_json
 from hoidata.reading_media import PNG_MAGIC, decode_image, decode_pil, incomplete_image
+from hoidata.shapes import first_non_number, kind_of
 from hoidata.schema import (
     CROP_FIELDS,
     FRAME_JPG,
@@ -172,6 +173,9 @@ def _check_meta(meta, where, key, n_sdf: int | None, kind: str | None = None, im
                                              f"({OBJECT_IDS.start}..{OBJECT_IDS.stop - 1})")
             out[field_name] = value
             continue
+        bad = first_non_number(value)  # numpy would take "1" and true for numbers
+        if bad is not None:
+            raise DataError(where, name, f"{field_name!r}: expected numbers, got {kind_of(bad[1])}")
         try:
             arr = np.asarray(value, dtype=np.float64)
         except (TypeError, ValueError, OverflowError):

@@ -223,11 +223,15 @@ def read_curve(metrics_csv) -> dict[str, dict[str, tuple[np.ndarray, np.ndarray]
     """``RUN/metrics.csv`` -> {split: {name: (steps (n,), values (n,))}}; malformed rows are a DataError."""
     path = Path(metrics_csv)
     series: dict[str, dict[str, list]] = {}
-    reader = csv.DictReader(io.StringIO(read_text(path, "training curve"), newline=""))
-    missing = {"split", "step", "name", "value"} - set(reader.fieldnames or ())
+    try:
+        reader = csv.DictReader(io.StringIO(read_text(path, "training curve"), newline=""))
+        columns, rows = reader.fieldnames, list(reader)
+    except csv.Error as exc:  # a field past csv's limit
+        raise DataError(path, None, f"not a training curve ({exc})") from None
+    missing = {"split", "step", "name", "value"} - set(columns or ())
     if missing:
         raise DataError(path, "header", f"missing column(s) {sorted(missing)}")
-    for line, row in enumerate(reader, start=2):
+    for line, row in enumerate(rows, start=2):
         try:
             step, value = int(float(row["step"])), float(row["value"])
         except (TypeError, ValueError):

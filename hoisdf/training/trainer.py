@@ -122,7 +122,10 @@ def trim_log(path: Path, global_step: int) -> None:
     """Drop the metrics.csv rows logged after ``global_step`` (a resumed run logs those steps again)."""
     if not path.is_file():
         return
-    rows = list(csv.reader(io.StringIO(read_text(path, "training log"), newline="")))
+    try:
+        rows = list(csv.reader(io.StringIO(read_text(path, "training log"), newline="")))
+    except csv.Error as exc:  # a field past csv's limit: not a log this run wrote
+        raise DataError(path, None, f"not a training log ({exc})") from None
     if not rows:
         return
     kept = [rows[0]] + [r for r in rows[1:] if len(r) == 5 and r[2].isdigit() and int(r[2]) <= global_step]

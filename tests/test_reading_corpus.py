@@ -1,0 +1,98 @@
+"""Issue 44, part 2: every reader of the project fed one corpus of damaged files (tests/reading_corpus.py: missing,
+a folder, empty, random bytes, not UTF-8, cut in half, JSON nested 100,000 deep, a number as a string, a boolean or
+NaN, a bad CRC, a duplicate member), each answered by one DataError line naming the file (and the member), never a
+traceback, and taken without a word only where the reader's contract is lenient (docs/reliability.md, "One guarded
+door").
+
+The walk is checked from both sides: a file read outside the door (:mod:`hoidata.reading`) fails
+test_reading.py's source scan, and a reader through the door that no case here feeds fails the coverage check
+below (every function that calls the door, found in the source, must have been seen calling it).
+"""
+
+from __future__ import annotations
+
+import re
+import sys
+import threading
+
+import pytest
+from door_walk import DOOR, READER_ENTRIES, door_readers
+from reading_cases import data_cases, hot3d_cases, scorer_cases, store_cases, training_cases
+from reading_corpus import DAMAGES
+
+from hoidata.errors import DataError
+
+
+def _names_the_file(message: str, path, damage: str) -> bool:
+    places = [path] + (list(path.parents)[:3] if damage in ("missing", "folder") else [])
+    return any(str(p) in message for p in places)
+
+
+def outcome(case, damage, folder) -> str | None:
+    """What went wrong when ``case`` read ``damage`` (None: refused in one line naming the file and member, or a
+    damage its contract lets it take); "n/a" where the damage does not apply to the format."""
+    path = case.place(folder, damage)
+    if path is None:
+        return "n/a"
+    try:
+        case.read(path)
+    except DataError as exc:
+        text = str(exc)
+        shown = case.shows or case.member
+        if "\n" in text or not _names_the_file(text, path, damage) or (shown and shown not in text):
+            return f"refused without naming {path.name}{' and ' + shown if shown else ''}: {text}"
+        return None
+    except Exception as exc:  # noqa: BLE001 - the defect this test exists for
+        return f"traceback: {type(exc).__name__}: {str(exc)[:300]}"
+    if damage is not None and damage not in case.accepts:
+        return "taken without a word"
+    return None
+
+
+def _callers():
+    """A profiler hook recording (module, function) of every call into a door entry, and the set it fills."""
+    from hoidata import reading, reading_media
+
+    codes = {getattr(m, n).__code__ for m in (reading, reading_media) for n in READER_ENTRIES if hasattr(m, n)}
+    seen = set()
+
+    def hook(frame, event, arg):
+        if event == "call" and frame.f_code in codes and frame.f_back is not None:
+            module = frame.f_back.f_globals.get("__name__", "")
+            if module not in DOOR:  # a comprehension or lambda is its function's
+                seen.add((module, re.sub(r"(\.<locals>\.<(listcomp|dictcomp|setcomp|genexpr|lambda)>)+$", "",
+                                         frame.f_back.f_code.co_qualname)))
+    return hook, seen
+
+
+@pytest.fixture(scope="module")
+def manos(mano_dir):
+    import torch
+
+    from hoidata.hand import load_mano
+
+    return {side: load_mano(mano_dir, side=side, fix_left_shapedirs=True, dtype=torch.float64)
+            for side in ("left", "right")}
+
+
+def test_every_reader_refuses_the_corpus_in_one_line(tmp_path, mano_dir, manos):
+    cases = (scorer_cases() + hot3d_cases(mano_dir, manos) + store_cases(tmp_path / "setup") +
+             data_cases(tmp_path / "setup") + training_cases(tmp_path / "setup"))
+    hook, seen = _callers()
+    problems, applied = [], 0
+    sys.setprofile(hook)
+    threading.setprofile(hook)
+    try:
+        for i, case in enumerate(cases):
+            for damage in (None, *DAMAGES):
+                problem = outcome(case, damage, tmp_path / f"{i}-{damage or 'valid'}")
+                applied += problem != "n/a"
+                sys.setprofile(hook)  # a RecursionError inside a reader (absurd nesting) clears the hook
+                if problem not in (None, "n/a"):
+                    problems.append(f"{case.name} / {damage or 'valid file'}: {problem}")
+    finally:
+        sys.setprofile(None)
+        threading.setprofile(None)
+    assert not problems, f"{len(problems)} of {applied}:\n" + "\n".join(problems)
+    unfed = sorted(door_readers() - seen)
+    assert not unfed, f"readers through the door that no corpus case reached: {unfed}"
