@@ -1,8 +1,8 @@
 """The one guarded door for every file a command reads: bytes bounded in size, text decoded strictly, JSON bounded
 in nesting, zip / npz / tar members read under one guard. Every failure is one DataError naming the file (and the
 member and field); values are checked against declared shapes by :mod:`hoidata.shapes`, images and meshes decoded
-by :mod:`hoidata.reading_media`. ``tests/test_reading.py`` feeds every reader of the project one corpus of damaged
-files and fails on a file read that bypasses this door (docs/reliability.md, "One guarded door").
+by :mod:`hoidata.reading_media`. ``tests/test_reading_corpus.py`` feeds every reader of the project one corpus of
+damaged files; ``tests/test_reading.py`` fails on a file read that bypasses this door (docs/reliability.md, section 22).
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
 """Issue 44, part 2: every reader of the project fed one corpus of damaged files (tests/reading_corpus.py: missing,
 a folder, empty, random bytes, not UTF-8, cut in half, JSON nested 100,000 deep, a number as a string, a boolean or
 NaN, a bad CRC, a duplicate member), each answered by one DataError line naming the file (and the member), never a
-traceback, and taken without a word only where the reader's contract is lenient (docs/reliability.md, "One guarded
-door").
+traceback, and taken without a word only where the reader's contract is lenient (docs/reliability.md,
+section 22).
 
 The walk is checked from both sides: a file read outside the door (:mod:`hoidata.reading`) fails
 test_reading.py's source scan, and a reader through the door that no case here feeds fails the coverage check

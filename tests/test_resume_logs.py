@@ -1,6 +1,6 @@
 """Issue 44, part 4: a run killed after its last checkpoint and resumed leaves a run folder equal to an uninterrupted
 run's, file by file: every file a run appends to per step (metrics.csv, the keys files, TensorBoard's events) is cut
-back to the checkpoint on ``--resume`` (docs/reliability.md, "Resume trims every log").
+back to the checkpoint on ``--resume`` (docs/reliability.md, section 22).
 
 The walk is over the run folder itself: whatever files the two runs hold are listed and compared, so a new file a
 run appends to that resume does not trim fails here. A tiny model on a synthetic store keeps it in the fast tier.
