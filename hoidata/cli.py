@@ -46,7 +46,8 @@ def cmd_make_toy(args: argparse.Namespace) -> int:
         print("\n".join([format_rows(rows), *empty_split_notes(rows, layout, args.sequences)]))
     first = out / layouts[0] if args.layout == "all" else out
     print("\n" + format_rows(mano_rows(first / "mano")) + "\n")
-    print(format_rows(object_rows(first / "models", cache_dir=args.cache_dir)))
+    if args.layout != "arctic":  # ARCTIC's toy objects are its templates under meta/, not a YCB models folder
+        print(format_rows(object_rows(first / "models", cache_dir=args.cache_dir)))
     return 0
 
 
@@ -236,9 +237,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = add("make-toy", "write toy DexYCB / HO-3D datasets with procedural MANO files and objects")
     p.add_argument("--out", required=True, help="output folder; with --layout all it gets dexycb/ and ho3d/")
-    p.add_argument("--layout", choices=("dexycb", "ho3d", "ho3d_v3", "hot3d", "all"), default="all",
+    p.add_argument("--layout", choices=("dexycb", "ho3d", "ho3d_v3", "hot3d", "arctic", "all"), default="all",
                    help="dataset layout (default: all = dexycb and ho3d; ho3d_v3: HO-3D v3's JPEG layout; hot3d: "
-                        "HOT3D-Clips tars)")
+                        "HOT3D-Clips tars; arctic: ARCTIC's arctic_data/data, no images)")
     p.add_argument("--sequences", type=positive_int, default=None,
                    help="sequences per subject (DexYCB; val and test need 5 or more) / training sequences (HO-3D) / clips (HOT3D: 3 by default, up to 90; multiples of 10 are val)")
     p.add_argument("--frames", type=positive_int, default=None, help="frames per sequence and camera (per clip: HOT3D)")

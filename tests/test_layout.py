@@ -288,7 +288,7 @@ def _foreign_imports(path: Path, lazy: bool = True) -> set[str]:
 # the scoring modules that drive the MANO layer themselves (ground-truth hands from a store's labels, HOT3D's MANO
 # predictions): torch
 # inside the function that does it, never at import
-SCORING_POSES_MANO = ("hoisdf.scoring.recon_store", "hoisdf.scoring.score_hot3d")
+SCORING_POSES_MANO = ("hoisdf.scoring.recon_store", "hoisdf.scoring.score_hot3d", "hoisdf.scoring.score_arctic")
 
 
 def _scoring_problems(graph: dict[str, set[str]], paths: dict[str, Path]) -> list[str]:

@@ -82,8 +82,8 @@ def test_dexycb_hpe_scores_of_a_moved_hand(hands):
 def test_the_hoisdf_command_dispatches_score_and_refuses_the_unknown(tmp_path, capsys):
     from hoisdf.cli import main
 
-    assert main(["--help"]) == 0 and "usage: hoisdf {score}" in capsys.readouterr().out
-    assert main(["nonsense"]) == 2 and "usage: hoisdf {score}" in capsys.readouterr().err
+    assert main(["--help"]) == 0 and "usage: hoisdf {score, check}" in capsys.readouterr().out
+    assert main(["nonsense"]) == 2 and "usage: hoisdf {score, check}" in capsys.readouterr().err
     missing = tmp_path / "pred.json"
     assert main(["score", "ho3d", "--pred", str(missing), "--gt", str(tmp_path)]) == 2  # reached hoisdf.scoring.cli
     err = capsys.readouterr().err.strip().splitlines()

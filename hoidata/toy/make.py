@@ -6,7 +6,8 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-LAYOUTS = ("dexycb", "ho3d", "ho3d_v3", "hot3d")  # ho3d_v3: HO-3D v3's layout (hoidata/toy/ho3d.py); hot3d: clips
+LAYOUTS = ("dexycb", "ho3d", "ho3d_v3", "hot3d", "arctic")  # ho3d_v3: HO-3D v3's layout (hoidata/toy/ho3d.py); hot3d:
+# clips; arctic: arctic_data/data (hoidata/toy/arctic.py)
 # the toolkit's i % 5 == 4 rule puts a subject's 5th sequence in val or test: with fewer, s0/s1 val and test are empty
 DEXYCB_SPLIT_SEQUENCES = 5
 HOT3D_MAX_CLIPS = 90  # toy HOT3D clips: 1, 2 (train), 10 (val), then 3, 4, ... (multiples of 10 val; toy_clips)
@@ -47,12 +48,13 @@ def write_assets(out: Path) -> tuple[Path, Path]:
 
 def make_toy(out: str | Path, layout: str, sequences: int | None = None, frames: int | None = None,
              seed: int = 0, progress: bool = True) -> dict:
-    """Write a toy dataset in `layout` ('dexycb', 'ho3d', 'ho3d_v3' or 'hot3d') under `out`, with ``out/mano`` and
-    ``out/models``.
+    """Write a toy dataset in `layout` ('dexycb', 'ho3d', 'ho3d_v3', 'hot3d' or 'arctic') under `out`, with
+    ``out/mano`` and ``out/models`` (ARCTIC: ``out/mano`` and its own object templates under ``out/meta``).
 
     `sequences` (per subject for DexYCB, training sequences for HO-3D, clips for HOT3D: the default's 1..3, then
-    more, :func:`hoidata.toy.hot3d.toy_clips`) and `frames` (per sequence and camera; per clip) scale it; None keeps
-    the default size. Returns what was written and how long it took.
+    more, :func:`hoidata.toy.hot3d.toy_clips`; per subject for ARCTIC) and `frames` (per sequence and camera; per
+    clip; ARCTIC: per sequence, more than 50) scale it; None keeps the default size. Returns what was written and
+    how long it took.
     """
     from hoidata.toy.dexycb import ToyDexYCBSize, write_toy_dexycb
     from hoidata.toy.ho3d import ToyHO3DSize, write_toy_ho3d
@@ -65,12 +67,24 @@ def make_toy(out: str | Path, layout: str, sequences: int | None = None, frames:
     if layout in ("ho3d", "ho3d_v3") and sequences is not None and sequences > HO3D_MAX_SEQUENCES:
         raise ValueError(f"--sequences {sequences}: the toy HO-3D has {HO3D_MAX_SEQUENCES} training sequences (BB10, "
                          f"MC1, SM2); give 1 to {HO3D_MAX_SEQUENCES} (nothing was written)")
+    if layout == "arctic" and frames is not None and frames <= 50:
+        raise ValueError(f"--frames {frames}: ARCTIC's loader refuses sequences of 50 frames or fewer; give 51 or "
+                         "more (nothing was written)")
     if layout == "hot3d" and sequences is not None and sequences > HOT3D_MAX_CLIPS:
         raise ValueError(f"--sequences {sequences}: the toy HOT3D-Clips writes 1 to {HOT3D_MAX_CLIPS} clips "
                          "(nothing was written)")
     out = Path(out)
     start = time.perf_counter()
     prepare_folder(out, {"layout": layout, "sequences": sequences, "frames": frames, "seed": seed})
+    if layout == "arctic":  # ARCTIC's objects are its own templates (meta/object_vtemplates), not YCB models
+        from hoidata.toy.arctic import ToyArcticSize, write_toy_arctic
+        from hoidata.toy.hand import write_toy_mano
+
+        write_toy_mano(out / "mano")
+        size = ToyArcticSize()
+        size = replace(size, sequences=sequences or size.sequences, frames=frames or size.frames)
+        counts = write_toy_arctic(out, out / "mano", size, seed=seed, progress=progress)
+        return {"layout": layout, "root": str(out), **counts, "seconds": round(time.perf_counter() - start, 1)}
     mano_dir, models_dir = write_assets(out)
     if layout == "hot3d":
         from hoidata.toy.hot3d import ToyHOT3DSize, toy_clips, write_toy_hot3d
@@ -127,6 +141,13 @@ def split_rows(root: str | Path, layout: str) -> list[dict]:
                 frames = list(reader.frames())
                 rows.append({"setting": name, "split": split, "frames": len(frames),
                              "left_mirrored": sum(f.mirror for f in frames), "skipped": len(reader.skipped)})
+    elif layout == "arctic":
+        from hoidata.datasets.arctic_format import read_protocol, read_sequence
+
+        for setup in ("p1", "p2"):
+            for split, names in read_protocol(root, setup).items():
+                frames = sum(read_sequence(root, *n.split("/")).frames for n in names)
+                rows.append({"setting": f"arctic {setup}", "split": split, "sequences": len(names), "frames": frames})
     elif layout == "hot3d":
         for split in ("train", "val"):
             reader = open_reader("hot3d_clips", root, root / "mano", split, on_error="raise")

@@ -4,9 +4,12 @@ checkpoint, its per-run outputs and pictures) stands above it and uses it.
 
 - the command: :mod:`~hoisdf.scoring.cli` (``hoisdf score``; ``python -m hoisdf.scoring``), one module per
   subcommand: :mod:`~hoisdf.scoring.score_ho3d`, :mod:`~hoisdf.scoring.score_dexycb`,
-  :mod:`~hoisdf.scoring.score_contact`, :mod:`~hoisdf.scoring.score_recon`, :mod:`~hoisdf.scoring.score_hot3d`;
+  :mod:`~hoisdf.scoring.score_contact`, :mod:`~hoisdf.scoring.score_recon`, :mod:`~hoisdf.scoring.score_hot3d`,
+  :mod:`~hoisdf.scoring.score_arctic`; ``hoisdf check``: :mod:`~hoisdf.scoring.check_cli`;
 - pose metrics as the official evaluators compute them: :mod:`~hoisdf.scoring.metrics`,
   :mod:`~hoisdf.scoring.official`;
+- ARCTIC's leaderboard: :mod:`~hoisdf.scoring.arctic_metrics` (its metrics), :mod:`~hoisdf.scoring.arctic_files`
+  (submissions and ground truth, checked), :mod:`~hoisdf.scoring.torch_files` (``.pt`` files read without torch);
 - the official result files, read and written: :mod:`~hoisdf.scoring.submissions`,
   :mod:`~hoisdf.scoring.ho3d_list` (HO-3D's evaluation list), :mod:`~hoisdf.scoring.results_json`;
 - contact and penetration: :mod:`~hoisdf.scoring.plausibility` on :mod:`~hoisdf.scoring.solids` and

@@ -6,6 +6,7 @@ with no model and no store.
     hoisdf score contact --pred pred.json|pred.zip|hands.npz [--order evaluation.txt] --store STORE --mano DIR
     hoisdf score recon  --pred SDF_MESH_DIR --gt GT_MESH_DIR [--protocol gsdf|exact] [--seed S] [--repeats K]
     hoisdf score hot3d  --pred DIR|SUBMISSION.tar --gt DIR [--mano DIR] [--track pose|shape]
+    hoisdf score arctic --pred DIR|ZIP --gt DIR --meta DIR [--mano DIR] [--task pose|field] [--setup p1|p2]
 
 Each subcommand prints a table and, with ``--out FILE.json``, writes the numbers under the same names. A
 malformed file is one ``error:`` line naming the file, the entry and the field (exit 2; ``--debug`` for the
@@ -36,6 +37,7 @@ SUBCOMMANDS = {
     "contact": "hoisdf.scoring.score_contact",
     "recon": "hoisdf.scoring.score_recon",
     "hot3d": "hoisdf.scoring.score_hot3d",
+    "arctic": "hoisdf.scoring.score_arctic",
 }
 
 
