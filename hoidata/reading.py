@@ -225,34 +225,50 @@ def describe_head(head: bytes) -> str:
     return f"it starts with the bytes {head.hex(' ')}"
 
 
-def read_zip_member(path, choose: Callable[[list[str]], str], what: str = "zip archive",
-                    max_bytes: int = MAX_BYTES) -> tuple[str, bytes]:
-    """(name, bytes) of the member of the zip archive at ``path`` that ``choose`` picks from the names of its file
-    members (``choose`` raises a DataError when none fits). An archive cut short or damaged, a member over
-    ``max_bytes`` or whose bytes fail their CRC is a DataError naming the archive and the member."""
-    file_size(path, what, max_bytes)  # present, a file, within the bound
+def open_zip(path, what: str = "zip archive", data: bytes | None = None, max_bytes: int = MAX_BYTES):
+    """The zip archive at ``path`` (or in ``data``; ``path`` names it) opened: a :class:`zipfile.ZipFile` for a
+    ``with`` block, its members read with :func:`zip_read`. Cut short or damaged is a DataError naming it."""
+    if data is None:
+        file_size(path, what, max_bytes)  # present, a file, within the bound
     try:
-        with zipfile.ZipFile(path) as zf:
-            files = [i for i in zf.infolist() if not i.is_dir()]
-            infos = {i.filename: i for i in files}
-            name = choose(list(infos))
-            if sum(i.filename == name for i in files) > 1:
-                raise DataError(path, name, "two members of the archive have this name: which one is meant is not "
-                                            "known")
-            info = infos[name]
-            if info.file_size > max_bytes:
-                raise DataError(path, name, _size_problem(info.file_size, max_bytes, "member"))
-            try:
-                with zf.open(info) as member:
-                    data = member.read(max_bytes + 1)
-            except ZIP_ERRORS as exc:
-                raise DataError(path, name, f"damaged member ({type(exc).__name__}: {exc})") from None
+        return zipfile.ZipFile(io.BytesIO(data) if data is not None else path)
     except ZIP_ERRORS as exc:
         raise DataError(path, None, f"not a readable {what} (cut short or damaged: {type(exc).__name__}: "
                                     f"{exc})") from None
+
+
+def zip_names(zf) -> list[str]:
+    """The names of an open archive's file members (folders left out), in archive order."""
+    return [i.filename for i in zf.infolist() if not i.is_dir()]
+
+
+def zip_read(zf, name: str, path, max_bytes: int = MAX_BYTES) -> bytes:
+    """Member ``name`` of an open archive: absent, one of two of that name, over ``max_bytes`` or failing its
+    CRC is a DataError naming the archive and the member."""
+    infos = [i for i in zf.infolist() if i.filename == name and not i.is_dir()]
+    if not infos:
+        raise DataError(path, name, "member missing")
+    if len(infos) > 1:
+        raise DataError(path, name, "two members of the archive have this name: which one is meant is not known")
+    if infos[0].file_size > max_bytes:
+        raise DataError(path, name, _size_problem(infos[0].file_size, max_bytes, "member"))
+    try:
+        with zf.open(infos[0]) as member:
+            data = member.read(max_bytes + 1)
+    except ZIP_ERRORS as exc:
+        raise DataError(path, name, f"damaged member ({type(exc).__name__}: {exc})") from None
     if len(data) > max_bytes:
         raise DataError(path, name, _size_problem(len(data), max_bytes, "member"))
-    return name, data
+    return data
+
+
+def read_zip_member(path, choose: Callable[[list[str]], str], what: str = "zip archive",
+                    max_bytes: int = MAX_BYTES) -> tuple[str, bytes]:
+    """(name, bytes) of the member of the zip archive at ``path`` that ``choose`` picks from the names of its file
+    members (``choose`` raises a DataError when none fits); see :func:`open_zip` and :func:`zip_read`."""
+    with open_zip(path, what, max_bytes=max_bytes) as zf:
+        name = choose(list(dict.fromkeys(zip_names(zf))))
+        return name, zip_read(zf, name, path, max_bytes)
 
 
 def open_npz(path, what: str = ".npz file", max_bytes: int = MAX_BYTES, data: bytes | None = None):

@@ -25,7 +25,7 @@ import numpy as np
 import scipy.sparse
 
 from hoidata.errors import DataError, decoding
-from hoidata.reading import read_bytes
+from hoidata.reading import decode_npy, read_bytes
 
 
 class ChumpyNode:
@@ -122,6 +122,24 @@ def load_pickle(path: str | os.PathLike) -> Any:
         raise DataError(path, None, "empty file (0 bytes), not a pickle")
     with decoding(path, "pickle (truncated or corrupt?)"):  # whatever the unpickler or a stand-in raises
         return resolve(RestrictedUnpickler(io.BytesIO(data), path).load(), path)
+
+
+def load_npy(path: str | os.PathLike) -> Any:
+    """An ``.npy`` file: a plain array as numpy reads it, or one that holds pickled objects (``np.save`` of a dict,
+    as ARCTIC ships its sequences) unpickled with this module's allow-list. ``np.load(allow_pickle=True)`` would
+    run whatever code such a file holds."""
+    data = read_bytes(path, ".npy file")
+    stream = io.BytesIO(data)
+    with decoding(path, ".npy file (truncated or corrupt?)"):
+        version = np.lib.format.read_magic(stream)
+        header = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+        if version not in header:
+            raise DataError(path, None, f"an .npy format version {version} this reader does not know")
+        _, _, dtype = header[version](stream)
+    if not np.dtype(dtype).hasobject:
+        return decode_npy(data, path)
+    with decoding(path, "pickled .npy (truncated or corrupt?)"):
+        return resolve(RestrictedUnpickler(stream, os.fspath(path)).load(), os.fspath(path))
 
 
 def resolve(obj: Any, path: str = "<pickle>") -> Any:

@@ -152,6 +152,6 @@ def door_readers(modules=None) -> set[tuple[str, str]]:
 # the door's entries that take a file (or a member's bytes) in: each caller of one is a reader to feed the corpus
 READER_ENTRIES = {
     "read_bytes", "read_text", "read_lines", "read_json", "parse_json", "read_yaml", "read_toml", "read_table",
-    "read_zip_member", "open_npz", "read_npz", "decode_npy", "list_tar", "read_span", "read_image",
-    "decode_image", "decode_pil", "read_mesh", "decode_mesh",
+    "read_zip_member", "open_zip", "zip_read", "open_npz", "read_npz", "decode_npy", "list_tar", "read_span",
+    "read_image", "decode_image", "decode_pil", "read_mesh", "decode_mesh", "read_torch",
 }

@@ -302,3 +302,52 @@ def training_cases(tmp: Path) -> list[Case]:
         Case("keys file on resume", "text", b"k0\nk1\n", lambda p: trim_keys(p, 3, 0), "keys-rank0.txt",
              ALL | {"missing", "folder"}),
     ]
+
+
+def arctic_cases(tmp: Path) -> list[Case]:
+    """ARCTIC's raw sequences, meta, splits and object templates (the toy's, as ARCTIC's loader opens them), and a
+    leaderboard submission's torch files in a zip."""
+    from hoidata.datasets import arctic_format as af
+    from hoidata.objects.arctic import load_arctic_object, read_object_meta
+    from hoidata.toy.make import make_toy
+    from hoisdf.scoring.arctic_files import Source
+
+    root = tmp / "arctic"
+    make_toy(root, "arctic", progress=False)
+    seq = sorted((root / "raw_seqs").glob("*/*.mano.npy"))[0]
+    subject, name = seq.parent.name, seq.name[: -len(".mano.npy")]
+    files = {p.relative_to(root).as_posix(): p.read_bytes() for p in root.rglob("*") if p.is_file()
+             and (p.parent == seq.parent and p.name.startswith(name) or p.parent.name == "meta")}
+    template = root / "meta" / "object_vtemplates" / name.split("_")[0]
+    parts = {f"meta/object_vtemplates/{template.name}/{p.name}": p.read_bytes() for p in template.iterdir()}
+
+    def sequence(rel: str, kind: str, accepts=frozenset()):
+        return Case(f"ARCTIC {rel.rsplit('/', 1)[1]}", kind, files[rel],
+                    lambda p: af.read_sequence(p.parents[2], subject, name), rel, frozenset(accepts),
+                    sibling={k: v for k, v in files.items() if k != rel})
+
+    def template_file(rel: str, kind: str, accepts=frozenset()):
+        return Case(f"ARCTIC template {rel.rsplit('/', 1)[1]}", kind, parts[rel],
+                    lambda p: load_arctic_object(p.parents[2], template.name, {template.name: 0.1}), rel,
+                    frozenset(accepts), sibling={k: v for k, v in parts.items() if k != rel})
+
+    rel = f"raw_seqs/{subject}/{name}"
+    pt = _torch({"pred.mano.pose.r": torch.zeros(2, 48), "names": ["a", "b"]})
+    return [
+        sequence(f"{rel}.mano.npy", "pickled_npy"), sequence(f"{rel}.egocam.dist.npy", "pickled_npy"),
+        sequence(f"{rel}.object.npy", "npy"),
+        Case("ARCTIC meta/misc.json", "json", files["meta/misc.json"], lambda p: af.read_misc(p.parents[1]),
+             "meta/misc.json"),
+        Case("ARCTIC protocol", "json", (root / "splits_json" / "protocol_p1.json").read_bytes(),
+             lambda p: af.read_protocol(p.parents[1], "p1"), "splits_json/protocol_p1.json"),
+        Case("ARCTIC object_meta.json", "json", files["meta/object_meta.json"],
+             lambda p: read_object_meta(p.parent), "meta/object_meta.json"),
+        template_file(f"meta/object_vtemplates/{template.name}/mesh.obj", "obj", {"truncated"}),
+        template_file(f"meta/object_vtemplates/{template.name}/parts.json", "json"),
+        template_file(f"meta/object_vtemplates/{template.name}/object_params.json", "json"),
+        template_file(f"meta/object_vtemplates/{template.name}/top_keypoints_300.json", "json"),
+        Case("ARCTIC submission .pt in a zip", "torch", pt, lambda p: Source(p).read("eval/x/pred.pt"), "sub.zip",
+             member="eval/x/pred.pt", container=zip_bytes, duplicate_as="{}"),
+        Case("ARCTIC submission zip", "zip", zip_bytes([("eval/x/pred.pt", pt)]),
+             lambda p: Source(p).read("eval/x/pred.pt"), "sub.zip", frozenset({"not_utf8"})),  # a zip's prefix
+    ]

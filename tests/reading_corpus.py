@@ -179,6 +179,7 @@ class Case:
         damage does not apply."""
         folder.mkdir(parents=True, exist_ok=True)
         for name, data in self.sibling.items():
+            (folder / name).parent.mkdir(parents=True, exist_ok=True)
             (folder / name).write_bytes(data)
         path = folder / self.filename
         path.parent.mkdir(parents=True, exist_ok=True)

@@ -17,7 +17,7 @@ import threading
 
 import pytest
 from door_walk import DOOR, READER_ENTRIES, door_readers
-from reading_cases import data_cases, hot3d_cases, scorer_cases, store_cases, training_cases
+from reading_cases import arctic_cases, data_cases, hot3d_cases, scorer_cases, store_cases, training_cases
 from reading_corpus import DAMAGES
 
 from hoidata.errors import DataError
@@ -77,7 +77,7 @@ def manos(mano_dir):
 
 def test_every_reader_refuses_the_corpus_in_one_line(tmp_path, mano_dir, manos):
     cases = (scorer_cases() + hot3d_cases(mano_dir, manos) + store_cases(tmp_path / "setup") +
-             data_cases(tmp_path / "setup") + training_cases(tmp_path / "setup"))
+             data_cases(tmp_path / "setup") + training_cases(tmp_path / "setup") + arctic_cases(tmp_path / "setup"))
     hook, seen = _callers()
     problems, applied = [], 0
     sys.setprofile(hook)
