@@ -206,3 +206,22 @@ def test_score_contact_hot3d_and_recon_examples_are_one_line(pred, tmp_path, cap
     (tmp_path / "ids.txt").write_bytes(b"f0\n\xff\xfe\n")
     _one_line(capsys, ["recon", "--pred", tmp_path / "pred", "--gt", tmp_path / "rgt", "--ids", tmp_path / "ids.txt"],
               "ids.txt", "not UTF-8 frame list: byte 0xff at offset 3 (line 2)")
+
+
+def test_a_pickled_npy_runs_no_code(tmp_path):
+    """ARCTIC ships dicts saved with np.save (pickles inside .npy): read with the allow-list, a crafted one is refused
+    and its code never runs (np.load(allow_pickle=True) would have run it); a dict of arrays reads as ARCTIC's."""
+    import os
+
+    from hoidata.safe_pickle import load_npy
+
+    class Payload:
+        def __reduce__(self):
+            return (os.system, (f"touch {tmp_path / 'ran'}",))
+
+    np.save(tmp_path / "evil.npy", np.array(Payload(), dtype=object), allow_pickle=True)
+    with pytest.raises(DataError, match=r"evil.npy: refusing to load global posix.system"):
+        load_npy(tmp_path / "evil.npy")
+    assert not (tmp_path / "ran").exists()
+    np.save(tmp_path / "seq.npy", {"right": {"rot": np.zeros((51, 3), np.float32)}}, allow_pickle=True)
+    assert load_npy(tmp_path / "seq.npy").item()["right"]["rot"].shape == (51, 3)
