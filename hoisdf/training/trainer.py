@@ -244,6 +244,7 @@ class Trainer:
             trim_log(self.run_dir / CURVE, step)
         sizes = payload.get("keys_bytes")
         size = sizes[self.rank] if isinstance(sizes, list) and len(sizes) == self.world_size else None
+        size = size if type(size) is int and size >= 0 else None  # an older checkpoint: by steps instead
         batch = payload.get("config", {}).get("train", {}).get("batch_size", self.config.train.batch_size)
         self._keys_bytes = trim_keys(self.run_dir / KEYS.format(rank=self.rank), size, step * int(batch))
         self._purge_step = step + 1
