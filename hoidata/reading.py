@@ -256,7 +256,8 @@ def zip_read(zf, name: str, path, max_bytes: int = MAX_BYTES) -> bytes:
         with zf.open(infos[0]) as member:
             data = member.read(max_bytes + 1)
     except ZIP_ERRORS as exc:
-        raise DataError(path, name, f"damaged member ({type(exc).__name__}: {exc})") from None
+        kind = "zlib.error" if isinstance(exc, zlib.error) else type(exc).__name__
+        raise DataError(path, name, f"damaged member ({kind}: {exc})") from None
     if len(data) > max_bytes:
         raise DataError(path, name, _size_problem(len(data), max_bytes, "member"))
     return data
