@@ -6,14 +6,15 @@ section 22).
 
 The walk is checked from both sides: a file read outside the door (:mod:`hoidata.reading`) fails
 test_reading.py's source scan, and a reader through the door that no case here feeds fails the coverage check
-below (every function that calls the door, found in the source, must have been seen calling it).
+below (every function that calls the door, found in the source, must have been seen calling it: the door's entries
+are wrapped, wherever they were imported, by a recorder of their caller).
 """
 
 from __future__ import annotations
 
+import functools
 import re
 import sys
-import threading
 
 import pytest
 from door_walk import DOOR, READER_ENTRIES, door_readers
@@ -49,20 +50,33 @@ def outcome(case, damage, folder) -> str | None:
     return None
 
 
-def _callers():
-    """A profiler hook recording (module, function) of every call into a door entry, and the set it fills."""
+def _record_callers(monkeypatch) -> set:
+    """Every door entry replaced, in the door and in every module of the project that imported it, by a wrapper
+    that records (module, function) of its caller; returns the set it fills."""
     from hoidata import reading, reading_media
 
-    codes = {getattr(m, n).__code__ for m in (reading, reading_media) for n in READER_ENTRIES if hasattr(m, n)}
     seen = set()
 
-    def hook(frame, event, arg):
-        if event == "call" and frame.f_code in codes and frame.f_back is not None:
-            module = frame.f_back.f_globals.get("__name__", "")
+    def wrap(fn):
+        @functools.wraps(fn)
+        def recorded(*args, **kwargs):
+            caller = sys._getframe(1)
+            module = caller.f_globals.get("__name__", "")
             if module not in DOOR:  # a comprehension or lambda is its function's
                 seen.add((module, re.sub(r"(\.<locals>\.<(listcomp|dictcomp|setcomp|genexpr|lambda)>)+$", "",
-                                         frame.f_back.f_code.co_qualname)))
-    return hook, seen
+                                         caller.f_code.co_qualname)))
+            return fn(*args, **kwargs)
+        return recorded
+
+    entries = {getattr(m, n): wrap(getattr(m, n)) for m in (reading, reading_media) for n in READER_ENTRIES
+               if hasattr(m, n)}
+    for module in list(sys.modules.values()):
+        if getattr(module, "__name__", "").split(".")[0] in ("hoidata", "hoisdf"):
+            for name in READER_ENTRIES:
+                value = getattr(module, name, None)
+                if callable(value) and value in entries:
+                    monkeypatch.setattr(module, name, entries[value])
+    return seen
 
 
 @pytest.fixture(scope="module")
@@ -75,24 +89,19 @@ def manos(mano_dir):
             for side in ("left", "right")}
 
 
-def test_every_reader_refuses_the_corpus_in_one_line(tmp_path, mano_dir, manos):
+def test_every_reader_refuses_the_corpus_in_one_line(tmp_path, mano_dir, manos, monkeypatch):
     cases = (scorer_cases() + hot3d_cases(mano_dir, manos) + store_cases(tmp_path / "setup") +
              data_cases(tmp_path / "setup") + training_cases(tmp_path / "setup") + arctic_cases(tmp_path / "setup"))
-    hook, seen = _callers()
+    for name in ("hoisdf.scoring.arctic_files", "hoisdf.scoring.torch_files", "hoidata.safe_pickle"):
+        __import__(name)  # every reader's module loaded before the door's entries are wrapped
+    seen = _record_callers(monkeypatch)
     problems, applied = [], 0
-    sys.setprofile(hook)
-    threading.setprofile(hook)
-    try:
-        for i, case in enumerate(cases):
-            for damage in (None, *DAMAGES):
-                problem = outcome(case, damage, tmp_path / f"{i}-{damage or 'valid'}")
-                applied += problem != "n/a"
-                sys.setprofile(hook)  # a RecursionError inside a reader (absurd nesting) clears the hook
-                if problem not in (None, "n/a"):
-                    problems.append(f"{case.name} / {damage or 'valid file'}: {problem}")
-    finally:
-        sys.setprofile(None)
-        threading.setprofile(None)
+    for i, case in enumerate(cases):
+        for damage in (None, *DAMAGES):
+            problem = outcome(case, damage, tmp_path / f"{i}-{damage or 'valid'}")
+            applied += problem != "n/a"
+            if problem not in (None, "n/a"):
+                problems.append(f"{case.name} / {damage or 'valid file'}: {problem}")
     assert not problems, f"{len(problems)} of {applied}:\n" + "\n".join(problems)
     unfed = sorted(door_readers() - seen)
     assert not unfed, f"readers through the door that no corpus case reached: {unfed}"
