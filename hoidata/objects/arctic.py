@@ -105,7 +105,8 @@ def load_arctic_object(meta_dir: str | Path, name: str, diameters: dict[str, flo
     folder = Path(meta_dir) / "object_vtemplates" / name
     v_mm, faces = read_obj(folder / "mesh.obj")
     labels = _json(folder / "parts.json")
-    if not isinstance(labels, list) or len(labels) != len(v_mm) or any(type(x) is not int or x not in (0, 1) for x in labels):
+    if not isinstance(labels, list) or len(labels) != len(v_mm) or \
+            any(type(x) is not int or x not in (0, 1) for x in labels):  # a boolean is no label
         raise DataError(folder / "parts.json", None, f"must list one label 0 or 1 per mesh.obj vertex ({len(v_mm)})")
     part_ids = np.asarray(labels, np.int64) + 1
     if not (part_ids == BOTTOM).any():

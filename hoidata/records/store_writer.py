@@ -117,7 +117,8 @@ def _shard_metas(path: Path, info) -> list[dict]:
     digest = hashlib.sha256()
     try:
         members = store.read_shard_members(path, info.size, digest)
-        metas = [parse_json(store.record_member(m, schema.META, path), path, f"{m.get('__key__')}.{schema.META}") for m in members]
+        metas = [parse_json(store.record_member(m, schema.META, path), path, f"{m.get('__key__')}.{schema.META}")
+                 for m in members]
     except DataError as exc:
         raise DataError(path, exc.field, f"{exc.problem}; rerun the build into this folder to rewrite it") from None
     if digest.hexdigest() != info.sha256:
