@@ -99,25 +99,6 @@ class WorkerError(DataError):
     """A worker process could not start or died (a missing package, no GL, out of memory); see hoidata.engine.pool."""
 
 
-def read_json(path: str | os.PathLike, what: str = "JSON file", hint: str = ""):
-    """The JSON value of the file at ``path``; a file that is missing, unreadable, not UTF-8, not JSON or nested
-    too deeply for the parser (``RecursionError``) is one DataError naming it, ``what`` it should be and ``hint``
-    (what to do). The caller checks the value's shape."""
-    import json
-
-    try:
-        with open(path, "rb") as f:
-            text = f.read().decode("utf-8")
-        return json.loads(text)
-    except OSError as exc:
-        problem = f"cannot read the {what} ({exc.strerror or exc})"
-    except RecursionError:
-        problem = f"not a {what}: JSON nested too deeply to read"
-    except (UnicodeDecodeError, ValueError) as exc:
-        problem = f"not a {what}: {type(exc).__name__}: {exc}"
-    raise DataError(path, None, problem + (f"; {hint}" if hint else ""))
-
-
 def user_message(exc: BaseException) -> str | None:
     """The one-line message of an error the user can act on, or None for a bug (which keeps its traceback).
 

@@ -19,13 +19,13 @@ import codecs
 import io
 import os
 import pickle
-import re
 from typing import Any
 
 import numpy as np
 import scipy.sparse
 
 from hoidata.errors import DataError, decoding
+from hoidata.reading import decode_npy, read_bytes
 
 
 class ChumpyNode:
@@ -117,14 +117,29 @@ def load_pickle(path: str | os.PathLike) -> Any:
             allow-list.
     """
     path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise DataError(path, None, "file not found")
-    with open(path, "rb") as f:
-        data = f.read()
+    data = read_bytes(path, "pickle file")
     if not data:
         raise DataError(path, None, "empty file (0 bytes), not a pickle")
     with decoding(path, "pickle (truncated or corrupt?)"):  # whatever the unpickler or a stand-in raises
         return resolve(RestrictedUnpickler(io.BytesIO(data), path).load(), path)
+
+
+def load_npy(path: str | os.PathLike) -> Any:
+    """An ``.npy`` file: a plain array as numpy reads it, or one that holds pickled objects (``np.save`` of a dict,
+    as ARCTIC ships its sequences) unpickled with this module's allow-list. ``np.load(allow_pickle=True)`` would
+    run whatever code such a file holds."""
+    data = read_bytes(path, ".npy file")
+    stream = io.BytesIO(data)
+    with decoding(path, ".npy file (truncated or corrupt?)"):
+        version = np.lib.format.read_magic(stream)
+        header = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+        if version not in header:
+            raise DataError(path, None, f"an .npy format version {version} this reader does not know")
+        _, _, dtype = header[version](stream)
+    if not np.dtype(dtype).hasobject:
+        return decode_npy(data, path)
+    with decoding(path, "pickled .npy (truncated or corrupt?)"):
+        return resolve(RestrictedUnpickler(stream, os.fspath(path)).load(), os.fspath(path))
 
 
 def resolve(obj: Any, path: str = "<pickle>") -> Any:
@@ -166,28 +181,3 @@ def _build_sparse(node: SparseNode, path: str) -> scipy.sparse.spmatrix:
         return cls((st["data"], st["indices"], st["indptr"]), shape=shape)
     except (KeyError, ValueError, TypeError) as e:
         raise DataError(path, None, f"malformed {node.fmt} sparse matrix in pickle: {e}") from e
-
-
-_ANSI = re.compile(r"\x1b\[[0-9;?]*[ -/]*[@-~]")  # terminal colour / bold codes
-
-
-def refusal_text(exc: BaseException) -> str:
-    """One plain line for an error of ``torch.load(..., weights_only=True)`` (checkpoints, weights files): the
-    terminal codes stripped, and for a refused pickle what it held, without torch's advice to load it with
-    ``weights_only=False`` or to allow-list a global (either would run the code in the file)."""
-    text = _ANSI.sub("", str(exc))
-    lines = [line.strip() for line in text.splitlines() if line.strip()]
-    if "weights only load failed" not in text.lower() and "weightsunpickler" not in text.lower():
-        return lines[0] if lines else type(exc).__name__
-    findings = []
-    for line in lines:
-        if line.startswith(("Weights only load failed", "Check the documentation", "Please file", "(1)", "(2)")):
-            continue  # torch's advice, not what it found
-        line = line.split("WeightsUnpickler error:", 1)[-1].strip()
-        if line:
-            findings.append(re.split(r"\.(?:\s|$)", line)[0])  # the finding, not the advice that follows it
-    what = findings[0] if findings else "a pickle torch does not accept"
-    if "GLOBAL" in what or "global" in what:
-        return (f"it holds more than tensors and plain values ({what}); it was not loaded, since loading it "
-                "would run code from the file")
-    return f"not a file torch reads safely ({what}): damaged, or not a checkpoint"

@@ -19,6 +19,7 @@ from pathlib import Path
 import tomllib
 
 from hoidata.errors import DataError
+from hoidata.reading import read_toml
 
 # A checkout's pipelines/ folder; an installed wheel carries the same files as the regular package hoidata.presets
 # (pipelines/__init__.py makes it one; setup.py maps the folder to that name).
@@ -189,10 +190,7 @@ def read_pipeline(name_or_path: str, overrides: list[str] = ()) -> tuple[Path, d
     """A pipeline TOML (a name under :func:`pipelines_dir` or a path) as a dict of sections with
     ``section.key=value`` overrides applied; the file is returned with it, for errors that name it."""
     path = resolve_pipeline(name_or_path)
-    try:
-        data = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as e:
-        raise DataError(path, None, f"invalid TOML: {e}") from e
+    data = read_toml(path, "pipeline file")
     return path, apply_overrides(data, list(overrides), path)
 
 

@@ -30,7 +30,7 @@ import hoidata
 from hoidata.atomic import write_atomic
 from hoidata.cli_types import ArgumentParser, local_path, non_negative_int, positive_int
 from hoidata.errors import run_cli
-from hoisdf.ablation import TABLES, run_table
+from hoisdf.ablation import TABLES, markdown_table, run_table
 from hoisdf.evaluate import evaluate
 from hoisdf.evaluation.visualize import plot_training_curve
 from hoisdf.train import main as train_main
@@ -87,7 +87,7 @@ def run(out: Path, steps: int, workers: int, seed: int, sequences: int | None, f
     t_data = time.perf_counter() - t0
     if ablation:
         summary = run_table(ablation, train_store, test_store, mano, out / f"ablation-{ablation}", steps, seed, extra)
-        print(f"\n{(out / f'ablation-{ablation}' / 'table.md').read_text()}")
+        print(f"\n{markdown_table(summary)}")  # what table.md holds
         print(f"wrote {out / f'ablation-{ablation}'}: table.md, table.json, ablation.png; training seconds "
               f"{summary['train_seconds']}, total {time.perf_counter() - t0:.0f} s")
         return 0

@@ -43,7 +43,7 @@ from hoisdf.data.store_choice import (
     training_mano,
 )
 from hoisdf.training.checkpoint import CHECKPOINTS, LAST, find_checkpoint, load_checkpoint, load_weights
-from hoisdf.training.trainer import CURVE, Trainer, unwrap
+from hoisdf.training.trainer import CURVE, KEYS, Trainer, unwrap
 
 
 def parse_store(text: str) -> StoreSpec:
@@ -84,7 +84,8 @@ def clean_dead_run(run_dir: Path) -> list[str]:
     """Remove what an earlier run in ``run_dir`` left without ever writing a checkpoint (its logs, config and
     TensorBoard files describe training that cannot be resumed); returns the names removed."""
     removed = []
-    for path in [run_dir / CURVE, run_dir / "config.json", run_dir / "tb", *sorted(run_dir.glob("keys-rank*.txt"))]:
+    logs = [run_dir / CURVE, run_dir / "config.json", run_dir / "tb", *sorted(run_dir.glob(KEYS.format(rank="*")))]
+    for path in logs:
         if path.is_dir():
             shutil.rmtree(path)
         elif path.exists():

@@ -10,6 +10,7 @@ import torchvision
 from torch import nn
 
 from hoidata.geometry.rotation import axis_angle_to_matrix, matrix_to_axis_angle
+from hoidata.errors import DataError
 from hoisdf.model.backbone import BIG, DECODERS, SMALL, ResNetUNet, frozen_bn_parameters
 from hoisdf.model.ik import kabsch_rotation, minimal_rotation, solve_ik
 
@@ -116,10 +117,10 @@ def test_load_state_dict_file(tmp_path):
     for k, v in net.backbone.state_dict().items():
         assert torch.equal(v, theirs[k]), k
     assert not net.backbone.bn1.weight.requires_grad  # freezing applies after loading too
-    with pytest.raises(FileNotFoundError):
+    with pytest.raises(DataError, match="missing.pth: backbone weights file not found"):
         ResNetUNet(depth=18, weights=str(tmp_path / "missing.pth"))
     torch.save({"conv1.weight": ref.conv1.weight}, tmp_path / "partial.pth")
-    with pytest.raises(RuntimeError):
+    with pytest.raises(DataError, match="partial.pth: not ResNet-18 weights"):
         ResNetUNet(depth=18, weights=str(tmp_path / "partial.pth"))
 
 

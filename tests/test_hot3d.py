@@ -13,8 +13,10 @@ import cv2
 import numpy as np
 import pytest
 
+from hoidata.datasets.frame import Skip
 from hoidata.datasets.hot3d import HOT3DClipsReader
 from hoidata.datasets.hot3d_format import HAND_SHAPES, rle_decode
+from hoidata.errors import DataError
 from hoidata.geometry.crop_camera import crop_maps
 from hoidata.toy.hot3d import MISSING_FRAME, TRUTH, bop_model_name
 from hoidata.toy.hot3d_rig import device_streams
@@ -193,6 +195,56 @@ def test_bad_clips_are_named_and_counted_and_the_rest_is_built(hot3d_root, tmp_p
     assert per_clip["clip-000003"] == n_good - len(no_camera)
     assert per_clip["clip-000007"] == sum(f.frame_id.startswith("clip-000001") and f.source["key"] != f"{FRAMES - 1:06d}"
                                           for f in good)  # the frames before the cut
+
+
+def test_damaged_members_skip_their_frame_naming_clip_and_member(hot3d_root, tmp_path):
+    """Issue 44's members (probe D4, D9, D10): JSON nested 200,000 deep, a 0-byte image, hands.json [1, 2, 3],
+    hand_crops.json [1, 2], NaN thetas, a second member of one name (in the clip's folder or another): each skips
+    frame 0 of its clip with a reason naming the clip and the member; frame 1 of each is built."""
+    root = tmp_path / "bad"
+    shutil.copytree(hot3d_root, root, ignore=shutil.ignore_patterns("train_quest3"))
+    aria = root / "train_aria"
+    (aria / "clip-000001.tar").rename(aria / "orig.tar")
+    nan = json.loads(next(_members(aria / "orig.tar", "000000.hands.json")))
+    side = next(s for s in ("left", "right") if "mano_pose" in (nan.get(s) or {}))
+    nan[side]["mano_pose"]["thetas"] = [float("nan")] * 15
+    edits = {  # clip number -> (member of frame 0, its new bytes, extra member appended, words of the reason)
+        1: ("000000.hands.json", b"[" * 200_000 + b"]" * 200_000, None, "nested more than 64"),
+        2: ("000000.image_214-1.jpg", b"", None, "empty JPEG image (0 bytes)"),
+        3: ("000000.hands.json", b"[1, 2, 3]", None, "expected an object, got a list"),
+        4: ("000000.hand_crops.json", b"[1, 2]", None, "expected an object, got a list"),
+        5: ("000000.hands.json", json.dumps(nan).encode(), None, "15 numbers, 15 of them NaN"),
+        6: ("000000.hands.json", None, "000000.hands.json", "two members of the clip are '000000.hands.json'"),
+        7: ("000000.hands.json", None, "other/000000.hands.json", "'other/000000.hands.json'"),
+    }
+    for number, (member, data, extra, _) in edits.items():
+        dst = aria / f"clip-{number:06d}.tar"
+        _rewrite(aria / "orig.tar", dst, lambda n, d, m=member, new=data: d if n != m or new is None else new)
+        if extra:
+            with tarfile.open(dst, "a") as tar:
+                info = tarfile.TarInfo(extra)
+                info.size = len(b'{"garbage": 1}')
+                tar.addfile(info, io.BytesIO(b'{"garbage": 1}'))
+    (aria / "orig.tar").unlink()
+    frames, skipped = read(root, "train")
+    for frame in frames:  # an image is decoded when its record is built: there, its error is the frame's skip
+        if frame.frame_id.startswith("clip-000002_000000"):
+            try:
+                frame.image_source()
+            except DataError as exc:
+                skipped.append(Skip(frame.frame_id, str(exc), ""))
+    frames = [f for f in frames if not f.frame_id.startswith("clip-000002_000000")]
+    for number, (member, _, _, words) in edits.items():
+        clip = f"clip-{number:06d}"
+        reasons = [s.reason for s in skipped if s.frame_id.startswith(f"{clip}_000000")]
+        assert reasons and all(f"{clip}.tar: '{member}" in r and words in r for r in reasons), (clip, reasons)
+        assert any(f.frame_id.startswith(f"{clip}_000001") for f in frames), clip
+        assert not any(f.frame_id.startswith(f"{clip}_000000") for f in frames), clip
+
+
+def _members(tar, name):
+    with tarfile.open(tar) as t:
+        yield t.extractfile(name).read()
 
 
 def test_build_sdf_on_the_toy_clips_verifies_with_the_mask_qa(hot3d_root, tmp_path):

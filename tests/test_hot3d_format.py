@@ -75,8 +75,11 @@ def test_stream_camera_reads_aria_and_quest_params_and_refuses_others():
         stream_camera(_camera([1.0] * 14), "c.tar", "x")
     with pytest.raises(DataError, match="quaternion_wxyz.*unit"):
         stream_camera(_camera([1.0] * 15, q=(2.0, 0.0, 0.0, 0.0)), "c.tar", "x")
-    with pytest.raises(DataError, match="lacks"):
+    with pytest.raises(DataError, match="'x.T_world_from_camera': missing"):
         stream_camera({"calibration": {}}, "c.tar", "x")
+    with pytest.raises(DataError, match="'x.calibration.image_width': expected a whole number, got a string"):
+        stream_camera({**_camera([1.0] * 15), "calibration": {**_camera([1.0] * 15)["calibration"],
+                                                              "image_width": "64"}}, "c.tar", "x")
 
 
 def test_crop_camera_fov_is_radians():

@@ -255,16 +255,59 @@ def test_unexpected_missing_and_misshaped_keys_are_one_line():
         U.convert_network(ho3d, expected, "snap")
 
 
+@pytest.mark.parametrize("value, words", [
+    (torch.tensor([1.0, float("nan"), 2.0]), "3 values, 1 NaN"), (torch.tensor([float("inf"), float("nan")]),
+                                                                    "1 NaN and 1 infinite"),
+    (torch.tensor([1e39], dtype=torch.float64), "1 infinite (as torch.float32)"),  # finite until cast
+    (torch.tensor([1, 2]), "torch.int64 values"), (torch.tensor([True]), "torch.bool values"),
+    (torch.tensor([1 + 1j]), "complex"), (torch.tensor([1.5], dtype=torch.float16), None),
+])
+def test_checked_weight_refuses_what_a_cast_would_hide(value, words):
+    if words is None:
+        assert U.checked_weight(value, torch.float32, "s", "k").dtype == torch.float32
+        return
+    with pytest.raises(DataError, match=f"s: 'k': .*{__import__('re').escape(words)}"):
+        U.checked_weight(value, torch.float32, "s", "k")
+    ints = U.checked_weight(torch.tensor([3]), torch.int64, "s", "k")  # an integer buffer (num_batches_tracked)
+    assert ints.dtype == torch.int64
+    with pytest.raises(DataError, match="float values where integer ones belong"):
+        U.checked_weight(torch.tensor([3.0]), torch.int64, "s", "k")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", ["nan", "int64", "float16"])
+def test_a_weight_that_is_not_finite_or_not_float_is_refused_naming_the_key(tmp_path, mano_dir, capsys, case):
+    """NaN or infinity in one weight, or a float weight stored as integers or booleans, is refused naming the key
+    (cast in silence, every prediction would be NaN or garbage); a narrower float (float16) imports, cast."""
+    network = rebuild_network("dexycb", mano_dir)
+    key = "module.backbone_net.resnet.conv1.weight"
+    value = network[key].clone()
+    if case == "nan":
+        value.view(-1)[7] = float("nan")
+    else:
+        value = value.to({"int64": torch.int64, "float16": torch.float16}[case])
+    snap = write_snapshot(tmp_path / "snapshot_1_1.pth.tar", {**network, key: value})
+    code, err = _run_cli([snap, "--setting", "dexycb", "--mano", mano_dir, "--out", tmp_path / "run"], capsys)
+    if case == "float16":
+        assert code == 0 and (tmp_path / "run" / "checkpoints" / "last.pt").is_file(), err
+        return
+    words = {"nan": "1 NaN", "int64": "torch.int64 values"}[case]
+    assert code == 2 and len(err.splitlines()) == 1 and f"network['{key}']" in err and words in err, err
+    assert not (tmp_path / "run").exists()
+
+
 def _run_cli(args, capsys):
     return CLI.main([str(a) for a in args]), capsys.readouterr().err.strip()
 
 
-@pytest.mark.parametrize("case", ["text", "truncated", "no_network", "code", "mano"])
+@pytest.mark.parametrize("case", ["text", "json", "truncated", "no_network", "code", "mano"])
 def test_bad_snapshots_are_refused_in_one_line_and_write_nothing(tmp_path, mano_dir, capsys, case):
     snap = tmp_path / "snapshot_1_1.pth.tar"
     mano = {f"module.mano_head.mano_layer.{k}": v for k, v in U.mano_buffers(mano_dir).items()}
     if case == "text":
         snap.write_text("epoch: 7\n")
+    elif case == "json":  # torch's weights_only story, cut mid-sentence, was the line once
+        snap.write_text('{"network": {}}')
     elif case == "truncated":
         torch.save({"epoch": 1, "network": mano}, snap)
         snap.write_bytes(snap.read_bytes()[: snap.stat().st_size // 2])
@@ -277,9 +320,11 @@ def test_bad_snapshots_are_refused_in_one_line_and_write_nothing(tmp_path, mano_
         torch.save({"epoch": 1, "network": mano}, snap)
     code, err = _run_cli([snap, "--setting", "dexycb", "--mano", mano_dir, "--out", tmp_path / "run"], capsys)
     assert code == 2 and len(err.splitlines()) == 1 and str(snap) in err, err
-    want = {"text": "not a readable PyTorch snapshot", "truncated": "not a readable PyTorch snapshot",
-            "no_network": "network", "code": "not a readable PyTorch snapshot", "mano": "th_shapedirs.*differs"}[case]
-    assert __import__("re").search(want, err), err
+    want = {"text": r"not a PyTorch checkpoint: it starts with 'epoch: 7\\n' \(text\?\)",
+            "json": r"not a PyTorch checkpoint: it starts with '\{' \(JSON\?\)",
+            "truncated": "not a readable PyTorch checkpoint", "no_network": "network",
+            "code": "not a readable PyTorch checkpoint.*would run code", "mano": "th_shapedirs.*differs"}[case]
+    assert __import__("re").search(want, err) and "weights_only" not in err and "Re-running" not in err, err
     assert not (tmp_path / "run").exists()
 
 

@@ -116,7 +116,8 @@ RECIPES = ("hoidata.build_sdf", "hoidata.render_synthetic", "hoidata.export", "h
 # hoidata's layers, bottom first: a module may import its own layer and the layers below, never one above, so the
 # data flows one way (readers -> frames -> records -> shards; the toy writers and the CLI on top).
 HOIDATA_LAYERS = (
-    ("hoidata.errors", "hoidata.atomic", "hoidata.schema", "hoidata.sections", "hoidata.provenance"),
+    ("hoidata.errors", "hoidata.atomic", "hoidata.schema", "hoidata.sections", "hoidata.provenance",
+     "hoidata.reading", "hoidata.reading_media", "hoidata.shapes"),
     ("hoidata.safe_pickle", "hoidata.geometry", "hoidata.store", "hoidata.render", "hoidata.cli_types"),
     ("hoidata.hand", "hoidata.objects", "hoidata.view"),  # view: a store's records with the MANO hand posed
     ("hoidata.datasets",),
@@ -227,6 +228,7 @@ HOISDF_LAYERS = (
 HOISDF_MAY_IMPORT = (
     "hoidata",  # the package itself (its version, where it lives): not its subpackages
     "hoidata.errors", "hoidata.atomic", "hoidata.schema", "hoidata.sections", "hoidata.provenance",
+    "hoidata.reading", "hoidata.reading_media", "hoidata.shapes",  # the guarded door every file read goes through
     "hoidata.cli_types", "hoidata.safe_pickle", "hoidata.store", "hoidata.geometry", "hoidata.hand",
     "hoidata.objects",
     "hoidata.datasets.dexycb_layout",  # the DexYCB toolkit's file layout, for scoring its result files

@@ -294,7 +294,7 @@ def test_load_points_and_cache_errors(tmp_path):
     bad.write_text("a b c\n")
     with pytest.raises(DataError, match="points.xyz: not a whitespace-separated"):
         load_points(bad)
-    with pytest.raises(DataError, match="textured_simple.obj: cannot read mesh file"):
+    with pytest.raises(DataError, match="textured_simple.obj: mesh file not found"):
         load_simplified(tmp_path, "002_master_chef_can", cache_dir=tmp_path.parent / "c")
 
 

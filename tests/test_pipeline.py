@@ -90,7 +90,7 @@ def test_a_corrupt_frame_is_skipped_and_the_build_goes_on(tiny_root, tmp_path):
     assert summary.written == 15 and summary.finished
     index = store.read_index(tmp_path / "store")
     reasons = [s["reason"] for s in index.skipped if s["frame_id"].endswith("_000002")]
-    assert any("cannot decode image" in r for r in reasons)
+    assert any("cannot decode the image file" in r for r in reasons)
 
 
 def test_records_hold_exact_sdf_and_consistent_masks(built, tiny_root):

@@ -10,13 +10,15 @@ ARCTIC numbers them: 0 the egocentric camera, 1..8 the allocentric ones.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from hoidata.errors import DataError
+from hoidata.reading import read_json
+from hoidata.safe_pickle import load_npy
+from hoidata.shapes import numbers
 
 MIN_FRAMES = 51  # ARCTIC's loader asserts more than 50 frames per hand
 EGO_BOX = (1.0, 1.0, 2800.0, 2000.0)  # ARCTIC's egocentric validity box (xmin, ymin, xmax, ymax), pixels
@@ -53,26 +55,20 @@ class ArcticSequence:
 def _load(path: Path, want_dict: bool):
     if not path.is_file():
         raise DataError(path, None, "missing (ARCTIC's loader opens it)")
-    try:
-        value = np.load(path, allow_pickle=want_dict)
-        value = value.item() if want_dict else value
-    except Exception as e:  # noqa: BLE001 - any unreadable npy is the same one line
-        raise DataError(path, None, f"not a readable .npy{' holding a dict' if want_dict else ''} ({e})") from None
-    if want_dict and not isinstance(value, dict):
-        raise DataError(path, None, "must hold a dict")
+    value = load_npy(path)  # a dict's pickle through the allow-list: np.load(allow_pickle=True) would run its code
+    if want_dict:
+        value = value.item() if isinstance(value, np.ndarray) and value.dtype.hasobject and value.shape == () else None
+        if not isinstance(value, dict):
+            raise DataError(path, None, "must hold a dict")
+    elif value.dtype.hasobject:
+        raise DataError(path, None, "must hold an array of numbers, not pickled objects")
     return value
 
 
-def _array(value, path: Path, key: str, shape: tuple) -> np.ndarray:
-    try:
-        out = np.asarray(value, np.float64)
-    except (TypeError, ValueError):
-        raise DataError(path, key, "must be numbers") from None
-    if out.shape != shape:
-        raise DataError(path, key, f"expected shape {shape}, got {out.shape}")
-    if not np.isfinite(out).all():
-        raise DataError(path, key, "holds NaN or Inf")
-    return out
+def _array(value, path: Path, key: str, shape: tuple | None) -> np.ndarray:
+    if value is None:
+        raise DataError(path, key, "missing")
+    return numbers(value, path, key, shape)  # numbers (never strings or booleans) of the shape, finite
 
 
 def read_sequence(root: str | Path, subject: str, name: str) -> ArcticSequence:
@@ -93,7 +89,7 @@ def read_sequence(root: str | Path, subject: str, name: str) -> ArcticSequence:
         if n != frames:
             raise DataError(path, f"{side}.fitting_err", f"{n} frames, the right hand has {frames}")
         hand = {k: _array(entry.get(k), path, f"{side}.{k}", (frames, *s)) for k, s in HAND_KEYS.items()}
-        shape = np.asarray(entry.get("shape"), np.float64)
+        shape = _array(entry.get("shape"), path, f"{side}.shape", None)
         hand["shape"] = _array(shape[0] if shape.ndim == 2 else shape, path, f"{side}.shape", (10,))
         mano[side] = hand
     obj_path = folder / f"{name}.object.npy"
@@ -115,10 +111,7 @@ def read_misc(root: str | Path) -> dict:
     """``meta/misc.json`` per subject: ``world2cam`` (8, 4, 4), ``intris_mat`` (8, 3, 3), ``image_size`` (9, 2)
     width and height of views 0..8, ``ioi_offset`` (image index of annotation frame 0), ``gender``."""
     path = Path(root) / "meta" / "misc.json"
-    try:
-        table = json.loads(path.read_text())
-    except (OSError, ValueError) as e:
-        raise DataError(path, None, f"missing or not JSON ({e})") from None
+    table = read_json(path, "ARCTIC meta/misc.json")
     out = {}
     for subject, entry in (table.items() if isinstance(table, dict) else ()):
         if not isinstance(entry, dict):
@@ -139,10 +132,7 @@ def read_protocol(root: str | Path, setup: str) -> dict[str, list[str]]:
     """``splits_json/protocol_<setup>.json``: ``sXX/<sequence>`` names per split; train is every listed
     sequence outside val and test, as ARCTIC takes it."""
     path = Path(root) / "splits_json" / f"protocol_{setup}.json"
-    try:
-        table = json.loads(path.read_text())
-    except (OSError, ValueError) as e:
-        raise DataError(path, None, f"missing or not JSON ({e})") from None
+    table = read_json(path, "ARCTIC protocol file")
     lists = {}
     for split in ("train", "val", "test"):
         names = table.get(split) if isinstance(table, dict) else None

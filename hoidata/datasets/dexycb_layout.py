@@ -12,10 +12,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import yaml
 
-from hoidata.errors import DataError, decoding
+from hoidata.errors import DataError
 from hoidata.objects import YCB_CLASSES
+from hoidata.reading import npz_array, npz_header, open_npz, read_yaml
+from hoidata.shapes import numbers
 
 SUBJECTS = [
     "20200709-subject-01", "20200813-subject-02", "20200820-subject-03", "20200903-subject-04",
@@ -109,10 +110,7 @@ def toolkit_split(root: Path, setup: str, split: str) -> ToolkitSplit:
 
 
 def _read_yaml(path: Path, required: tuple[str, ...]) -> dict:
-    if not path.is_file():
-        raise DataError(path, None, "file not found")
-    with decoding(path, "YAML"):  # yaml.YAMLError, or UnicodeDecodeError for bytes that are not text
-        data = yaml.safe_load(path.read_text())
+    data = read_yaml(path)
     if not isinstance(data, dict):
         raise DataError(path, None, "expected a YAML mapping")
     for key in required:
@@ -146,8 +144,8 @@ def read_intrinsics(root: Path, serial: str) -> np.ndarray:
     path = root / "calibration" / "intrinsics" / f"{serial}_{IMAGE_SIZE[0]}x{IMAGE_SIZE[1]}.yml"
     color = _read_yaml(path, ("color",))["color"]
     try:
-        fx, fy, cx, cy = (float(color[k]) for k in ("fx", "fy", "ppx", "ppy"))
-    except (KeyError, TypeError, ValueError) as e:
+        fx, fy, cx, cy = numbers([color[k] for k in ("fx", "fy", "ppx", "ppy")], path, "color", (4,))
+    except (KeyError, TypeError) as e:
         raise DataError(path, "color", f"expected fx, fy, ppx, ppy: {e}") from e
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
@@ -155,10 +153,7 @@ def read_intrinsics(root: Path, serial: str) -> np.ndarray:
 def read_betas(root: Path, calib: str) -> np.ndarray:
     """MANO betas (10,) of a subject and side from ``calibration/mano_<calib>/mano.yml``."""
     path = root / "calibration" / f"mano_{calib}" / "mano.yml"
-    betas = np.asarray(_read_yaml(path, ("betas",))["betas"], dtype=np.float64)
-    if betas.shape != (10,):
-        raise DataError(path, "betas", f"expected 10 values, got shape {betas.shape}")
-    return betas
+    return numbers(_read_yaml(path, ("betas",))["betas"], path, "betas", (10,))
 
 
 LABEL_SHAPES = {"seg": (480, 640), "pose_m": (1, 51), "joint_3d": (1, 21, 3), "joint_2d": (1, 21, 2)}
@@ -170,39 +165,24 @@ def read_labels(path: Path, num_objects: int, keys=None, check_rest: bool = True
     ``keys``: decode only these members; every expected key must still be present, and (``check_rest``) the shape
     and dtype of the others are checked from their ``.npy`` headers (a few bytes, not the 300 kB ``seg`` image the
     frame readers need not decode). None: decode all of them."""
-    if not path.is_file():
-        raise DataError(path, None, "labels file not found")
     expected = dict(LABEL_SHAPES, pose_y=(num_objects, 3, 4))
-    with decoding(path, "npz labels (corrupt?)"):  # zlib.error, BadZipFile, EOFError, ValueError, OSError, ...
-        with np.load(path, allow_pickle=False) as npz:
-            names = set(npz.files)
-            labels = {k: npz[k] for k in (npz.files if keys is None else [k for k in keys if k in names])}
-            missing = [k for k in expected if k not in names]
-            if missing:
-                raise DataError(path, missing[0], "missing key")
-            found = {k: (v.shape, v.dtype) for k, v in labels.items()}
-            if check_rest:
-                found.update({k: _member_header(npz, k) for k in expected if k not in labels})
+    with open_npz(path, "npz labels file") as npz:  # not found, cut short, not an npz: one line naming it
+        names = set(npz.files)
+        missing = [k for k in expected if k not in names]
+        if missing:
+            raise DataError(path, missing[0], "missing key")
+        labels = {k: npz_array(npz, k, path) for k in (npz.files if keys is None else [k for k in keys if k in names])}
+        found = {k: (v.shape, v.dtype) for k, v in labels.items()}
+        if check_rest:
+            found.update({k: npz_header(npz, k, path) for k in expected if k not in labels})
     for key, shape in expected.items():
         if key not in found:
             continue
         if found[key][0] != shape:
             raise DataError(path, key, f"expected shape {shape}, got {found[key][0]}")
-        if found[key][1].kind not in "biuf":
+        if found[key][1].kind not in "iuf":  # numbers, never booleans or strings
             raise DataError(path, key, f"expected numbers, got dtype {found[key][1]}")
     return labels
-
-
-def _member_header(npz, key: str) -> tuple[tuple, np.dtype]:
-    """(shape, dtype) of one member of an open npz from its ``.npy`` header only (the member is not decoded)."""
-    read = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
-    with npz.zip.open(f"{key}.npy") as f:
-        version = np.lib.format.read_magic(f)
-        if version not in read:  # format 3.0 (utf-8 field names): decode the member instead
-            value = npz[key]
-            return value.shape, value.dtype
-        shape, _, dtype = read[version](f)
-    return tuple(shape), np.dtype(dtype)
 
 
 def list_sequences(root: Path, subject: str) -> list[Path]:

@@ -13,7 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hoidata.errors import DataError, decoding
+from hoidata.errors import DataError
+from hoidata.reading_media import read_image
 
 
 @dataclass
@@ -71,23 +72,7 @@ def read_rgb(path: Path, size: tuple[int, int] | None = None) -> np.ndarray:
     """
     import cv2
 
-    from hoidata.store.codec import incomplete_image
-
-    if not Path(path).is_file():
-        raise DataError(path, None, "image file not found")
-    try:
-        data = Path(path).read_bytes()
-    except OSError as exc:
-        raise DataError(path, None, f"cannot read image ({exc.strerror or exc})") from None
-    if not data:
-        raise DataError(path, None, "empty image file (0 bytes)")
-    problem = incomplete_image(data)
-    if problem:
-        raise DataError(path, None, f"{problem}: the file is cut short")
-    with decoding(path, "image"):  # OpenCV raises cv2.error on some bad buffers, returns None on others
-        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
-    if img is None:
-        raise DataError(path, None, "cannot decode image (corrupt or not an image)")
+    img = read_image(path, cv2.IMREAD_COLOR, "image file")
     if size is not None and (img.shape[1], img.shape[0]) != tuple(size):
         raise DataError(path, None, f"image is {img.shape[1]}x{img.shape[0]}, expected {size[0]}x{size[1]}")
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)

@@ -12,11 +12,11 @@ not have (past the split's end, or a camera or frame missing on disk) is an erro
 from __future__ import annotations
 
 import hashlib
-import json
 from collections import Counter
 from pathlib import Path
 
 from hoidata.errors import DataError
+from hoidata.reading import read_bytes, read_json
 
 SHOWN = 8  # ids named in an error message
 
@@ -24,12 +24,7 @@ SHOWN = 8  # ids named in an error message
 def read_frame_list(path) -> tuple[int, ...]:
     """The sorted, unique sample ids of a frame-list JSON file; DataError naming the file and the bad item."""
     path = Path(path)
-    if not path.is_file():
-        raise DataError(path, None, "frame list not found")
-    try:
-        items = json.loads(path.read_text())
-    except (UnicodeDecodeError, ValueError, RecursionError) as err:  # RecursionError: nested too deeply
-        raise DataError(path, None, f"not a JSON list: {type(err).__name__}: {err}") from None
+    items = read_json(path, "frame list")
     if not isinstance(items, list) or not items:
         raise DataError(path, None, "expected a non-empty JSON list of sample ids")
     ids = []
@@ -66,4 +61,4 @@ def check_listed(path, ids, frames, skips, toolkit) -> None:
 
 def frame_list_provenance(path, ids) -> dict:
     """What the index records about the list: its path, sha256 and number of ids."""
-    return {"path": str(path), "sha256": hashlib.sha256(Path(path).read_bytes()).hexdigest(), "ids": len(ids)}
+    return {"path": str(path), "sha256": hashlib.sha256(read_bytes(path, "frame list")).hexdigest(), "ids": len(ids)}

@@ -33,11 +33,12 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from hoidata.datasets.frame import Frame, Skip
-from hoidata.errors import DataError, decoding
+from hoidata.errors import DataError
 from hoidata.geometry.crop import project
 from hoidata.hand.model import MANO_TO_DEXYCB
 from hoidata.hand.pose import change_frame
 from hoidata.objects import class_id
+from hoidata.reading import read_lines
 from hoidata.safe_pickle import load_pickle
 
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0])
@@ -54,10 +55,7 @@ def read_list(root: Path, split: str) -> list[str]:
     if split not in SPLITS:
         raise ValueError(f"unknown HO-3D split {split!r}; expected one of {sorted(SPLITS)}")
     path = root / f"{split}.txt"
-    if not path.is_file():
-        raise DataError(path, None, "HO-3D frame list not found")
-    with decoding(path, "frame list"):  # bytes that are not text
-        entries = [ln.strip() for ln in path.read_text().splitlines() if ln.strip()]
+    entries = read_lines(path, "HO-3D frame list")
     for n, entry in enumerate(entries, 1):
         if entry.count("/") != 1:
             raise DataError(path, f"line {n}", f"expected '<SEQ>/<id>', got {entry!r}")

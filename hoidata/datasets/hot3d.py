@@ -45,6 +45,9 @@ from hoidata.geometry.crop import project
 from hoidata.geometry.crop_camera import crop_maps, fisheye_grid, remap_crop
 from hoidata.geometry.fisheye624 import Fisheye624
 from hoidata.hand.pose import change_frame, pca_to_axis_angle
+from hoidata.reading import parse_json
+from hoidata.reading_media import decode_image
+from hoidata.shapes import ANY, Integer, MapOf, check
 
 CLIP_FOLDERS = ("train_aria", "train_quest3")
 SPLITS = ("train", "val")
@@ -87,9 +90,7 @@ class CropImage:
         import cv2
 
         stat = os.stat(self.tar)  # in the key: a tar rewritten in place is decoded again
-        image = fisheye_image(self.tar, tuple(self.where), stat.st_mtime_ns, stat.st_size)
-        if image is None:
-            raise DataError(self.tar, self.member, "cannot decode the JPEG image")
+        image = fisheye_image(self.tar, tuple(self.where), stat.st_mtime_ns, stat.st_size, self.member)
         if image.shape[:2] != (self.camera.height, self.camera.width):
             raise DataError(self.tar, self.member, f"image is {image.shape[1]}x{image.shape[0]}, the camera's "
                             f"calibration says {self.camera.width}x{self.camera.height}")
@@ -100,14 +101,13 @@ class CropImage:
 
 
 @lru_cache(maxsize=IMAGES_KEPT)
-def fisheye_image(tar: str, where: tuple, mtime_ns: int, file_size: int) -> np.ndarray | None:
-    """A stream's JPEG as decoded (grey or BGR, read-only), or None if it does not decode. Kept for the next
-    ``IMAGES_KEPT`` calls: a frame's streams are read once for both hands' crops."""
+def fisheye_image(tar: str, where: tuple, mtime_ns: int, file_size: int, member: str) -> np.ndarray:
+    """A stream's JPEG as decoded (grey or BGR, read-only); empty, cut short or not decodable is a DataError naming
+    the member. Kept for the next ``IMAGES_KEPT`` calls: a frame's streams are read once for both hands' crops."""
     import cv2
 
-    image = cv2.imdecode(np.frombuffer(ClipMembers(Path(tar)).read(where), np.uint8), cv2.IMREAD_UNCHANGED)
-    if image is not None:
-        image.flags.writeable = False
+    image = decode_image(ClipMembers(Path(tar)).read(where, member), tar, member, cv2.IMREAD_UNCHANGED, "JPEG image")
+    image.flags.writeable = False
     return image
 
 
@@ -211,6 +211,7 @@ class HOT3DClipsReader:
         member = f"{key}.image_{stream}.jpg"
         if stream not in cameras:
             raise DataError(clip.path, f"{key}.cameras.json: {stream}", "no camera for this stream")
+        clip.refuse_duplicate(member)
         where = clip.frames[key].get(f"image_{stream}.jpg")
         if where is None:
             raise DataError(clip.path, member, "member missing")
@@ -243,14 +244,17 @@ def object_mask_iou(frame: Frame, ours: np.ndarray, to_mask: np.ndarray) -> floa
     grid sees the crop camera's image and the fisheye image. One resampling, not two: remapping into the crop and
     then warping that (thresholded) mask nearest-neighbour onto the mask grid moved its edges by up to half a crop
     pixel more (toy: mean IoU 0.975 that way; the HOT3D section of docs/datasets.md)."""
-    import json
-
     import cv2
 
     src = frame.image_source
     name = f"{frame.source['key']}.objects.json"
-    objects = json.loads(ClipMembers(Path(src.tar)).read(tuple(frame.source["objects_json"])))
-    rle = objects[frame.source["object_uid"]][0].get("masks_amodal", {}).get(frame.source["stream"])
+    objects = parse_json(ClipMembers(Path(src.tar)).read(tuple(frame.source["objects_json"]), name), src.tar, name)
+    uid = frame.source["object_uid"]
+    instances = check(objects, MapOf(ANY), src.tar, name).get(uid)
+    if not isinstance(instances, list) or not instances or not isinstance(instances[0], dict):
+        raise DataError(src.tar, f"{name}: {uid}", "no instance of the frame's object (the clip changed?)")
+    masks = instances[0].get("masks_amodal", {})
+    rle = masks.get(frame.source["stream"]) if isinstance(masks, dict) else None
     if rle is None:
         return -1.0
     mask = rle_decode(rle, src.tar, f"{name}: {frame.source['object_uid']}.masks_amodal.{frame.source['stream']}")
@@ -296,6 +300,7 @@ def nearest_object(objects: dict, point: np.ndarray, path, name: str) -> tuple[i
         for inst in instances if isinstance(instances, list) else [instances]:
             if not isinstance(inst, dict) or "object_bop_id" not in inst:
                 raise DataError(path, f"{name}: {uid}.object_bop_id", "missing")
+            check(inst["object_bop_id"], Integer(0), path, f"{name}: {uid}.object_bop_id")
             pose = transform(inst.get("T_world_from_object"), path, f"{name}: {uid}.T_world_from_object")
             d = float(np.linalg.norm(pose[:3, 3] - point))
             if best is None or d < best[0]:

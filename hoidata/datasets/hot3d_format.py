@@ -8,8 +8,6 @@ Every parser here raises a :class:`~hoidata.errors.DataError` naming the member 
 
 from __future__ import annotations
 
-import json
-import tarfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -19,6 +17,9 @@ from hoidata.errors import DataError
 from hoidata.geometry.crop_camera import crop_intrinsics
 from hoidata.geometry.fisheye624 import Fisheye624
 from hoidata.geometry.se3 import se3_from_wxyz
+from hoidata.reading import list_tar, parse_json, read_span
+from hoidata.shapes import ANY, Integer, MapOf, Record, String, check
+from hoidata.shapes import numbers as declared_numbers
 
 HAND_SHAPES = "__hand_shapes.json__"
 FISHEYE624 = "CameraModelType.FISHEYE624"
@@ -27,60 +28,60 @@ SIDES = ("left", "right")
 RLE_LOOP_RUNS = 20_000  # rle_decode sets up to this many runs one slice each, more through one cumulative sum
 
 
+CAMERA = Record({"calibration": Record({"projection_model_type": String(), "projection_params": ANY, "label": String(),
+                                         "image_width": Integer(1, 1 << 16), "image_height": Integer(1, 1 << 16)}),
+                 "T_world_from_camera": ANY})  # one cameras.json entry; the parameters and pose checked below
+FRAME_SHAPES = {"hand_crops.json": MapOf(MapOf(ANY))}  # each side: {stream: crop}; other members: an object
+
+
 @dataclass
 class ClipMembers:
     """Where each member of a clip tar lies: ``frames[key][suffix] = (offset, size)`` of its bytes in the file, the
-    hand-shape member's, and ``truncated``: a problem that ended the listing early (the members before it stand)."""
+    hand-shape member's, ``duplicates``: member names (after the basename rule) that two members share, with
+    both names (reading one is an error naming them), and ``truncated``: a problem that ended the listing early
+    (the members before it stand)."""
 
     path: Path
     frames: dict = field(default_factory=dict)
     hand_shapes: tuple | None = None
     truncated: str = ""
+    duplicates: dict = field(default_factory=dict)
 
-    def read(self, where: tuple) -> bytes:
-        with open(self.path, "rb") as f:
-            f.seek(where[0])
-            data = f.read(where[1])
-        if len(data) != where[1]:
-            raise DataError(self.path, None, f"member at byte {where[0]} is cut short ({len(data)} of {where[1]} bytes)")
-        return data
+    def read(self, where: tuple, member: str | None = None) -> bytes:
+        return read_span(self.path, where[0], where[1], member)
+
+    def refuse_duplicate(self, name: str) -> None:
+        if name in self.duplicates:
+            names = " and ".join(repr(n) for n in self.duplicates[name])
+            raise DataError(self.path, name, f"two members of the clip are {name!r} ({names}): which one is the "
+                                             "frame's is not known")
 
     def json(self, key: str, suffix: str):
-        """A frame's JSON member, parsed; a DataError naming ``<key>.<suffix>`` when absent or not JSON."""
+        """A frame's JSON member, parsed and checked to be an object (``hand_crops.json``: of objects); a
+        DataError naming ``<key>.<suffix>`` when absent, duplicated, not JSON or of another shape."""
+        name = f"{key}.{suffix}"
+        self.refuse_duplicate(name)
         where = self.frames.get(key, {}).get(suffix)
         if where is None:
-            raise DataError(self.path, f"{key}.{suffix}", "member missing")
-        try:
-            return json.loads(self.read(where))
-        except (UnicodeDecodeError, json.JSONDecodeError) as e:
-            raise DataError(self.path, f"{key}.{suffix}", f"not JSON ({e})") from None
+            raise DataError(self.path, name, "member missing")
+        value = parse_json(self.read(where, name), self.path, name)
+        return check(value, FRAME_SHAPES.get(suffix, MapOf(ANY)), self.path, name)
 
 
 def list_members(path: Path) -> ClipMembers:
-    """The members of a clip tar with the byte range of each (nothing is read but the headers). A tar cut short
-    keeps the members whose bytes are all there (``truncated`` says where it ended); an unreadable file raises."""
+    """The members of a clip tar with the byte range of each (nothing is read but the headers), by basename (a
+    member in a folder counts as the clip's). A tar cut short keeps the members whose bytes are all there
+    (``truncated`` says where it ended); an unreadable file raises."""
     path = Path(path)
-    out = ClipMembers(path)
-    size = path.stat().st_size
-    try:
-        with tarfile.open(path, "r:") as tar:
-            for info in iter(tar.next, None):
-                if not info.isfile():
-                    continue
-                if info.offset_data + info.size > size:
-                    out.truncated = f"member {info.name!r} is cut short: the tar is truncated"
-                    break
-                name = Path(info.name).name
-                if name == HAND_SHAPES:
-                    out.hand_shapes = (info.offset_data, info.size)
-                    continue
-                key, dot, suffix = name.partition(".")
-                if dot:
-                    out.frames.setdefault(key, {})[suffix] = (info.offset_data, info.size)
-    except (tarfile.TarError, EOFError, OSError) as e:
-        if not out.frames and not out.hand_shapes:
-            raise DataError(path, None, f"not a readable tar file ({e})") from None
-        out.truncated = f"the tar ends early ({e})"
+    listing = list_tar(path, lambda name: Path(name).name, "tar file")
+    out = ClipMembers(path, truncated=listing.truncated, duplicates=listing.duplicates)
+    for name, member in listing.members.items():
+        if name == HAND_SHAPES:
+            out.hand_shapes = (member.offset, member.size)
+            continue
+        key, dot, suffix = name.partition(".")
+        if dot:
+            out.frames.setdefault(key, {})[suffix] = (member.offset, member.size)
     return out
 
 
@@ -90,12 +91,10 @@ def read_betas(clip: ClipMembers) -> np.ndarray:
     if clip.hand_shapes is None and clip.truncated:  # HOT3D stores it last: a cut tar loses it first
         raise DataError(clip.path, HAND_SHAPES, f"member lost: {clip.truncated}; without the clip's MANO betas none "
                                                 "of its frames is built")
+    clip.refuse_duplicate(HAND_SHAPES)
     if clip.hand_shapes is None:
         raise DataError(clip.path, HAND_SHAPES, "member missing: the clip's hand shape (MANO betas) is not there")
-    try:
-        shapes = json.loads(clip.read(clip.hand_shapes))
-    except (UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise DataError(clip.path, HAND_SHAPES, f"not JSON ({e})") from None
+    shapes = parse_json(clip.read(clip.hand_shapes, HAND_SHAPES), clip.path, HAND_SHAPES)
     for key in ("mano", "umetrack"):
         if not isinstance(shapes, dict) or key not in shapes:
             raise DataError(clip.path, f"{HAND_SHAPES}: {key}", "missing")
@@ -103,14 +102,9 @@ def read_betas(clip: ClipMembers) -> np.ndarray:
 
 
 def numbers(value, size: int, path, name: str) -> np.ndarray:
-    """``value`` as ``size`` finite float64 numbers, else a DataError naming ``name``."""
-    try:
-        out = np.asarray(value, np.float64).reshape(-1)
-    except (TypeError, ValueError):
-        raise DataError(path, name, f"expected {size} numbers") from None
-    if out.size != size or not np.isfinite(out).all():
-        raise DataError(path, name, f"expected {size} finite numbers, got {out.size}")
-    return out
+    """``value`` as ``size`` finite float64 numbers (any nesting), else a DataError naming ``name`` and what is
+    wrong (a string or boolean, the count, the NaN)."""
+    return declared_numbers(value, path, name, count=size).reshape(-1)
 
 
 def transform(value, path, name: str) -> np.ndarray:
@@ -138,15 +132,13 @@ class StreamCamera:
 
 def stream_camera(value, path, name: str) -> StreamCamera:
     """One entry of ``cameras.json`` (``name`` = ``<key>.cameras.json: <stream>``)."""
-    try:
-        calib = value["calibration"]
-        model, params = calib["projection_model_type"], calib["projection_params"]
-        width, height, label = int(calib["image_width"]), int(calib["image_height"]), str(calib["label"])
-        pose = value["T_world_from_camera"]
-    except (KeyError, TypeError, ValueError) as e:
-        raise DataError(path, name, f"camera entry lacks {e}") from None
+    entry = check(value, CAMERA, path, name)
+    calib, pose = entry["calibration"], entry["T_world_from_camera"]
+    model, params, label = calib["projection_model_type"], calib["projection_params"], calib["label"]
+    width, height = calib["image_width"], calib["image_height"]
     if model != FISHEYE624:
         raise DataError(path, f"{name}.projection_model_type", f"expected {FISHEYE624}, got {model!r}")
+    params = declared_numbers(params, path, f"{name}.projection_params", (None,))
     try:
         camera = Fisheye624.from_params(params, width, height)
     except (TypeError, ValueError) as e:

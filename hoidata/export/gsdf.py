@@ -88,7 +88,8 @@ def check_store_inputs(store: Path, inputs: dict) -> None:
     key, mirroring, hand and object pose). The sampling settings need not match: each row is the exact distance
     at its own point. A mismatch is one DataError naming the input, before anything is written.
     """
-    from hoidata.errors import DataError, read_json
+    from hoidata.errors import DataError
+    from hoidata.reading import read_json
 
     path = Path(store) / "build.json"
     built = read_json(path, "store build file", "export without --store, or rebuild the store")

@@ -30,6 +30,7 @@ import numpy as np
 
 from hoidata.export.files import link, write_coco
 from hoidata.hand.pose import flat_to_mean_relative
+from hoidata.reading import read_lines
 
 
 def cam_param(K: np.ndarray) -> dict:
@@ -66,6 +67,11 @@ def annotation_name(dataset: str, setup: str, split: str) -> str:
     return f"annotations/DEX_YCB_{setup}_{split}_data.json"
 
 
+def listed_frames(path: Path) -> int:
+    """How many frames an HO-3D split list (``evaluation.txt``) names: its non-empty lines."""
+    return len(read_lines(path, "HO-3D frame list"))
+
+
 def finish(out: Path, cfg, splits, entries, root: Path, models_dir: Path) -> tuple[list[str], dict, list[str]]:
     """Write the annotation files and link the image folders; returns (files written, {}, notes)."""
     dataset, files, notes = cfg.dataset.name, [], []
@@ -76,7 +82,7 @@ def finish(out: Path, cfg, splits, entries, root: Path, models_dir: Path) -> tup
         notes.append(f"{name}: {n} annotations")
         listed = root / f"{split}.txt"
         if dataset == "ho3d" and split == "evaluation" and listed.is_file():
-            lines = sum(1 for line in listed.read_text().splitlines() if line.strip())
+            lines = listed_frames(listed)
             if n != lines:  # HandOccNet dumps its predictions in annotation order, the challenge scores all lines
                 notes.append(f"warning: {name} holds {n} of the {lines} frames of {listed.name}: a prediction file "
                              "made from it would not be complete")

@@ -23,7 +23,8 @@ from pathlib import Path
 from hoidata import schema
 from hoidata.datasets.open import read_splits
 from hoidata.engine import Plan, RunSummary, ShardTask, run_task
-from hoidata.errors import DataError, read_json
+from hoidata.errors import DataError
+from hoidata.reading import read_json
 from hoidata.export import gsdf, handoccnet
 from hoidata.export.files import write_json
 from hoidata.export.formats import DATASETS, FORMATS
@@ -58,7 +59,7 @@ def _check_spec(work: Path, spec: dict) -> None:
     """Pin a new export's folder to ``spec``; refuse a rerun whose settings, frames, options or inputs differ,
     naming the first difference (the chunks kept would mix with new ones)."""
     path = work / SPEC_FILE
-    if path.is_file():
+    if path.exists():  # a folder of that name is refused by the read
         old = read_json(path, "valid export.json", "use a new --out folder (nothing was changed)")
         where = fingerprint.first_difference(fingerprint.current_names(old, RecordSettings.RENAMED), spec)
         if where is not None:

@@ -6,8 +6,6 @@ the raw object files, and the store whose SDF rows a gsdf export re-uses."""
 
 from __future__ import annotations
 
-import io
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -16,12 +14,33 @@ import numpy as np
 from hoidata.errors import DataError
 from hoidata.export import gsdf, handoccnet
 from hoidata.export.files import write_json
+from hoidata.reading import decode_npy, parse_json
 from hoidata.records import RecordWorker
+from hoidata.shapes import Record, String, check
 
 
 def chunk_path(work: Path, number: int) -> Path:
     """Chunk ``number``'s manifest in the export's work folder."""
     return Path(work) / f"chunk-{number:06d}.json"
+
+
+def shard_rows(path: Path) -> dict[str, dict]:
+    """``{key: {"sdf": int16 (N, 6), "meta": dict}}`` of a store shard's records that carry SDF rows (an 'eval'
+    record has none); the tar and member names are checked by the store's reader, each member by the door."""
+    from hoidata import schema, store
+
+    out = {}
+    for members in store.read_shard_members(path):
+        if schema.SDF not in members:
+            continue
+        key = members.get("__key__")
+        meta = check(parse_json(store.record_member(members, schema.META, path), path, f"{key}.{schema.META}"),
+                     Record({"key": String()}), path, f"{key}.{schema.META}")
+        sdf = decode_npy(members[schema.SDF], path, f"{key}.{schema.SDF}")
+        if sdf.dtype != np.int16 or sdf.ndim != 2 or sdf.shape[1] != 6:
+            raise DataError(path, f"{key}.{schema.SDF}", f"expected int16 (N, 6) rows, got {sdf.dtype} {sdf.shape}")
+        out[meta["key"]] = {"sdf": sdf, "meta": meta}
+    return out
 
 
 @dataclass
@@ -95,15 +114,8 @@ class ExportWorker:
         name = self._store_keys.get(key)
         if name is None:
             return None
-        if name not in self._shards:
-            self._shards = {name: {}}  # chunks follow the reader's order, so one shard at a time suffices
-            for members in store.read_shard_members(self.store / name):  # checks the tar and member names
-                if schema.SDF not in members:  # an 'eval' record: no SDF rows to re-use
-                    continue
-                meta = json.loads(members[schema.META])
-                sdf = np.load(io.BytesIO(members[schema.SDF]), allow_pickle=False)
-                schema.dequantize_sdf(sdf)  # raises ValueError unless int16 (N, 6)
-                self._shards[name][meta["key"]] = {"sdf": sdf, "meta": meta}
+        if name not in self._shards:  # chunks follow the reader's order, so one shard at a time suffices
+            self._shards = {name: shard_rows(self.store / name)}
         return self._shards[name].get(key)
 
     def entry(self, fmt: str, frame, ident: int, key: str, out: Path, opts: dict) -> dict:

@@ -9,13 +9,14 @@ parts. The vertices labelled 1 (part id 2, "bottom") are the object's root for t
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from hoidata.errors import DataError
+from hoidata.reading import read_json, read_text
+from hoidata.shapes import not_finite, numbers
 
 # the names ARCTIC's object layer loads, every one, at start-up (a missing folder stops it)
 ARCTIC_OBJECTS = ("capsulemachine", "box", "ketchup", "laptop", "microwave", "mixer", "notebook",
@@ -49,10 +50,7 @@ class ArcticObject:
 def read_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """The ``v`` rows (in file order) and triangle ``f`` rows (0-based) of a Wavefront OBJ."""
     verts, faces = [], []
-    try:
-        lines = Path(path).read_text().splitlines()
-    except (OSError, UnicodeDecodeError) as e:
-        raise DataError(path, None, f"cannot be read ({e})") from None
+    lines = read_text(path, "OBJ file").splitlines()
     for n, line in enumerate(lines, 1):
         parts = line.split()
         if not parts:
@@ -68,6 +66,9 @@ def read_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
     if not verts or not faces:
         raise DataError(path, None, "no vertices or no faces")
     v, f = np.asarray(verts, np.float64), np.asarray(faces, np.int64)
+    problem = not_finite(v)
+    if problem:
+        raise DataError(path, "v", f"{v.size} coordinates, {problem}")
     f = np.where(f < 0, f + len(v), f - 1)
     if f.min() < 0 or f.max() >= len(v):
         raise DataError(path, "f", f"a face names a vertex outside 1..{len(v)}")
@@ -75,22 +76,13 @@ def read_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _json(path: Path):
-    try:
-        return json.loads(Path(path).read_text())
-    except FileNotFoundError:
-        raise DataError(path, None, "missing (ARCTIC's object loader opens it)") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise DataError(path, None, f"not readable JSON ({e})") from None
+    if not Path(path).exists():
+        raise DataError(path, None, "missing (ARCTIC's object loader opens it)")
+    return read_json(path, "ARCTIC object file")
 
 
 def _points(value, path: Path, key: str, rows: int | None) -> np.ndarray:
-    try:
-        out = np.asarray(value, np.float64)
-    except (TypeError, ValueError):
-        out = np.zeros((0,))
-    if out.ndim != 2 or out.shape[1] != 3 or (rows is not None and len(out) != rows) or not np.isfinite(out).all():
-        raise DataError(path, key, f"must be {rows or 'N'} x 3 finite numbers (mm), got shape {out.shape}")
-    return out
+    return numbers(value, path, key, (rows, 3))  # millimetres; never strings or booleans, finite
 
 
 def read_object_meta(meta_dir: str | Path) -> dict[str, float]:
@@ -113,7 +105,8 @@ def load_arctic_object(meta_dir: str | Path, name: str, diameters: dict[str, flo
     folder = Path(meta_dir) / "object_vtemplates" / name
     v_mm, faces = read_obj(folder / "mesh.obj")
     labels = _json(folder / "parts.json")
-    if not isinstance(labels, list) or len(labels) != len(v_mm) or any(x not in (0, 1) for x in labels):
+    if not isinstance(labels, list) or len(labels) != len(v_mm) or \
+            any(type(x) is not int or x not in (0, 1) for x in labels):  # a boolean is no label
         raise DataError(folder / "parts.json", None, f"must list one label 0 or 1 per mesh.obj vertex ({len(v_mm)})")
     part_ids = np.asarray(labels, np.int64) + 1
     if not (part_ids == BOTTOM).any():

@@ -13,7 +13,6 @@ Mesh repair and simplification live in :mod:`hoidata.objects.meshops` and are re
 from __future__ import annotations
 
 import hashlib
-import io
 import os
 import tempfile
 from pathlib import Path
@@ -22,6 +21,9 @@ import numpy as np
 import trimesh
 
 from hoidata.errors import DataError, naming_os_errors
+from hoidata.reading import read_bytes, read_npz, read_table
+from hoidata.reading_media import decode_mesh, read_mesh
+from hoidata.shapes import not_finite
 from hoidata.objects.meshops import (
     MeshReport,
     check_mesh,
@@ -108,17 +110,12 @@ def load_object_mesh(path: str | os.PathLike) -> trimesh.Trimesh:
     (OBJ ``o``/``g`` groups or materials are split, not merged, so a multi-part file is caught).
     """
     path = Path(path)
-    if not path.is_file():
-        raise DataError(path, None, "mesh file not found")
-    try:
-        options = dict(process=False, maintain_order=True, split_objects=True, split_groups=True)
-        if path.suffix.lower() == ".obj":  # text: handed to trimesh as UTF-8, whatever the file's encoding
-            loaded = trimesh.load(io.BytesIO(_as_utf8(path.read_bytes())), file_type="obj",
-                                  resolver=_Utf8Resolver(path), **options)
-        else:
-            loaded = trimesh.load(path, **options)
-    except Exception as exc:  # trimesh raises many exception types on malformed files
-        raise DataError(path, None, f"cannot read mesh ({type(exc).__name__}: {exc})") from exc
+    options = dict(process=False, maintain_order=True, split_objects=True, split_groups=True)
+    if path.suffix.lower() == ".obj":  # text: handed to trimesh as UTF-8, whatever the file's encoding
+        loaded = decode_mesh(_as_utf8(read_bytes(path, "mesh file")), path, "obj", resolver=_Utf8Resolver(path),
+                             **options)
+    else:
+        loaded = read_mesh(path, **options)
     if isinstance(loaded, trimesh.Scene):
         geometries = loaded.dump(concatenate=False)  # applies scene transforms
         if len(geometries) > 1:
@@ -127,6 +124,9 @@ def load_object_mesh(path: str | os.PathLike) -> trimesh.Trimesh:
         loaded = geometries[0] if geometries else None
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
         raise DataError(path, "faces", "no triangle faces")
+    problem = not_finite(np.asarray(loaded.vertices))
+    if problem:
+        raise DataError(path, "vertices", f"{loaded.vertices.size} coordinates, {problem}")
     return loaded
 
 
@@ -152,12 +152,10 @@ class _Utf8Resolver(trimesh.resolvers.FilePathResolver):
 def load_points(path: str | os.PathLike) -> np.ndarray:
     """(N, 3) float64 points of a ``points.xyz`` file (metres)."""
     path = Path(path)
-    if not path.is_file():
-        raise DataError(path, None, "points file not found")
-    try:
-        points = np.loadtxt(path, dtype=np.float64, ndmin=2)
-    except ValueError as exc:
-        raise DataError(path, None, f"not a whitespace-separated 'x y z' file ({exc})") from exc
+    points = read_table(path, "'x y z' points file")
+    problem = not_finite(points)
+    if problem:
+        raise DataError(path, "points", f"{points.size} coordinates, {problem}")
     if points.shape[1] != 3 or len(points) == 0:
         raise DataError(path, "points", f"expected (N, 3) coordinates, got shape {points.shape}")
     return points
@@ -171,12 +169,7 @@ def default_cache_dir() -> Path:
 
 def simplify_cache_key(obj_path: str | os.PathLike, n_vertices: int) -> str:
     """sha256 hex of the OBJ bytes, the vertex count and SIMPLIFY_VERSION (content, not mtime)."""
-    obj_path = Path(obj_path)
-    try:
-        data = obj_path.read_bytes()
-    except OSError as exc:
-        raise DataError(obj_path, None, f"cannot read mesh file ({exc.strerror or exc})") from exc
-    digest = hashlib.sha256(data)
+    digest = hashlib.sha256(read_bytes(obj_path, "mesh file"))
     digest.update(f"|n_vertices={int(n_vertices)}|simplify={SIMPLIFY_VERSION}".encode())
     return digest.hexdigest()
 
@@ -217,10 +210,10 @@ def _read_cached(cache_file: Path) -> trimesh.Trimesh | None:
     if not cache_file.is_file():
         return None
     try:
-        with np.load(cache_file) as data:
-            vertices, faces = data["vertices"], data["faces"]
-    except (OSError, KeyError, ValueError):
+        data = read_npz(cache_file, ("vertices", "faces"), "mesh cache file")
+    except DataError:
         return None
+    vertices, faces = data["vertices"], data["faces"]
     return trimesh.Trimesh(vertices, faces, process=False)
 
 

@@ -27,17 +27,14 @@ import numpy as np
 
 from hoidata import sections
 from hoidata.errors import DataError
+from hoidata.reading import file_digest
 
 MANO_FILES = ("MANO_RIGHT.pkl", "MANO_LEFT.pkl")
 MISSING = "missing"
 
 
 def file_sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        while chunk := f.read(1 << 20):
-            digest.update(chunk)
-    return digest.hexdigest()
+    return file_digest(path, "input file")[1]
 
 
 def files(folder: Path, names) -> dict[str, str]:

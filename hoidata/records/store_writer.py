@@ -24,8 +24,9 @@ from pathlib import Path
 from hoidata import schema, store
 from hoidata.atomic import write_json_atomic
 from hoidata.engine import RunSummary, ShardTask
-from hoidata.errors import DataError, read_json
+from hoidata.errors import DataError
 from hoidata.provenance import INPUTS, git_commit
+from hoidata.reading import parse_json, read_json
 from hoidata.records import fingerprint
 from hoidata.records.records import RecordSettings
 from hoidata.store.card import write_store_files
@@ -41,12 +42,8 @@ def extra_name(number: int) -> str:
 def read_shard_skips(out: Path, number: int) -> dict:
     """Shard ``number``'s skips file, checked: {"skipped": [...], "records": n, "inputs": {...}, ...}."""
     path = Path(out) / extra_name(number)
-    try:
-        value = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:  # RecursionError: nested too deeply
-        raise DataError(path, None, f"unreadable skips file ({type(exc).__name__}: {exc}); rerun the build to "
-                                    "rewrite it") from None
-    ok = isinstance(value, dict) and isinstance(value.get("skipped"), list) and isinstance(value.get("records"), int)
+    value = read_json(path, "skips file", "rerun the build to rewrite it")
+    ok = isinstance(value, dict) and isinstance(value.get("skipped"), list) and type(value.get("records")) is int
     if not ok or not all(isinstance(s, dict) and {"frame_id", "reason"} <= set(s) for s in value["skipped"]):
         raise DataError(path, None, "not a skips file (expected 'skipped' entries and 'records'); rerun the build")
     return value
@@ -122,7 +119,9 @@ def _shard_metas(path: Path, info) -> list[dict]:
     (size and sha256: a shard damaged since it was written is a DataError asking for a rerun)."""
     digest = hashlib.sha256()
     try:
-        metas = [json.loads(m[schema.META]) for m in store.read_shard_members(path, info.size, digest)]
+        members = store.read_shard_members(path, info.size, digest)
+        metas = [parse_json(store.record_member(m, schema.META, path), path, f"{m.get('__key__')}.{schema.META}")
+                 for m in members]
     except DataError as exc:
         raise DataError(path, exc.field, f"{exc.problem}; rerun the build into this folder to rewrite it") from None
     if digest.hexdigest() != info.sha256:
@@ -158,11 +157,8 @@ def check_build_file(out: Path, config: dict, keys: list[str], inputs: dict) -> 
             "frames": len(keys), "schema_version": schema.SCHEMA_VERSION, "inputs": inputs}
     spec = json.loads(json.dumps(spec))
     path = Path(out) / BUILD_FILE
-    if path.is_file():
-        try:
-            old = json.loads(path.read_text())
-        except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:  # RecursionError: nested too deeply
-            raise DataError(path, None, f"unreadable ({type(exc).__name__}: {exc}); use a new --out folder") from None
+    if path.exists():  # a folder of that name is refused by the read
+        old = read_json(path, "store build file", "use a new --out folder")
         where = fingerprint.first_difference(fingerprint.current_names(old, RecordSettings.RENAMED), spec)
         if where is not None:
             raise DataError(path, where, f"{fingerprint.describe_difference(where)}; resuming would mix records: "

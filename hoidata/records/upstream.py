@@ -26,6 +26,8 @@ from hoidata import schema
 from hoidata.datasets.frame import Frame
 from hoidata.errors import DataError
 from hoidata.geometry import upstream_crop as up
+from hoidata.reading import read_bytes
+from hoidata.reading_media import MAX_IMAGE_BYTES, decode_pil
 
 CROPS = ("project", "upstream")
 IMAGE_SIZE = (640, 480)  # both datasets' frames; upstream clips its crop to them
@@ -76,20 +78,13 @@ class CropPolicy:
 def decode_as_upstream(frame: Frame, data: bytes | None = None):
     """The frame's image as upstream decodes it: ``PIL.Image.open(path).convert("RGB")``, size checked (``data``: the
     file's bytes, read already)."""
-    import io
-
-    from PIL import Image, UnidentifiedImageError
-
     from hoidata.datasets.frame import read_rgb
 
     if frame.image is not None:
         raise DataError(frame.image_path, "record.crop", "upstream's crop needs the original image file")
     read_rgb(frame.image_path, frame.image_size)  # the project's checks: present, complete, decodable, the size
-    try:
-        with Image.open(frame.image_path if data is None else io.BytesIO(data)) as img:
-            return img.convert("RGB")
-    except (OSError, UnidentifiedImageError) as exc:
-        raise DataError(frame.image_path, None, f"PIL cannot decode this image ({exc})") from None
+    data = read_bytes(frame.image_path, "image file", MAX_IMAGE_BYTES) if data is None else data
+    return decode_pil(data, frame.image_path, None, "image")
 
 
 def flip_image(image):
@@ -170,16 +165,22 @@ def region_square(frame: Frame, box3d: np.ndarray | None) -> tuple[int, int, int
     return x0 - (grown - n) // 2, y0 - (grown - n) // 2, grown
 
 
+def frame_file(frame: Frame) -> bytes:
+    """The frame's image file as shipped (what a record.upstream_region record keeps): a JPEG or PNG file."""
+    data = read_bytes(frame.image_path, "image file", MAX_IMAGE_BYTES)
+    if data[:2] != b"\xff\xd8" and data[:8] != b"\x89PNG\r\n\x1a\n":
+        raise DataError(frame.image_path, "record.upstream_region", "the record keeps the frame's file as shipped: a "
+                                                                    "JPEG or PNG file, not this")
+    return data
+
+
 def region_view(frame: Frame, box3d: np.ndarray) -> dict:
     """A record.upstream_region record's image and fields: ``frame_bytes`` the original frame file's bytes (what the
     record stores, as shipped), ``img`` (n, n, 3) uint8 the square of that frame (decoded as upstream decodes it,
     flipped for a left hand, black outside the frame; what readers get), ``to_pixels`` (3, 3) the frame -> region
     pixel map (a translation), ``meta``: schema.REGION_FIELDS."""
     x0, y0, n = region_square(frame, box3d)
-    data = Path(frame.image_path).read_bytes()
-    if data[:2] != b"\xff\xd8" and data[:8] != b"\x89PNG\r\n\x1a\n":
-        raise DataError(frame.image_path, "record.upstream_region", "the record keeps the frame's file as shipped: a "
-                                                                    "JPEG or PNG file, not this")
+    data = frame_file(frame)
     image = decode_as_upstream(frame, data)
     image = flip_image(image) if frame.mirror else image
     inputs = train_inputs(frame, box3d)

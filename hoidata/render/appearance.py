@@ -8,7 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hoidata.errors import DataError
+from hoidata.reading import read_bytes
+from hoidata.reading_media import MAX_IMAGE_BYTES, decode_pil
 
 
 @dataclass
@@ -145,16 +146,10 @@ def load_background(path: str | os.PathLike, width: int, height: int, rng: np.ra
 
     Raises DataError naming the file when it is missing or not a readable image."""
     import cv2
-    from PIL import Image
 
     path = Path(path)
-    if not path.is_file():
-        raise DataError(path, None, "background image not found")
-    try:
-        with Image.open(path) as image:
-            pixels = np.asarray(image.convert("RGB"))
-    except (OSError, ValueError, Image.DecompressionBombError) as exc:  # PIL's "not an image" is an OSError
-        raise DataError(path, None, f"cannot read background image ({type(exc).__name__}: {exc})") from exc
+    pixels = np.asarray(decode_pil(read_bytes(path, "background image", MAX_IMAGE_BYTES), path, None,
+                                   "background image"))
     src_h, src_w = pixels.shape[:2]
     scale = rng.uniform(0.45, 1.0)
     crop_w = max(1, int(round(min(src_w, src_h * width / height) * scale)))

@@ -42,6 +42,7 @@ from hoidata.store.shards import (
     read_checked_shard,
     read_record,
     read_shard_members,
+    record_member,
     shard_sizes,
     shard_source,
     sidecar_name,
@@ -60,6 +61,7 @@ __all__ = [
     "FRAME_IMAGE", "INDEX_NAME", "KEY", "MAX_IMAGE_SIDE", "MAX_MEMBER_BYTES", "RemoteFile", "RemoteStore", "ShardInfo",
     "ShardWriter", "StoreIndex", "UNKNOWN_SIZE", "VerifyReport", "completed_shards", "decode_record", "encode_record", "file_digest",
     "index_labels", "index_lock", "iter_records", "local_store", "read_checked_shard", "read_index",
-    "read_record", "read_shard_members", "record_spans", "read_sidecar", "resolve_store", "shard_name", "shard_sizes", "shard_source",
+    "read_record", "read_shard_members",
+    "record_member", "record_spans", "read_sidecar", "resolve_store", "shard_name", "shard_sizes", "shard_source",
     "sidecar_name", "stale_temps", "to_jsonable", "verify_store", "write_index", "write_shard",
 ]

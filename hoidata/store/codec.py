@@ -16,6 +16,9 @@ import numpy as np
 
 from hoidata.errors import DataError
 from hoidata.geometry.upstream_crop import cut_region
+from hoidata.reading import decode_npy, parse_json
+from hoidata.reading_media import PNG_MAGIC, decode_image, decode_pil, incomplete_image
+from hoidata.shapes import first_non_number, kind_of
 from hoidata.schema import (
     CROP_FIELDS,
     FRAME_JPG,
@@ -52,8 +55,6 @@ MAX_IMAGE_SIDE = 4096  # refuse absurd image headers before decoding (decompress
 KEY = "__key__"  # the record key in decoded records, as WebDataset names it
 FRAME_IMAGE = "frame_image"  # decoded upstream-region records with a frame member: the whole (flipped) frame, RGB
 N_PARTS = 16  # hand part labels 0..15 in sdf.npy's last column
-_PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
-_PNG_END = b"IEND\xaeB`\x82"  # the IEND chunk's type and CRC, the last bytes of every PNG
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
@@ -172,6 +173,9 @@ def _check_meta(meta, where, key, n_sdf: int | None, kind: str | None = None, im
                                              f"({OBJECT_IDS.start}..{OBJECT_IDS.stop - 1})")
             out[field_name] = value
             continue
+        bad = first_non_number(value)  # numpy would take "1" and true for numbers
+        if bad is not None:
+            raise DataError(where, name, f"{field_name!r}: expected numbers, got {kind_of(bad[1])}")
         try:
             arr = np.asarray(value, dtype=np.float64)
         except (TypeError, ValueError, OverflowError):
@@ -213,7 +217,7 @@ def encode_record(key: str, img: np.ndarray, seg: np.ndarray | None, heatmap: np
         raise DataError(None, key, f"a {kind!r} record has members {list(members_of_kind)}, got {sorted(given)}")
     image = IMG_LOSSLESS if isinstance(meta, dict) and ("crop" in meta or "region" in meta) else IMG
     if frame is not None:
-        image = FRAME_PNG if bytes(frame[:8]) == _PNG_MAGIC else FRAME_JPG
+        image = FRAME_PNG if bytes(frame[:8]) == PNG_MAGIC else FRAME_JPG
     _check_images(None, key, img, seg, heatmap, image)
     if sdf is not None:
         _check_sdf(None, key, sdf)
@@ -244,27 +248,12 @@ def _imencode(ext: str, arr: np.ndarray, params: list[int]) -> bytes:
     return buf.tobytes()
 
 
-def incomplete_image(data: bytes) -> str | None:
-    """Why a JPEG or PNG file is cut short (None when it ends as it should, or is neither format).
-
-    OpenCV decodes a truncated JPEG without an error (it fills the rest with grey and only prints a warning),
-    so the end is checked here: a JPEG must end with its end-of-image marker (trailing zero padding allowed),
-    a PNG with its IEND chunk.
-    """
-    data = bytes(data)
-    if data[:2] == b"\xff\xd8":
-        return None if data.rstrip(b"\0").endswith(b"\xff\xd9") else "truncated JPEG (no end-of-image marker)"
-    if data[:8] == _PNG_MAGIC:
-        return None if data.rstrip(b"\0").endswith(_PNG_END) else "truncated PNG (no IEND chunk)"
-    return None
-
-
 def _image_size(data: bytes, member: str) -> tuple[int, int] | None:
     """(width, height) from a PNG's IHDR or a JPEG's SOF header without decoding; None if not found."""
     if member == IMG_LOSSLESS and data[24:26] != b"\x08\x02":  # the crop: 8-bit RGB PNG, nothing else
         return None
     if member not in (IMG, FRAME_JPG):
-        if data[:8] == _PNG_MAGIC and data[12:16] == b"IHDR" and len(data) >= 24:
+        if data[:8] == PNG_MAGIC and data[12:16] == b"IHDR" and len(data) >= 24:
             return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
         return None
     pos = 2 if data[:2] == b"\xff\xd8" else len(data)
@@ -283,15 +272,10 @@ def _decode_image(data: bytes, where, key, member: str) -> np.ndarray:
     kind = {IMG: "JPEG", IMG_LOSSLESS: "8-bit RGB PNG"}.get(member, "8-bit grey PNG")
     if size is None or not 0 < max(size) <= MAX_IMAGE_SIDE:
         raise DataError(where, _field(key, member), f"not a {kind} of at most {MAX_IMAGE_SIDE} px (header: {size})")
-    problem = incomplete_image(data)
-    if problem:
-        raise DataError(where, _field(key, member), problem)
-    # RGB straight from the decoder: the values of BGR then cvtColor (or [..., ::-1]), without the extra pass
+    # RGB straight from the decoder: the values of BGR then cvtColor (or [..., ::-1]), without the extra pass (the
+    # door refuses a JPEG or PNG cut short)
     flag = cv2.IMREAD_COLOR_RGB if member in (IMG, IMG_LOSSLESS) else cv2.IMREAD_UNCHANGED
-    arr = cv2.imdecode(np.frombuffer(data, np.uint8), flag)
-    if arr is None:
-        raise DataError(where, _field(key, member), f"OpenCV cannot decode this {kind}")
-    return arr
+    return decode_image(data, where, _field(key, member), flag, kind)
 
 
 def _check_frame_header(data, where, key, member: str, frame_size) -> None:
@@ -312,14 +296,8 @@ def _check_frame_header(data, where, key, member: str, frame_size) -> None:
 def _read_frame(data, where, key, member: str, meta: dict) -> np.ndarray:
     """An upstream-region record's frame member -> the whole frame (H, W, 3) uint8 as upstream's loader reads it:
     Pillow's decode in RGB, flipped left to right for a mirrored (left-hand) record."""
-    from PIL import Image, UnidentifiedImageError
-
     _check_frame_header(data, where, key, member, meta["frame_size"])
-    try:
-        with Image.open(io.BytesIO(bytes(data))) as img:
-            rgb = np.asarray(img if img.mode == "RGB" else img.convert("RGB"))
-    except (OSError, UnidentifiedImageError, ValueError) as exc:
-        raise DataError(where, _field(key, member), f"Pillow cannot decode this image ({exc})") from None
+    rgb = np.asarray(decode_pil(data, where, _field(key, member), "image"))
     return np.ascontiguousarray(rgb[:, ::-1]) if meta["mirrored"] else rgb
 
 
@@ -336,13 +314,6 @@ def _png_unread(data: bytes, where, key, member: str) -> np.ndarray:
     if problem:
         raise DataError(where, _field(key, member), problem)
     return np.broadcast_to(np.zeros((), np.uint8), (size[1], size[0]))
-
-
-def _decode_sdf(data: bytes, where, key) -> np.ndarray:
-    try:
-        return np.load(io.BytesIO(data), allow_pickle=False)
-    except (ValueError, OSError, EOFError) as exc:  # allow_pickle=False: an object array is refused here
-        raise DataError(where, _field(key, SDF), f"not a readable .npy array ({exc})") from None
 
 
 def decode_record(members: dict[str, bytes], where: str, undecoded: tuple[str, ...] = ()) -> dict:
@@ -382,12 +353,9 @@ def decode_record(members: dict[str, bytes], where: str, undecoded: tuple[str, .
     if not frame:
         _check_images(where, key, out[IMG], out.get(SEG), out.get(HEATMAP), image)
     if SDF in given:
-        out[SDF] = _decode_sdf(members[SDF], where, key)
+        out[SDF] = decode_npy(members[SDF], where, _field(key, SDF))
         _check_sdf(where, key, out[SDF])
-    try:
-        plain = json.loads(bytes(members[META]).decode("utf-8"))
-    except (UnicodeDecodeError, ValueError, RecursionError) as exc:  # RecursionError: absurdly nested JSON
-        raise DataError(where, _field(key, META), f"not UTF-8 JSON ({type(exc).__name__})") from None
+    plain = parse_json(bytes(members[META]), where, _field(key, META))
     out[META] = _check_meta(plain, where, key, len(out[SDF]) if SDF in out else None, kind, image)
     if frame:  # the square at region_origin, its side twice the masks'
         out[FRAME_IMAGE] = _read_frame(members[image], where, key, image, out[META])

@@ -286,6 +286,13 @@ def read_shard_members(path, size: int | None = None, digest=None) -> Iterator[d
         yield from _members(_ShardBytes(file, os.fstat(file.fileno()).st_size if size is None else size, digest), path)
 
 
+def record_member(members: dict, name: str, path) -> bytes:
+    """Member ``name`` of one raw record (:func:`read_shard_members`); absent is a DataError naming the record."""
+    if name not in members:
+        raise DataError(path, f"{members.get('__key__')}.{name}", "member missing")
+    return members[name]
+
+
 def shard_source(location, name: str):
     """A shard of a store (a folder or a :class:`~hoidata.store.remote.RemoteStore`): its Path or RemoteFile."""
     location = resolve_store(location)

@@ -3,8 +3,6 @@ a command reads from (:func:`opened_store`)."""
 
 from __future__ import annotations
 
-import hashlib
-import json
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -12,21 +10,12 @@ from pathlib import Path
 import numpy as np
 
 from hoidata.errors import DataError, redact_urls
+from hoidata.reading import file_digest, read_json
 from hoidata.schema import META, META_FIELDS
 from hoidata.store.codec import KEY
 from hoidata.store.index import ShardInfo, StoreIndex, read_index
 from hoidata.store.paths import is_stale_token, local_folder, local_store, stale_temps
 from hoidata.store.shards import iter_records, sidecar_name
-
-
-def file_digest(path) -> tuple[int, str]:
-    """(size in bytes, sha256 hex) of a file, read in 1 MiB blocks."""
-    sha, size = hashlib.sha256(), 0
-    with open(path, "rb") as file:
-        while chunk := file.read(1 << 20):
-            sha.update(chunk)
-            size += len(chunk)
-    return size, sha.hexdigest()
 
 
 @dataclass
@@ -144,10 +133,7 @@ def verify_store(store_dir) -> VerifyReport:
 def read_sidecar(store_dir, number: int) -> ShardInfo:
     """The ShardInfo written next to shard ``number`` when it was completed."""
     path = Path(store_dir) / sidecar_name(number)
-    try:
-        value = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:  # RecursionError: nested too deeply
-        raise DataError(path, None, f"unreadable sidecar ({type(exc).__name__}: {exc})") from None
+    value = read_json(path, "shard sidecar")
     info = ShardInfo.from_dict(value, path)
     if info.number != number:
         raise DataError(path, "number", f"{info.number}, expected {number}")

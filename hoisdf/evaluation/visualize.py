@@ -8,6 +8,7 @@ metres, projected with the image's intrinsics ``K`` (3, 3) in pixels; points at 
 from __future__ import annotations
 
 import csv
+import io
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -17,6 +18,7 @@ import numpy as np
 from hoidata.atomic import atomic_path, write_atomic
 from hoidata.errors import DataError
 from hoidata.objects import BOX_EDGES, box_corners
+from hoidata.reading import read_text
 
 PRED_COLOR = (255, 80, 40)  # predictions: orange-red
 GT_COLOR = (40, 220, 80)  # ground truth: green
@@ -220,20 +222,21 @@ def save_grid(images: Sequence[np.ndarray], path, cols: int | None = None) -> Pa
 def read_curve(metrics_csv) -> dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]:
     """``RUN/metrics.csv`` -> {split: {name: (steps (n,), values (n,))}}; malformed rows are a DataError."""
     path = Path(metrics_csv)
-    if not path.is_file():
-        raise DataError(path, None, "training curve not found")
     series: dict[str, dict[str, list]] = {}
-    with open(path, newline="", encoding="utf-8") as f:
-        reader = csv.DictReader(f)
-        missing = {"split", "step", "name", "value"} - set(reader.fieldnames or ())
-        if missing:
-            raise DataError(path, "header", f"missing column(s) {sorted(missing)}")
-        for line, row in enumerate(reader, start=2):
-            try:
-                step, value = int(float(row["step"])), float(row["value"])
-            except (TypeError, ValueError):
-                raise DataError(path, f"line {line}", f"step/value not numeric: {row}") from None
-            series.setdefault(row["split"], {}).setdefault(row["name"], []).append((step, value))
+    try:
+        reader = csv.DictReader(io.StringIO(read_text(path, "training curve"), newline=""))
+        columns, rows = reader.fieldnames, list(reader)
+    except csv.Error as exc:  # a field past csv's limit
+        raise DataError(path, None, f"not a training curve ({exc})") from None
+    missing = {"split", "step", "name", "value"} - set(columns or ())
+    if missing:
+        raise DataError(path, "header", f"missing column(s) {sorted(missing)}")
+    for line, row in enumerate(rows, start=2):
+        try:
+            step, value = int(float(row["step"])), float(row["value"])
+        except (TypeError, ValueError):
+            raise DataError(path, f"line {line}", f"step/value not numeric: {row}") from None
+        series.setdefault(row["split"], {}).setdefault(row["name"], []).append((step, value))
     return {split: {name: tuple(np.array(v, dtype=np.float64).T.reshape(2, -1)) for name, v in names.items()}
             for split, names in series.items()}
 

@@ -238,18 +238,18 @@ class ResNetUNet(nn.Module):
                     f"ImageNet weights for ResNet-{self.depth} not found at {path}. Nothing is downloaded at run "
                     f"time: fetch {url} into that folder (or set TORCH_HOME), or pass the file's path as weights.")
         else:
-            path = Path(weights)
-            if not path.is_file():
-                raise FileNotFoundError(f"backbone weights file not found: {path}")
-        try:
-            state = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as exc:  # noqa: BLE001 - a damaged or crafted file: one line naming it
-            from hoidata.errors import DataError
-            from hoidata.safe_pickle import refusal_text
+            path = Path(weights)  # missing, a folder or not a checkpoint: read_torch's one line
+        from hoidata.errors import DataError
+        from hoidata.reading_media import read_torch
 
-            raise DataError(path, None, f"cannot read the backbone weights: {refusal_text(exc)}") from None
-        state = {k: v for k, v in state.items() if not k.startswith("fc.")}
-        self.backbone.load_state_dict(state, strict=True)
+        state = read_torch(path, "backbone weights file")
+        if not isinstance(state, dict) or not all(isinstance(k, str) and torch.is_tensor(v) for k, v in state.items()):
+            raise DataError(path, None, f"expected a ResNet-{self.depth} state dict of tensors")
+        try:
+            self.backbone.load_state_dict({k: v for k, v in state.items() if not k.startswith("fc.")}, strict=True)
+        except RuntimeError as exc:  # missing, unexpected or misshaped keys
+            lines = str(exc).splitlines()
+            raise DataError(path, None, f"not ResNet-{self.depth} weights ({lines[0] if lines else exc})") from None
 
     def encode(self, img: torch.Tensor) -> list[torch.Tensor]:
         """Image (B, 3, S, S) (already normalised if wanted) -> ResNet skip features stride2..stride32."""

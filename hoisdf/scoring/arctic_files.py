@@ -11,12 +11,12 @@ truth, a missing or odd ``meta_info.imgname.pt``, which it never reads) is a not
 from __future__ import annotations
 
 import re
-import zipfile
 from pathlib import Path
 
 import numpy as np
 
 from hoidata.errors import DataError
+from hoidata.reading import open_zip, read_bytes, zip_names, zip_read
 from hoisdf.scoring.torch_files import TensorArray, describe, read_pt
 
 HAND = 778
@@ -44,11 +44,8 @@ class Source:
             self.names = sorted(str(p.relative_to(self.path)) for p in self.path.rglob("*") if p.is_file())
             self.zip = None
         elif self.path.is_file():
-            try:
-                self.zip = zipfile.ZipFile(self.path)
-            except zipfile.BadZipFile as e:
-                raise DataError(self.path, None, f"not a folder or a readable zip ({e})") from None
-            self.names = sorted(n for n in self.zip.namelist() if not n.endswith("/"))
+            self.zip = open_zip(self.path, "submission (a folder or a zip)")  # cut or damaged: one line
+            self.names = sorted(set(zip_names(self.zip)))
         else:
             raise DataError(self.path, None, "not found")
 
@@ -56,7 +53,7 @@ class Source:
         return f"{self.path}:{name}" if self.zip else str(self.path / name)
 
     def read(self, name: str):
-        data = self.zip.read(name) if self.zip else (self.path / name).read_bytes()
+        data = zip_read(self.zip, name, self.path) if self.zip else read_bytes(self.path / name, "submission file")
         return read_pt(self.where(name), data)
 
 

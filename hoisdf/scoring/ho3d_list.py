@@ -16,6 +16,7 @@ import re
 from pathlib import Path
 
 from hoidata.errors import DataError
+from hoidata.reading import read_bytes
 
 ENTRY = re.compile(r"[^/\s]+/[^/\s]+")  # <SEQ>/<id>, as pred.py splits it
 LIST_NAME = "evaluation.txt"
@@ -49,12 +50,7 @@ def read_evaluation_list(path) -> list[str]:
     entry) unless every line is exactly one ``<SEQ>/<id>``, LF-terminated (the last line may lack its LF), each
     entry once."""
     path = Path(path)
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise DataError(path, None, "HO-3D evaluation list not found") from None
-    except OSError as err:
-        raise DataError(path, None, f"cannot read the HO-3D evaluation list ({err.strerror or err})") from None
+    data = read_bytes(path, "HO-3D evaluation list")
     lines = data.split(b"\n")
     if lines and lines[-1] == b"":
         lines.pop()  # the LF that ends the last line

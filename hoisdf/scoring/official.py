@@ -17,13 +17,14 @@ them) the mean of ``EvalUtil``'s per-keypoint means and AUCs equals the pooled m
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
 from hoidata.atomic import write_atomic
 from hoidata.errors import DataError
+from hoidata.reading import numbers_only, parse_json, read_bytes
+from hoidata.shapes import numbers
 from hoisdf.scoring import metrics as M
 
 HPE_ALIGNMENTS = ("absolute", "root-relative", "procrustes")
@@ -148,15 +149,8 @@ def read_ho3d_gt(folder) -> tuple[np.ndarray, np.ndarray]:
     lists = []
     for name, count in (("evaluation_xyz.json", 21), ("evaluation_verts.json", 778)):
         path = Path(folder) / name
-        if not path.is_file():
-            raise DataError(path, None, "HO-3D ground-truth file not found")
-        try:
-            arr = np.array(json.loads(path.read_text()), dtype=np.float64)
-        except (ValueError, TypeError) as err:
-            raise DataError(path, None, f"not a JSON list of ({count}, 3) lists of numbers: {err}") from None
-        if arr.ndim != 3 or arr.shape[1:] != (count, 3) or not np.isfinite(arr).all():
-            raise DataError(path, None, f"expected finite numbers of shape (N, {count}, 3), got {arr.shape}")
-        lists.append(arr)
+        data = read_bytes(path, "HO-3D ground-truth file")
+        lists.append(numbers(parse_json(data, path), path, None, (None, count, 3), plain=numbers_only(data)))
     if len(lists[0]) != len(lists[1]):
         raise DataError(folder, "evaluation_verts.json", f"{len(lists[1])} samples, evaluation_xyz.json has {len(lists[0])}")
     return lists[0], lists[1]

@@ -19,6 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from hoidata.errors import DataError
+from hoidata.reading import read_text
+from hoidata.reading_media import read_mesh
 
 PARTS = ("hand", "obj")
 SUFFIXES = (".ply", ".obj")
@@ -72,10 +74,8 @@ def gt_files(folder, parts=PARTS) -> tuple[dict[str, dict[str, Path]], str]:
 def read_ids(path) -> list[str]:
     """A frame list: one id per line; an empty or repeated id is an error naming the line."""
     path = Path(path)
-    if not path.is_file():
-        raise DataError(path, None, "frame list not found")
     ids, seen = [], {}
-    for k, line in enumerate(path.read_text().splitlines()):
+    for k, line in enumerate(read_text(path, "frame list").splitlines()):
         ident = line.strip()
         if not ident:
             continue
@@ -101,9 +101,9 @@ def check_mesh(path: Path | None) -> tuple[tuple[np.ndarray, np.ndarray] | None,
     import trimesh
 
     try:
-        mesh = trimesh.load(str(path), process=False)
-    except Exception as err:  # noqa: BLE001 - trimesh raises many types on a damaged file: each is a failure
-        return None, f"unreadable ({type(err).__name__}: {err})"[:200]
+        mesh = read_mesh(path, process=False)
+    except DataError as err:  # trimesh's many exception types on a damaged file, as one: each is a failure
+        return None, f"unreadable: {err.problem}"[:200]
     if not isinstance(mesh, trimesh.Trimesh):
         return None, f"not one triangle mesh (trimesh reads a {type(mesh).__name__})"
     vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)

@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from hoidata.reading_media import read_mesh
+
 POINTS = 30000  # surface samples per mesh
 CM = 100.0  # the meshes are in metres; distances are scored in cm
 # (name, threshold in cm) of each part's F-scores, in gSDF's order
@@ -33,10 +35,9 @@ EPS = 1e-7  # gSDF's denominator guard
 
 def load_mesh(path):
     """``trimesh.load(path, process=False)``, as gSDF loads both meshes (a scene or point cloud is returned as it
-    comes; :func:`part_scores` then fails on it as gSDF does)."""
-    import trimesh
-
-    return trimesh.load(str(path), process=False)
+    comes; :func:`part_scores` then fails on it as gSDF does), through the guarded door: a file trimesh refuses
+    is a DataError naming it."""
+    return read_mesh(path, process=False)
 
 
 def sample_points(mesh, rng: np.random.Generator, count: int = POINTS) -> np.ndarray:

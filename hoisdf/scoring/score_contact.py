@@ -29,6 +29,8 @@ import numpy as np
 from hoidata.cli_types import non_negative_int, positive_int
 from hoidata.errors import DataError
 from hoidata.geometry.mirror import mirror_mesh
+from hoidata.reading import read_lines, read_npz
+from hoidata.shapes import NUMBER_KINDS, not_finite
 from hoidata.store import read_index
 from hoisdf.scoring.contact_legacy import DEFINITIONS, legacy_many, legacy_summary
 from hoisdf.scoring.plausibility import (
@@ -49,12 +51,13 @@ MAX_CELLS = BUDGET  # per volume and frame, as the evaluator's report
 def _finite_hands(verts, path, field: str) -> np.ndarray:
     """(N, 778, 3) float64 or a DataError naming the first bad entry."""
     verts = np.asarray(verts)
-    if verts.ndim != 3 or verts.shape[1:] != (MANO_VERTS, 3) or not np.issubdtype(verts.dtype, np.number):
+    if verts.ndim != 3 or verts.shape[1:] != (MANO_VERTS, 3) or verts.dtype.kind not in NUMBER_KINDS:
         raise DataError(path, field, f"expected (N, {MANO_VERTS}, 3) numbers (MANO vertices), got {verts.shape} "
                                      f"{verts.dtype}")
     bad = np.flatnonzero(~np.isfinite(verts).all((1, 2)))
     if len(bad):
-        raise DataError(path, field, f"entry {bad[0]} holds NaN or inf ({len(bad)} entries do)")
+        raise DataError(path, field, f"entry {bad[0]} holds NaN or inf ({verts[bad[0]].size} numbers, "
+                                     f"{not_finite(verts[bad[0]])}; {len(bad)} of {len(verts)} entries are so)")
     far = np.flatnonzero(np.abs(verts).max((1, 2)) > REACH_M)
     if len(far):
         raise DataError(path, field, f"entry {far[0]} has a vertex {float(np.abs(verts[far[0]]).max()):.3g} m from "
@@ -65,9 +68,7 @@ def _finite_hands(verts, path, field: str) -> np.ndarray:
 def read_order(path) -> list[str]:
     """``evaluation.txt``: one ``SEQ/id`` per line; duplicates are an error naming the line."""
     path = Path(path)
-    if not path.is_file():
-        raise DataError(path, None, "evaluation list not found")
-    ids = [ln.strip() for ln in path.read_text().splitlines() if ln.strip()]
+    ids = read_lines(path, "evaluation list")
     seen: dict[str, int] = {}
     for k, frame in enumerate(ids):
         if frame in seen:
@@ -80,16 +81,11 @@ def read_hands(pred, order=None) -> tuple[np.ndarray, list[str], str]:
     """Predicted hands: (vertices (N, 778, 3) metres OpenCV, ids (N,), what the ids are: "key" or "frame_id")."""
     pred = Path(pred)
     if pred.suffix == ".npz":
-        try:
-            data = np.load(pred, allow_pickle=False)
-        except (OSError, ValueError) as err:
-            raise DataError(pred, None, f"not a readable .npz: {err}") from None
-        for name in ("verts", "keys"):
-            if name not in data.files:
-                raise DataError(pred, name, f"missing (the file holds {sorted(data.files)})")
+        data = read_npz(pred, ("verts", "keys"), "predicted hands (.npz)")
         verts, keys = _finite_hands(data["verts"], pred, "verts"), data["keys"]
-        if keys.shape != (len(verts),):
-            raise DataError(pred, "keys", f"expected ({len(verts)},) record keys, got shape {keys.shape}")
+        if keys.shape != (len(verts),) or keys.dtype.kind not in "UiuS":
+            raise DataError(pred, "keys", f"expected ({len(verts)},) record keys (strings), got shape {keys.shape} "
+                                          f"{keys.dtype}")
         return verts, [str(k) for k in keys], "key"
     if order is None:
         raise DataError(pred, None, "a pred.json has no frame ids: give its evaluation list with --order")

@@ -19,6 +19,7 @@ import numpy as np
 
 from hoidata.errors import DataError
 from hoidata.hand import DEXYCB_TO_MANO
+from hoidata.reading import read_lines, read_text
 from hoisdf.scoring.official import (
     HO3D_EVALUATION_SIZES,
     HO3D_SCORES,
@@ -50,7 +51,7 @@ def read_order(gt_dir: Path) -> list[str]:
     path = Path(gt_dir) / "evaluation.txt"
     if not path.is_file():
         raise DataError(path, None, "a subset needs the evaluation list beside the ground truth")
-    return [ln.strip() for ln in path.read_text().splitlines() if ln.strip()]
+    return read_lines(path, "HO-3D evaluation list")
 
 
 def subset_rows(order: list[str], prefix: str | None, ids_file: Path | None) -> np.ndarray:
@@ -63,7 +64,7 @@ def subset_rows(order: list[str], prefix: str | None, ids_file: Path | None) -> 
         return np.asarray(rows)
     where = {entry: i for i, entry in enumerate(order)}
     rows, seen = [], {}
-    for number, line in enumerate(Path(ids_file).read_text().splitlines(), start=1):
+    for number, line in enumerate(read_text(ids_file, "list of SEQ/id entries").splitlines(), start=1):
         entry = line.strip()
         if not entry:
             continue

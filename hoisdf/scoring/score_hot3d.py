@@ -24,8 +24,6 @@ scored as the server scores them, with a warning.
 
 from __future__ import annotations
 
-import json
-import tarfile
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +31,8 @@ import numpy as np
 from hoidata.errors import DataError
 from hoidata.hand import load_mano, read_mano_file
 from hoidata.hand.pose import pca_to_axis_angle
+from hoidata.reading import list_tar, parse_json, read_bytes
+from hoidata.shapes import Integer, ListOf, Numbers, Record, String, check
 
 HELP = "HOT3D hand-tracking challenge submission (result_pose/shape_<suffix>.json) against its ground truth"
 SUFFIXES = ("umetrack", "hot3d")  # the server scores each one present
@@ -55,57 +55,41 @@ def add_arguments(p) -> None:
 
 
 def _member(source: Path, name: str):
-    """The parsed JSON file ``name`` of a folder or tar (top level or in one folder), or None when absent."""
+    """The parsed JSON file ``name`` of a folder or tar (at any depth of the tar; two of that name are an error
+    naming both), or None when absent."""
     source = Path(source)
     if source.is_dir():
         path = source / name
-        return _parse(path.read_bytes(), path) if path.is_file() else None
+        return parse_json(read_bytes(path, "HOT3D result file"), path) if path.is_file() else None
     if not source.is_file():
         raise DataError(source, None, "not found: give the submission folder or its .tar")
-    try:
-        with tarfile.open(source) as tar:
-            found = [m for m in tar.getmembers() if m.isfile() and Path(m.name).name == name]
-            return _parse(tar.extractfile(found[0]).read(), f"{source}:{found[0].name}") if found else None
-    except tarfile.TarError as e:
-        raise DataError(source, None, f"not a readable tar ({e})") from None
+    listing = list_tar(source, lambda member: name if Path(member).name == name else None, "tar")
+    if name not in listing.members:
+        if listing.truncated:
+            raise DataError(source, None, f"not a readable tar ({listing.truncated})")
+        return None
+    where = f"{source}:{listing.members[name].name}"
+    return parse_json(listing.read(name), where)
 
 
-def _parse(data: bytes, where):
-    try:
-        value = json.loads(data)
-    except (UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise DataError(where, None, f"not JSON ({e})") from None
-    if not isinstance(value, list):
-        raise DataError(where, None, "must be a list of entries")
-    return value
+def _entries_shape(arrays: dict, with_frame: bool, side: bool) -> ListOf:
+    """The declared shape of a result or ground-truth file: a list of entries, each with a ``sequence_name``,
+    the numbers ``arrays`` (key -> shape) and, as asked, an integer ``frame_id`` and ``hand_side`` 0 / 1."""
+    required = {"sequence_name": String(), **{k: Numbers(shape) for k, shape in arrays.items()}}
+    if with_frame:
+        required["frame_id"] = Integer()
+    if side:
+        required["hand_side"] = Integer(0, 1)
+    return ListOf(Record(required), label="entry {}")
 
 
-def _numbers(entry: dict, key: str, shape: tuple, where, i: int) -> np.ndarray:
-    try:
-        out = np.asarray(entry[key], np.float64)
-    except KeyError:
-        raise DataError(where, f"entry {i}: {key}", "missing") from None
-    except (TypeError, ValueError):
-        raise DataError(where, f"entry {i}: {key}", "must be numbers") from None
-    if out.shape != shape or not np.isfinite(out).all():
-        raise DataError(where, f"entry {i}: {key}", f"must be {shape} finite numbers, got shape {out.shape}")
-    return out
-
-
-def read_entries(entries: list, where, arrays: dict, with_frame: bool = True, side: bool = True) -> dict:
+def read_entries(entries, where, arrays: dict, with_frame: bool = True, side: bool = True) -> dict:
     """Entries grouped per ``sequence_name``, each sorted by ``frame_id`` (stable, as the toolkit's
-    ``group_by_sequence_names``): ``{sequence: {"frame_id": (N,), "hand_side": (N,), key: (N, *shape)}}``."""
+    ``group_by_sequence_names``): ``{sequence: {"frame_id": (N,), "hand_side": (N,), key: (N, *shape)}}``.
+    Checked against their declared shape first (a string or boolean is never a number; NaN is named)."""
     rows: dict[str, list] = {}
-    for i, entry in enumerate(entries):
-        if not isinstance(entry, dict) or not isinstance(entry.get("sequence_name"), str):
-            raise DataError(where, f"entry {i}: sequence_name", "missing or not a string")
-        row = {k: _numbers(entry, k, shape, where, i) for k, shape in arrays.items()}
-        for key, wanted in (("frame_id", with_frame), ("hand_side", side)):
-            value = entry.get(key, 0 if not wanted else None)
-            if isinstance(value, bool) or not isinstance(value, int) or (key == "hand_side" and value not in (0, 1)):
-                raise DataError(where, f"entry {i}: {key}", "missing or not an integer" +
-                                (" 0 (left) / 1 (right)" if key == "hand_side" else ""))
-            row[key] = value
+    for entry in check(entries, _entries_shape(arrays, with_frame, side), where):
+        row = {k: entry[k] for k in arrays} | {k: entry.get(k, 0) for k in ("frame_id", "hand_side")}
         rows.setdefault(entry["sequence_name"], []).append(row)
     out = {}
     for seq, items in rows.items():

@@ -27,6 +27,8 @@ import numpy as np
 from hoidata.atomic import write_atomic
 from hoidata.errors import DataError
 from hoidata.hand import DEXYCB_TO_MANO, MANO_TO_DEXYCB, TIP_VERTICES
+from hoidata.reading import is_zip, numbers_only, parse_json, read_bytes, read_text, read_zip_member
+from hoidata.shapes import first_non_number, join, kind_of, not_finite
 
 OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0])  # its own inverse
 HO3D_TIP_VERTICES = TIP_VERTICES[("ho3d", "right")]  # thumb, index, middle, ring, pinky
@@ -124,13 +126,17 @@ def write_ho3d_pred(path, ids: Sequence[str], joints, verts, order: Sequence[str
 
 def _bad_entry(items: list, count: int | None) -> tuple[int, str] | None:
     """(index, problem) of the first item that is not a (count, 3) list of finite numbers (any K when ``count``
-    is None, but the same K as item 0), or None."""
+    is None, but the same K as item 0), or None. A string, boolean or null is never taken for a number (eval.py's
+    numpy would take ``true`` for 1.0)."""
     want = count
     for i, item in enumerate(items):
+        bad = first_non_number(item)
+        if bad is not None:
+            return i, f"expected numbers, got {kind_of(bad[1])}" + (f" (point {bad[0][0]})" if bad[0] else "")
         try:
             arr = np.array(item, dtype=np.float64)
         except (ValueError, TypeError):
-            return i, "not a list of (x, y, z) lists of numbers (ragged, or a non-number)"
+            return i, "not a list of (x, y, z) lists of numbers (ragged)"
         if want is None and arr.ndim == 2:
             want = arr.shape[0]
         if arr.size == 0 and count is None and want in (None, 0):
@@ -144,41 +150,49 @@ def _bad_entry(items: list, count: int | None) -> tuple[int, str] | None:
     return None
 
 
-def _as_point_list(items, path: Path, field: str, count: int | None) -> np.ndarray:
+def _as_point_list(items, path, field: str, count: int | None, plain: bool) -> np.ndarray:
     """A JSON list of N (K, 3) nested lists -> (N, K, 3) float64, checked like the evaluator's reshape.
 
     A malformed item is named with its index, e.g. ``pred.json: 'xyz_list[17]': expected 21 (x, y, z) points,
-    got shape (20, 3)``; with ``count`` None every item must have item 0's K (eval.py decides from item 0)."""
+    got shape (20, 3)``; with ``count`` None every item must have item 0's K (eval.py decides from item 0).
+    ``plain``: the file holds numbers only (:func:`hoidata.reading.numbers_only`), so one conversion checks it."""
     if not isinstance(items, list):
-        raise DataError(path, field, f"expected a list of samples, got {type(items).__name__}")
+        raise DataError(path, field, f"expected a list of samples, got {kind_of(items)}")
     if len(items) == 0:
         return np.zeros((0, count or 0, 3))
-    try:
-        arr = np.array(items, dtype=np.float64)
-    except (ValueError, TypeError):
-        arr = None
+    arr = None
+    if plain:
+        try:
+            arr = np.array(items, dtype=np.float64)
+        except (ValueError, TypeError):
+            arr = None
     ok = arr is not None and arr.ndim == 3 and arr.shape[2] == 3 and (count is None or arr.shape[1] == count)
     if not (ok and np.isfinite(arr).all()):  # find and name the first bad item (the slow path, errors only)
         bad = _bad_entry(items, count)
         if bad is not None:
             raise DataError(path, f"{field}[{bad[0]}]", bad[1])
-        if arr is None or arr.size:  # no single bad item, yet not an (N, K, 3) array of finite numbers
+        if arr is None and not plain:
+            arr = np.array(items, dtype=np.float64)  # every item checked: numbers of one shape
+        elif arr is None or arr.size:  # no single bad item, yet not an (N, K, 3) array of finite numbers
             raise DataError(path, field, f"expected (N, {count or 'K'}, 3) finite numbers")
     return arr.reshape(len(items), -1, 3)
 
 
-def _load_submission(path: Path):
-    """The JSON of a pred.json, or of the file the server takes from a zip: its top-level ``pred.json``, else its
-    only top-level ``.json`` (eval.py's ``_search_pred_file`` on the unpacked folder)."""
-    if not zipfile.is_zipfile(path):
-        return json.loads(path.read_bytes())
-    with zipfile.ZipFile(path) as zf:
-        top = [n for n in zf.namelist() if "/" not in n and n.endswith(".json")]
-        name = "pred.json" if "pred.json" in top else top[0] if len(top) == 1 else None
-        if name is None:
-            raise DataError(path, "pred.json", f"the archive has no top-level pred.json and {len(top)} other "
-                            "top-level .json files (the server takes pred.json, else the only .json)")
-        return json.loads(zf.read(name))
+def _load_submission(path: Path) -> tuple[bytes, str | None]:
+    """The bytes of a pred.json, or of the file the server takes from a zip (its top-level ``pred.json``, else its
+    only top-level ``.json``: eval.py's ``_search_pred_file`` on the unpacked folder), and that member's name. A
+    file that starts as a zip does, or is named ``.zip``, is read as an archive (a cut one is named as such)."""
+    if not (path.suffix.lower() == ".zip" or is_zip(path)):
+        return read_bytes(path, "HO-3D submission (pred.json)"), None
+
+    def choose(names: list[str]) -> str:
+        top = [n for n in names if "/" not in n and n.endswith(".json")]
+        if "pred.json" in top or len(top) == 1:
+            return "pred.json" if "pred.json" in top else top[0]
+        raise DataError(path, "pred.json", f"the archive has no top-level pred.json and {len(top)} other "
+                        "top-level .json files (the server takes pred.json, else the only .json)")
+
+    return read_zip_member(path, choose, "HO-3D submission archive (pred.zip)")[::-1]
 
 
 def read_ho3d_lists(path) -> tuple[np.ndarray, np.ndarray]:
@@ -187,21 +201,18 @@ def read_ho3d_lists(path) -> tuple[np.ndarray, np.ndarray]:
 
     Checks what eval.py's ``main`` relies on: the top level is ``[xyz_list, verts_list]`` with one item per sample
     in each, every item a (K, 3) list of finite numbers (V may be 0: no mesh). Raises
-    :class:`hoidata.errors.DataError` naming the file and the malformed part.
+    :class:`hoidata.errors.DataError` naming the file (the archive's member) and the malformed part.
     """
     path = Path(path)
-    try:
-        data = _load_submission(path)
-    except json.JSONDecodeError as err:
-        raise DataError(path, None, f"not valid JSON: {err}") from None
-    except OSError as err:
-        raise DataError(path, None, f"cannot read: {err}") from None
-    if not isinstance(data, list) or len(data) != 2:
-        raise DataError(path, None, "expected the JSON list [xyz_list, verts_list]")
-    joints = _as_point_list(data[0], path, "xyz_list", NUM_JOINTS)
-    verts = _as_point_list(data[1], path, "verts_list", None)
+    data, member = _load_submission(path)
+    value = parse_json(data, path, member)
+    if not isinstance(value, list) or len(value) != 2:
+        raise DataError(path, member, "expected the JSON list [xyz_list, verts_list]")
+    plain = numbers_only(data)
+    joints = _as_point_list(value[0], path, join(member, "xyz_list"), NUM_JOINTS, plain)
+    verts = _as_point_list(value[1], path, join(member, "verts_list"), None, plain)
     if len(joints) != len(verts):
-        raise DataError(path, None, f"xyz_list has {len(joints)} samples but verts_list {len(verts)}")
+        raise DataError(path, member, f"xyz_list has {len(joints)} samples but verts_list {len(verts)}")
     return joints, verts
 
 
@@ -270,26 +281,27 @@ def read_dexycb_hpe(path, unit: str = "m") -> tuple[np.ndarray, np.ndarray]:
     """
     path = Path(path)
     ids, rows, seen = [], [], {}
-    with open(path, encoding="utf-8") as f:
-        for number, line in enumerate(f, start=1):
-            where = f"line {number}"
-            elems = line.split(",")
-            if len(elems) != HPE_COLUMNS:
-                raise DataError(path, where, f"expected {HPE_COLUMNS} comma-separated values, got {len(elems)}")
-            try:
-                image_id = int(elems[0])
-            except ValueError:
-                raise DataError(path, where, f"sample index {elems[0].strip()!r} is not an integer") from None
-            try:
-                coords = np.array([float(v) for v in elems[1:]], dtype=np.float64)
-            except ValueError as err:
-                raise DataError(path, where, f"non-numeric coordinate: {err}") from None
-            if not np.isfinite(coords).all():
-                raise DataError(path, where, "non-finite coordinate")
-            if image_id in seen:
-                raise DataError(path, where, f"sample index {image_id} already on line {seen[image_id]}")
-            seen[image_id] = number
-            ids.append(image_id)
-            rows.append(coords.reshape(NUM_JOINTS, 3) / (1.0 if unit == "mm" else 1000.0))
+    lines = read_text(path, "DexYCB HPE result file").split("\n")
+    for number, line in enumerate(lines[:-1] if lines[-1] == "" else lines, start=1):  # as a file's lines
+        where = f"line {number}"
+        elems = line.split(",")
+        if len(elems) != HPE_COLUMNS:
+            raise DataError(path, where, f"expected {HPE_COLUMNS} comma-separated values, got {len(elems)}")
+        try:
+            image_id = int(elems[0])
+        except ValueError:
+            raise DataError(path, where, f"sample index {elems[0].strip()!r} is not an integer") from None
+        try:
+            coords = np.array([float(v) for v in elems[1:]], dtype=np.float64)
+        except ValueError as err:
+            raise DataError(path, where, f"non-numeric coordinate: {err}") from None
+        problem = not_finite(coords)
+        if problem:
+            raise DataError(path, where, f"non-finite coordinates: {HPE_COLUMNS - 1} numbers, {problem}")
+        if image_id in seen:
+            raise DataError(path, where, f"sample index {image_id} already on line {seen[image_id]}")
+        seen[image_id] = number
+        ids.append(image_id)
+        rows.append(coords.reshape(NUM_JOINTS, 3) / (1.0 if unit == "mm" else 1000.0))
     joints = np.stack(rows) if rows else np.zeros((0, NUM_JOINTS, 3))
     return np.asarray(ids, dtype=np.int64), joints

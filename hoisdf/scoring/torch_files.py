@@ -11,11 +11,11 @@ import io
 import pickle
 import zipfile
 from collections import OrderedDict
-from pathlib import Path
 
 import numpy as np
 
 from hoidata.errors import DataError
+from hoidata.reading import is_zip, open_zip, read_bytes, zip_read
 
 # torch storage class -> numpy dtype (the storages torch.save names; BFloat16 has no numpy twin)
 STORAGES = {"HalfStorage": np.float16, "FloatStorage": np.float32, "DoubleStorage": np.float64,
@@ -79,10 +79,7 @@ class _Unpickler(pickle.Unpickler):
         if dtype is None:
             raise DataError(self.where, None, "a tensor of a dtype this reader does not know")
         if key not in self.cache:
-            try:
-                data = self.archive.read(f"{self.prefix}data/{key}")
-            except KeyError:
-                raise DataError(self.where, None, f"storage {key} missing from the archive") from None
+            data = zip_read(self.archive, f"{self.prefix}data/{key}", self.where)  # absent or damaged: named
             if len(data) < numel * np.dtype(dtype).itemsize:
                 raise DataError(self.where, None, f"storage {key} is truncated")
             self.cache[key] = (data, dtype, self.where)
@@ -93,21 +90,22 @@ def read_pt(path, data: bytes | None = None):
     """The value saved in a ``.pt`` file (or its bytes ``data``; ``path`` names it in errors): tensors as
     :class:`TensorArray`, lists, tuples, dicts, strings and numbers as they are."""
     where = path
-    raw = Path(path).read_bytes() if data is None else data
-    if not zipfile.is_zipfile(io.BytesIO(raw)):
+    raw = read_bytes(path, "torch file") if data is None else data
+    if not is_zip(raw):
         raise DataError(where, None, "not a torch.save zip file (torch >= 1.6 writes one; an older legacy file or "
                                      "another format cannot be read here: re-save it with torch.save)")
     try:
-        with zipfile.ZipFile(io.BytesIO(raw)) as archive:
+        with open_zip(where, "torch.save zip file", raw) as archive:
             pkl = [n for n in archive.namelist() if n.endswith("data.pkl") and n.count("/") == 1]
             if not pkl:
                 raise DataError(where, None, "no data.pkl inside: not a torch.save file")
             prefix = pkl[0][: -len("data.pkl")]
             names = archive.namelist()
-            order = archive.read(f"{prefix}byteorder").decode() if f"{prefix}byteorder" in names else "little"
+            order = zip_read(archive, f"{prefix}byteorder", where).decode() if f"{prefix}byteorder" in names \
+                else "little"
             if order != "little":
                 raise DataError(where, None, f"{order}-endian tensors cannot be read here")
-            return _Unpickler(io.BytesIO(archive.read(pkl[0])), archive, prefix, where).load()
+            return _Unpickler(io.BytesIO(zip_read(archive, pkl[0], where)), archive, prefix, where).load()
     except DataError:
         raise
     except (zipfile.BadZipFile, pickle.UnpicklingError, EOFError, ValueError, TypeError) as e:

@@ -5,12 +5,14 @@ A run folder (``python -m hoisdf.train --out RUN``) holds::
     RUN/config.json            resolved TrainConfig, stores, git commit, package version
     RUN/checkpoints/last.pt    the newest checkpoint (also epoch-NNN.pt at epoch ends)
     RUN/metrics.csv            one line per logging step and per validation (the training curve)
+    RUN/keys-rank<R>.txt       with train.record_keys: the key of every record trained on, per rank
     RUN/tb/                    TensorBoard event files
 
 A checkpoint is a dict: ``model`` (state dict; MANO is not in it), ``optimizer``, ``scheduler``, ``rng``
 (torch CPU / CUDA and Python ``random`` states, the augmentation generator) of rank 0 and ``rng_ranks`` (the
 same for every rank, in rank order: a DDP resume gives each rank its own), ``progress`` (epoch, step in
-the epoch, global step) and ``config`` (TrainConfig.as_dict()).
+the epoch, global step), ``config`` (TrainConfig.as_dict()) and ``keys_bytes`` (per rank, the size its keys file had:
+``--resume`` cuts it back to that).
 """
 
 from __future__ import annotations
@@ -138,13 +140,10 @@ def find_checkpoint(run_or_file: str | os.PathLike) -> Path:
 
 def load_checkpoint(run_or_file: str | os.PathLike, map_location="cpu") -> dict:
     """Read a checkpoint with ``weights_only=True`` (no code in the file is run); errors name the file."""
-    path = find_checkpoint(run_or_file)
-    try:
-        payload = torch.load(path, map_location=map_location, weights_only=True)
-    except Exception as e:
-        from hoidata.safe_pickle import refusal_text
+    from hoidata.reading_media import read_torch
 
-        raise DataError(path, None, f"cannot read checkpoint: {refusal_text(e)}") from e
+    path = find_checkpoint(run_or_file)
+    payload = read_torch(path, "checkpoint", map_location)
     if not isinstance(payload, dict):
         raise DataError(path, None, f"expected a checkpoint dict, got {type(payload).__name__}")
     for key in ("model", "config"):

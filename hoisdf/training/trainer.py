@@ -6,7 +6,8 @@ gets its own back) and the position in the epoch. Resuming rebuilds the epoch's 
 only on seed and epoch), skips the batches already trained on without computing anything, and then
 restores the RNG states, so a run interrupted after step k continues exactly as if it had not stopped
 (on the CPU, with any number of processes; cuDNN kernels are not bitwise deterministic on GPUs).
-metrics.csv and TensorBoard drop what was logged after the checkpoint. An epoch's checkpoint is written
+Every file a run appends to per step drops what was logged after the checkpoint (:func:`trim_logs`: metrics.csv,
+the keys files, TensorBoard's events). An epoch's checkpoint is written
 before its validation runs, and validation stores are opened when the trainer is built.
 """
 
@@ -23,6 +24,7 @@ from torch import nn
 
 from hoidata.atomic import append_whole, write_atomic
 from hoidata.errors import DataError, naming_os_errors
+from hoidata.reading import read_bytes, read_text
 from hoidata.store import read_index
 from hoisdf.config import TrainConfig, sdf_rows
 from hoisdf.data import StoreSpec, build_dataset, make_loader
@@ -44,6 +46,7 @@ from hoisdf.training.checkpoint import (
 from hoisdf.training.losses import HOISDFLoss
 
 CURVE = "metrics.csv"
+KEYS = "keys-rank{rank}.txt"  # train.record_keys: the key of every record a rank trained on, one a line
 
 
 @dataclass
@@ -96,12 +99,33 @@ def unwrap(model: nn.Module) -> nn.Module:
     return model.module if hasattr(model, "module") else model
 
 
+def trim_keys(path: Path, size: int | None, lines: int) -> int:
+    """Cut a rank's keys file back to what a checkpoint covers: its first ``size`` bytes (what the checkpoint
+    recorded), or, from a checkpoint that recorded none (an older version), its first ``lines`` lines (training
+    batches are whole: ``global_step x batch_size`` keys). Returns the file's size after."""
+    if not path.is_file():
+        return 0
+    data = read_bytes(path, "keys file")
+    if size is None:
+        end = 0
+        for _ in range(lines):
+            end = data.find(b"\n", end) + 1
+            if end == 0:
+                return len(data)
+        size = end
+    if len(data) > size:
+        write_atomic(path, data[:size])
+    return min(len(data), size)
+
+
 def trim_log(path: Path, global_step: int) -> None:
     """Drop the metrics.csv rows logged after ``global_step`` (a resumed run logs those steps again)."""
     if not path.is_file():
         return
-    with open(path, newline="") as f:
-        rows = list(csv.reader(f))
+    try:
+        rows = list(csv.reader(io.StringIO(read_text(path, "training log"), newline="")))
+    except csv.Error as exc:  # a field past csv's limit: not a log this run wrote
+        raise DataError(path, None, f"not a training log ({exc})") from None
     if not rows:
         return
     kept = [rows[0]] + [r for r in rows[1:] if len(r) == 5 and r[2].isdigit() and int(r[2]) <= global_step]
@@ -164,25 +188,31 @@ class Trainer:
         self._writer = None
         self._purge_step = None  # resumed: TensorBoard drops the events logged after the checkpoint
         self._checkpoint = self.run_dir / CHECKPOINTS / LAST  # the one resumed from (named in errors)
+        self._keys_bytes = 0  # the size of this rank's keys file: what a checkpoint written now covers
 
     # --- state ----------------------------------------------------------------------------------------------
-    def state_dict(self, rng_ranks: list[dict] | None = None) -> dict:
-        """The checkpoint; ``rng_ranks``: every rank's RNG states in rank order (default: this rank's only)."""
+    def state_dict(self, rng_ranks: list[dict] | None = None, keys_bytes: list[int] | None = None) -> dict:
+        """The checkpoint; ``rng_ranks``: every rank's RNG states in rank order (default: this rank's only);
+        ``keys_bytes``: every rank's keys file size (default: this rank's)."""
         p = self.progress
         rng_ranks = rng_ranks or [rng_state(self.generator)]
         return {"model": unwrap(self.model).state_dict(), "optimizer": self.optimizer.state_dict(),
                 "rng": rng_ranks[0], "rng_ranks": rng_ranks, "config": self.config.as_dict(),
-                "progress": {"epoch": p.epoch, "step": p.step, "global_step": p.global_step}}
+                "progress": {"epoch": p.epoch, "step": p.step, "global_step": p.global_step},
+                "keys_bytes": keys_bytes or [self._keys_bytes]}
 
     def save(self, name: str = LAST) -> Path | None:
-        """Write the checkpoint (rank 0); every rank must call it, since it gathers every rank's RNG states."""
-        states = [rng_state(self.generator)]
+        """Write the checkpoint (rank 0); every rank must call it, since it gathers every rank's RNG states and
+        keys file size."""
+        mine = (rng_state(self.generator), self._keys_bytes)
+        states = [mine]
         if self.world_size > 1:
             states = [None] * self.world_size
-            torch.distributed.all_gather_object(states, rng_state(self.generator))
+            torch.distributed.all_gather_object(states, mine)
         if self.rank != 0:
             return None
-        path = save_checkpoint(self.run_dir / CHECKPOINTS / LAST, self.state_dict(states))
+        payload = self.state_dict([s[0] for s in states], [s[1] for s in states])
+        path = save_checkpoint(self.run_dir / CHECKPOINTS / LAST, payload)
         if name != LAST:  # the same bytes under the epoch's name, copied rather than serialised twice
             copy_checkpoint(path, self.run_dir / CHECKPOINTS / name)
         return path
@@ -202,10 +232,22 @@ class Trainer:
         except (ValueError, KeyError, TypeError, RuntimeError) as exc:
             raise DataError(path, "optimizer", f"does not fit this model ({exc})") from None
         self.progress, self._checkpoint = Progress(**payload["progress"]), path
-        if self.rank == 0:
-            trim_log(self.run_dir / CURVE, self.progress.global_step)
-        self._purge_step = self.progress.global_step + 1
+        self.trim_logs(payload)
         return ranks[self.rank]
+
+    def trim_logs(self, payload: dict) -> None:
+        """Every file the run appends to per step cut back to what the checkpoint covers (a resumed run logs those
+        steps again): metrics.csv's rows by their step (rank 0), this rank's keys file to the size the checkpoint
+        recorded, TensorBoard's events from the next step on (its reader drops them: ``purge_step``)."""
+        step = self.progress.global_step
+        if self.rank == 0:
+            trim_log(self.run_dir / CURVE, step)
+        sizes = payload.get("keys_bytes")
+        size = sizes[self.rank] if isinstance(sizes, list) and len(sizes) == self.world_size else None
+        size = size if type(size) is int and size >= 0 else None  # an older checkpoint: by steps instead
+        batch = payload.get("config", {}).get("train", {}).get("batch_size", self.config.train.batch_size)
+        self._keys_bytes = trim_keys(self.run_dir / KEYS.format(rank=self.rank), size, step * int(batch))
+        self._purge_step = step + 1
 
     # --- one step -------------------------------------------------------------------------------------------
     def train_step(self, batch: dict, points: str, noise: float) -> dict[str, float]:
@@ -293,7 +335,9 @@ class Trainer:
 
     def _record_keys(self, keys: list[str]) -> None:
         if self.config.train.record_keys:
-            append_whole(self.run_dir / f"keys-rank{self.rank}.txt", "".join(k + "\n" for k in keys).encode())
+            data = "".join(k + "\n" for k in keys).encode()
+            append_whole(self.run_dir / KEYS.format(rank=self.rank), data)
+            self._keys_bytes += len(data)
 
     # --- validation and logs --------------------------------------------------------------------------------
     @torch.no_grad()

@@ -14,7 +14,6 @@ identity (``hoisdf.model.heads.ManoHead``).
 
 from __future__ import annotations
 
-import hashlib
 import re
 from pathlib import Path
 
@@ -22,6 +21,8 @@ import numpy as np
 import torch
 
 from hoidata.errors import DataError
+from hoidata.reading import file_digest
+from hoidata.reading_media import read_torch
 
 SETTINGS = {
     # upstream main/config.py: use_big_decoder only for "ho3d", use_inverse_kinematics only for "ho3d_render"
@@ -106,24 +107,15 @@ def read_snapshot(path: Path) -> tuple[dict, str]:
     """(payload, sha256) of an upstream snapshot, read with ``weights_only=True`` on the CPU (no code in the
     file runs; tensors saved on CUDA load on a CPU-only machine). Errors are one DataError line."""
     path = Path(path)
-    if not path.is_file():
-        raise DataError(path, None, "snapshot not found")
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # truncated zip, not a pickle, a pickle with code: all "not a snapshot"
-        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
-        raise DataError(path, None, f"not a readable PyTorch snapshot ({type(exc).__name__}: {first[:160]})") from None
+    payload = read_torch(path, "PyTorch checkpoint")  # not found, not a checkpoint, damaged, holding code
+    digest = file_digest(path, "PyTorch checkpoint")[1]
     if not isinstance(payload, dict) or not isinstance(payload.get("network"), dict):
         raise DataError(path, "network", "missing: not an upstream HOISDF snapshot "
                                          "({'epoch', 'network', 'optimizer', ...} from its main/train.py)")
     bad = [k for k, v in payload["network"].items() if not isinstance(k, str) or not torch.is_tensor(v)]
     if bad:
         raise DataError(path, f"network[{bad[0]!r}]", "expected a state dict of tensors")
-    return payload, digest.hexdigest()
+    return payload, digest
 
 
 def mano_buffers(mano_dir) -> dict[str, torch.Tensor]:
@@ -160,6 +152,26 @@ def check_mano(network: dict, mano_dir, path) -> None:
                                          "the snapshot was trained with other MANO files")
 
 
+def checked_weight(value: torch.Tensor, dtype: torch.dtype, path, field: str) -> torch.Tensor:
+    """``value`` cast to the model's ``dtype``, refused naming ``field`` where it is of another kind (a float
+    weight stored as integers or booleans: cast in silence it would be garbage) or holds NaN or infinity, before
+    or after the cast (every prediction of the run would be NaN). A narrower float (float16) is cast."""
+    kind = "float" if value.is_floating_point() else "complex" if value.is_complex() else \
+        "bool" if value.dtype == torch.bool else "integer"
+    want = "float" if dtype.is_floating_point else "integer"
+    if kind != want:
+        raise DataError(path, field, f"{value.dtype} values where the model holds {dtype} ones ({kind} values where "
+                                     f"{want} ones belong: a damaged or converted file); refused, not cast")
+    cast = value.to(dtype)
+    if want == "float":
+        nan, inf = int(torch.isnan(cast).sum()), int(torch.isinf(cast).sum())
+        if nan or inf:
+            what = " and ".join(p for p in (f"{nan} NaN" if nan else "", f"{inf} infinite" if inf else "") if p)
+            raise DataError(path, field, f"{cast.numel()} values, {what} (as {dtype}): every prediction of the run "
+                                         "would be NaN; refused")
+    return cast
+
+
 def convert_network(network: dict, expected: dict, path, ik: bool = False, raw_6d: bool = False) -> dict:
     """Upstream ``network`` (``module.`` prefix optional) -> the project's state dict.
 
@@ -178,7 +190,7 @@ def convert_network(network: dict, expected: dict, path, ik: bool = False, raw_6
         if new is None or new not in expected:
             raise DataError(path, f"network[{raw!r}]", "unexpected key for this setting (not an upstream HOISDF "
                                                        "snapshot of this --setting?)")
-        value = value.detach().clone()
+        value = checked_weight(value.detach().clone(), expected[new].dtype, path, f"network[{raw!r}]")
         if key.endswith("sigmoid_beta"):
             value = value.reshape(())
         if re.fullmatch(r"linear_pose\.layers\.2\.bias", key) and not raw_6d:
@@ -186,7 +198,7 @@ def convert_network(network: dict, expected: dict, path, ik: bool = False, raw_6
         if value.shape != expected[new].shape:
             raise DataError(path, f"network[{raw!r}]", f"shape {tuple(value.shape)}, the model expects "
                                                        f"{tuple(expected[new].shape)} (another --setting?)")
-        out[new] = value.to(expected[new].dtype)
+        out[new] = value
     missing = [k for k in expected if k not in out]
     if missing:
         raise DataError(path, "network", f"{len(missing)} weights missing, first: no upstream key gives "
