@@ -7,12 +7,12 @@ is used only while its ``MANO_RIGHT.pkl`` still has the recorded digest. A groun
 
 from __future__ import annotations
 
-import hashlib
 import subprocess
 from dataclasses import dataclass
 from pathlib import Path
 
 from hoidata.errors import DataError
+from hoidata.reading import file_digest
 
 
 def git_commit() -> str:
@@ -40,8 +40,7 @@ def mano_digest(folder) -> str | None:
     path = Path(folder) / MANO_FILE
     if not path.is_file():
         return None
-    with open(path, "rb") as f:
-        return hashlib.file_digest(f, "sha256").hexdigest()
+    return file_digest(path, "MANO file")[1]
 
 
 @dataclass(frozen=True)

@@ -187,6 +187,15 @@ def store_cases(tmp: Path) -> list[Case]:
         info = SimpleNamespace(size=len(data), sha256=hashlib.sha256(data).hexdigest())
         return store_writer._shard_metas(path, info)
 
+    def shard_record_metas(path):
+        from hoidata.store.loader_files import ShardMembers, record_metas
+        from hoidata.store.spans import record_spans
+
+        data, keys, members = path.read_bytes(), [first_key], []
+        info = ShardInfo(0, path.name, 1, hashlib.sha256(data).hexdigest(), len(data), first_key, first_key)
+        spans = record_spans(path, keys, len(data), members)
+        return record_metas(path.parent, [ShardMembers(info, keys, spans, members)])
+
     cases = []
     for key, members in records:
         for member, data in members.items():
@@ -201,6 +210,9 @@ def store_cases(tmp: Path) -> list[Case]:
         Case("build: shard metas", "json", first[schema.META], shard_metas, "shard-000000.tar",
              frozenset(TYPED), member=f"{first_key}.{schema.META}", others=plain_others, container=tar_bytes,
              position=len(plain_others)),  # the labels' values are the index writer's to check
+        Case("loader files: record metas", "json", first[schema.META], shard_record_metas, "shard-000000.tar",
+             frozenset(TYPED), member=f"{first_key}.{schema.META}", others=plain_others, container=tar_bytes,
+             position=len(plain_others)),  # the card reads the values as they are
         Case("export: shard rows", "json", first[schema.META], shard_rows, "shard-000000.tar", frozenset(TYPED),
              member=f"{first_key}.{schema.META}", others=plain_others, container=tar_bytes,
              position=len(plain_others)),
@@ -215,6 +227,8 @@ def store_cases(tmp: Path) -> list[Case]:
         Case("build.json (resume)", "json", (out / "build.json").read_bytes(),
              lambda p: store_writer.check_build_file(p.parent, config, keys, inputs), "build.json",
              frozenset({"missing"})),  # none yet: a new store, pinned now
+        Case("build.json (the MANO digests the index records)", "json", (out / "build.json").read_bytes(),
+             lambda p: store_writer.pinned_mano(p.parent), "build.json", frozenset(TYPED)),  # reads the digests only
         Case("skips file", "json", JSON_NUMBERS({"skipped": [], "records": 1}),
              lambda p: store_writer.read_shard_skips(p.parent, 0), store_writer.extra_name(0)),
         Case("shard sidecar", "json", JSON_NUMBERS(info), lambda p: store.read_sidecar(p.parent, 0),

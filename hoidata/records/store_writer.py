@@ -21,7 +21,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-from hoidata import schema, store
+from hoidata import schema, shapes, store
 from hoidata.atomic import write_json_atomic
 from hoidata.engine import RunSummary, ShardTask
 from hoidata.errors import DataError
@@ -168,6 +168,16 @@ def check_build_file(out: Path, config: dict, keys: list[str], inputs: dict) -> 
         write_json_atomic(path, spec)
 
 
+PINNED_MANO = shapes.Record(optional={"inputs": shapes.Record(optional={"mano": shapes.MapOf(shapes.String())})})
+
+
+def pinned_mano(out: Path) -> dict:
+    """The MANO files' sha256 that ``build.json`` pinned (file name -> digest; {} for a store pinned before them)."""
+    path = Path(out) / BUILD_FILE
+    pinned = shapes.check(read_json(path, "store build file"), PINNED_MANO, path)
+    return pinned.get("inputs", {}).get("mano", {})
+
+
 def shards_done(out: Path, numbers: list[int], starting: bool) -> set[int]:
     """The shards of ``numbers`` that are done: intact on disk (size and sidecar; with ``starting`` also their
     bytes) and with a readable skips file that agrees with the sidecar (a lost or damaged one makes the shard be
@@ -218,9 +228,7 @@ class StoreWriter:
         run.out = self.out
         if run.all_done:
             if self.inputs is not None:  # with the MANO digests build.json pinned (hoidata.provenance)
-                pinned = read_json(self.out / BUILD_FILE, "build record")
-                mano = pinned.get("inputs", {}).get("mano", {}) if isinstance(pinned, dict) else {}
-                provenance = {**(provenance or {}), INPUTS: {**self.inputs, "mano_sha256": mano}}
+                provenance = {**(provenance or {}), INPUTS: {**self.inputs, "mano_sha256": pinned_mano(self.out)}}
             run.skipped = finish_store(self.out, self.config, self.models_dir, run.units, reader_skips, run,
                                        provenance)
         return run

@@ -15,8 +15,6 @@ checked against the index's keys.
 
 from __future__ import annotations
 
-import json
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -24,6 +22,7 @@ import numpy as np
 
 from hoidata.atomic import write_atomic, write_json_atomic
 from hoidata.errors import DataError
+from hoidata.reading import parse_json, read_span
 from hoidata.schema import META
 from hoidata.store.index import ShardInfo, StoreIndex
 from hoidata.store.spans import record_spans
@@ -73,16 +72,12 @@ def record_metas(store_dir, shards: list[ShardMembers]) -> list[dict]:
     metas = []
     for shard in shards:
         path = Path(store_dir) / shard.info.name
-        with open(path, "rb") as file:
-            for key, record in zip(shard.keys, shard.members):
-                where = {member: (offset, size) for member, offset, size in record}
-                if META not in where:
-                    raise DataError(path, key, f"no {META} member")
-                offset, size = where[META]
-                try:
-                    metas.append(json.loads(os.pread(file.fileno(), size, offset)))
-                except (UnicodeDecodeError, ValueError, RecursionError) as exc:
-                    raise DataError(path, f"{key}.{META}", f"not UTF-8 JSON ({type(exc).__name__})") from None
+        for key, record in zip(shard.keys, shard.members):
+            where = {member: (offset, size) for member, offset, size in record}
+            if META not in where:
+                raise DataError(path, f"{key}.{META}", "no such member")
+            offset, size = where[META]
+            metas.append(parse_json(read_span(path, offset, size, f"{key}.{META}"), path, f"{key}.{META}"))
     return metas
 
 
